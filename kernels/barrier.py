@@ -1,0 +1,140 @@
+"""IPC-style contact barrier extended to negative distances (HairFormer Eq. 12-14).
+
+Notation (all lengths in metres):
+    xi     hard barrier: the distance at which the log barrier B_0 diverges.
+    dhat   soft barrier width: B_0 is zero for d >= xi + dhat.
+    bp     join fraction in (0, 1): the log barrier is used for d >= d_b = xi + bp * dhat and a
+           polynomial extrapolation of it below d_b, so that d < xi (and d < 0, penetration)
+           still has a finite energy and a useful gradient.
+
+Two extrapolations, chosen by an integer `variant`:
+    BARRIER_PAPER     Eq. 12-14 literally: quartic with the max(0, .) clamp, a3/a4 from the
+                      "deep penetration distance" t0 = -(xi + dhat) - d_b. Those coefficients
+                      give P(t0) = P'(t0) = 0, so the penalty falls back to zero at
+                      d = -(xi + dhat) and a vertex pushed that deep sits in a local minimum.
+    BARRIER_MONOTONE  the default: P(tau) = f_b + f_b' tau + D_f tau^2 (1 + (tau / t0)^2).
+                      It matches B_0, B_0', B_0'' at d_b (C2), and since f_b' < 0, D_f > 0
+                      every term of P'(tau) is negative for tau < 0: the penalty increases
+                      strictly with penetration depth, quadratically near d_b and quartically
+                      beyond |t0|, as the paper intends for its quartic.
+
+All functions are generic over float32/float64 (`Any`); literals are cast with `type(d)`.
+Differences of squares are evaluated in factored form, (d - a)(d + a), to keep float32
+precision near the barrier where d is within micrometres of xi.
+"""
+
+from typing import Any
+
+import warp as wp
+
+# Gradients are hand-written beside each energy: no generated adjoints to compile.
+wp.set_module_options({"enable_backward": False})
+
+BARRIER_PAPER = wp.constant(0)
+BARRIER_MONOTONE = wp.constant(1)
+
+
+@wp.func
+def barrier_log_energy(d: Any, xi: Any, dhat: Any):
+    """B_0(d) of Eq. 12 for d > xi, without the clamp (negative for d > xi + dhat)."""
+    c = dhat * (type(d)(2.0) * xi + dhat)  # (xi + dhat)^2 - xi^2
+    s = (d - xi) * (d + xi)  # d^2 - xi^2
+    q = (d - xi - dhat) * (d + xi + dhat)  # d^2 - (xi + dhat)^2
+    return -q * q * wp.log(s / c)
+
+
+@wp.func
+def barrier_log_gradient(d: Any, xi: Any, dhat: Any):
+    """dB_0/dd for d > xi (unclamped)."""
+    c = dhat * (type(d)(2.0) * xi + dhat)
+    s = (d - xi) * (d + xi)
+    q = (d - xi - dhat) * (d + xi + dhat)
+    return -type(d)(2.0) * d * (type(d)(2.0) * q * wp.log(s / c) + q * q / s)
+
+
+@wp.func
+def barrier_log_hessian(d: Any, xi: Any, dhat: Any):
+    """d^2 B_0/dd^2 for d > xi (unclamped)."""
+    c = dhat * (type(d)(2.0) * xi + dhat)
+    s = (d - xi) * (d + xi)
+    q = (d - xi - dhat) * (d + xi + dhat)
+    log_sc = wp.log(s / c)
+    d2 = d * d
+    return -(
+        type(d)(4.0) * q * log_sc
+        + type(d)(8.0) * d2 * log_sc
+        + type(d)(16.0) * d2 * q / s
+        + type(d)(2.0) * q * q / s
+        - type(d)(4.0) * d2 * q * q / (s * s)
+    )
+
+
+@wp.func
+def barrier_energy(d: Any, xi: Any, dhat: Any, bp: Any, variant: int):
+    """B(d) of Eq. 12, [energy units of the caller's weight]. Zero for d >= xi + dhat."""
+    zero = type(d)(0.0)
+    if d >= xi + dhat:
+        return zero
+    db = xi + bp * dhat
+    if d >= db:
+        return wp.max(zero, barrier_log_energy(d, xi, dhat))
+    fb = barrier_log_energy(db, xi, dhat)
+    fb1 = barrier_log_gradient(db, xi, dhat)
+    df = type(d)(0.5) * barrier_log_hessian(db, xi, dhat)
+    tau = d - db
+    t0 = -(xi + dhat) - db
+    if variant == BARRIER_PAPER:
+        e1 = -(fb + fb1 * t0 + df * t0 * t0)
+        e2 = -(fb1 + type(d)(2.0) * df * t0)
+        a3 = type(d)(4.0) * e1 / (t0 * t0 * t0) - e2 / (t0 * t0)
+        a4 = e2 / (t0 * t0 * t0) - type(d)(3.0) * e1 / (t0 * t0 * t0 * t0)
+        return wp.max(zero, fb + fb1 * tau + df * tau * tau + a3 * tau * tau * tau + a4 * tau * tau * tau * tau)
+    r = tau / t0
+    return fb + fb1 * tau + df * tau * tau * (type(d)(1.0) + r * r)
+
+
+@wp.func
+def barrier_gradient(d: Any, xi: Any, dhat: Any, bp: Any, variant: int):
+    """dB/dd, consistent with `barrier_energy` (zero where a max(0, .) clamp is active)."""
+    zero = type(d)(0.0)
+    if d >= xi + dhat:
+        return zero
+    db = xi + bp * dhat
+    if d >= db:
+        if barrier_log_energy(d, xi, dhat) <= zero:
+            return zero
+        return barrier_log_gradient(d, xi, dhat)
+    fb = barrier_log_energy(db, xi, dhat)
+    fb1 = barrier_log_gradient(db, xi, dhat)
+    df = type(d)(0.5) * barrier_log_hessian(db, xi, dhat)
+    tau = d - db
+    t0 = -(xi + dhat) - db
+    if variant == BARRIER_PAPER:
+        e1 = -(fb + fb1 * t0 + df * t0 * t0)
+        e2 = -(fb1 + type(d)(2.0) * df * t0)
+        a3 = type(d)(4.0) * e1 / (t0 * t0 * t0) - e2 / (t0 * t0)
+        a4 = e2 / (t0 * t0 * t0) - type(d)(3.0) * e1 / (t0 * t0 * t0 * t0)
+        value = fb + fb1 * tau + df * tau * tau + a3 * tau * tau * tau + a4 * tau * tau * tau * tau
+        if value <= zero:
+            return zero
+        return fb1 + type(d)(2.0) * df * tau + type(d)(3.0) * a3 * tau * tau + type(d)(4.0) * a4 * tau * tau * tau
+    return fb1 + type(d)(2.0) * df * tau + type(d)(4.0) * df * tau * tau * tau / (t0 * t0)
+
+
+@wp.kernel
+def barrier_kernel(
+    # In:
+    d_in: wp.array(dtype=Any),
+    xi: Any,
+    dhat: Any,
+    bp: Any,
+    variant: int,
+    # Out:
+    energy_out: wp.array(dtype=Any),
+    gradient_out: wp.array(dtype=Any),
+):
+    """Element-wise B(d) and dB/dd; `gradient_out` feeds the torch backward."""
+    i = wp.tid()
+    d = d_in[i]
+    energy_out[i] = barrier_energy(d, xi, dhat, bp, variant)
+    gradient_out[i] = barrier_gradient(d, xi, dhat, bp, variant)

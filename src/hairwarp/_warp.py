@@ -1,0 +1,73 @@
+"""The one place where torch tensors meet Warp: initialisation, devices, streams, views.
+
+Warp arrays never leave `hairwarp.ops`; public functions take and return torch tensors.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+
+import torch
+import warp as wp
+
+_initialised = False
+
+
+def init() -> None:
+    """Initialise Warp once, quietly (idempotent)."""
+    global _initialised
+    if not _initialised:
+        wp.config.log_level = logging.WARNING
+        wp.init()
+        _initialised = True
+
+
+def warp_device(device: torch.device) -> str:
+    """Warp device name for a torch device ("cpu" or "cuda:N")."""
+    if device.type == "cuda":
+        index = device.index if device.index is not None else torch.cuda.current_device()
+        return f"cuda:{index}"
+    if device.type == "cpu":
+        return "cpu"
+    raise ValueError(f"device: expected a cpu or cuda tensor, got device {device}")
+
+
+def launch_scope(device: torch.device):
+    """Context that makes Warp launches run on torch's current stream for `device`.
+
+    On CPU there is no stream; on CUDA this keeps Warp and torch work ordered without a
+    host synchronisation.
+    """
+    init()
+    if device.type == "cuda":
+        return wp.ScopedStream(wp.stream_from_torch(device))
+    return contextlib.nullcontext()
+
+
+_VEC3 = {torch.float32: wp.vec3, torch.float64: wp.vec3d}
+_MAT33 = {torch.float32: wp.mat33, torch.float64: wp.mat33d}
+_SCALAR = {torch.float32: wp.float32, torch.float64: wp.float64}
+
+
+def scalar_type(dtype: torch.dtype):
+    """Warp scalar type for a torch float dtype."""
+    return _SCALAR[dtype]
+
+
+def scalar(value: float, dtype: torch.dtype):
+    """A Python float as the Warp scalar that matches `dtype` (generic kernels need it)."""
+    return _SCALAR[dtype](value)
+
+
+def as_warp(t: torch.Tensor, vec3: bool = False) -> wp.array:
+    """Zero-copy Warp view of a contiguous tensor; `vec3=True` views (..., 3) as vec3."""
+    init()
+    t = t.detach()
+    if not t.is_contiguous():
+        t = t.contiguous()
+    if vec3:
+        return wp.from_torch(t.reshape(-1, 3), dtype=_VEC3[t.dtype])
+    if t.dtype in _SCALAR:
+        return wp.from_torch(t.reshape(-1), dtype=_SCALAR[t.dtype])
+    return wp.from_torch(t.reshape(-1))
