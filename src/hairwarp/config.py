@@ -1,0 +1,122 @@
+"""Physical constants and loss weights of the hair energy (HairFormer Section 3.4, Eq. 5-16).
+
+The paper hardcodes its physical parameters; here every weight and constant is a field of one
+dataclass, readable and changeable at run time (`dataclasses.replace(cfg, bending_weight=0)`).
+Units: metres, seconds, kilograms; energies in joules where the term is physical (gravity,
+inertia), otherwise in the weight's units times the dimensionless or squared-metre measure the
+equation sums.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+# The loss terms in the order the fused kernels report them (columns of the per-term output).
+STRAND_TERMS = (
+    "stretch",  # Eq. 7
+    "bending",  # Eq. 8
+    "auxiliary",  # Eq. 9
+    "smoothness",  # Eq. 10
+    "gravity",  # Eq. 11
+    "root_alignment",  # Eq. 15
+    "inertia",  # Eq. 16
+)
+CONTACT_TERMS = (
+    "hair_body_contact",  # Eq. 12 with d = signed distance to the body
+    "hair_hair_contact",  # Eq. 12 with d = segment-segment distance
+)
+ALL_TERMS = STRAND_TERMS + CONTACT_TERMS
+
+
+@dataclass
+class EnergyConfig:
+    """Weights and physical constants of the total energy (Eq. 5 static, Eq. 6 dynamic).
+
+    Attributes:
+        stretch_weight: k_s of Eq. 7 [J/m^2]; multiplies the mean squared segment-length error.
+        bending_weight: k_b of Eq. 8 [J/rad]; multiplies the summed turning angles.
+        bending_eps: epsilon of Eq. 8 [m] (validity threshold and normalisation guard).
+        auxiliary_weight: lambda_aux of Eq. 9 [J/m^2]; pull toward the rigid placement.
+        smoothness_weight: lambda_smooth of Eq. 10 [J/m^2].
+        vertex_mass: m of Eq. 11 and 16 [kg] per moving vertex of a guide strand (a guide
+            stands for a bundle of hairs, so this is the bundle's mass per vertex).
+        gravity: gravitational acceleration [m/s^2], y up.
+        gravity_weight: dimensionless multiplier of Eq. 11 (1 = physical gravity).
+        root_alignment_weight: lambda_root of Eq. 15 [J].
+        root_alignment_segments: k'_align of Eq. 15: moving segments per strand aligned with the
+            scalp normal.
+        root_alignment_eps: epsilon_norm of Eq. 15 [m].
+        inertia_weight: lambda_inertia of Eq. 16 (dimensionless multiplier).
+        time_step: Delta t of Eq. 16 [s] (1/60 in the paper).
+        hair_body_weight: lambda_hb of Eq. 12 for hair-body contact [J], per vertex.
+        hair_body_xi: hard barrier xi for hair-body contact [m] (1 mm in the paper).
+        hair_body_dhat: soft barrier width for hair-body contact [m] (1.5 xi in the paper).
+        hair_hair_weight: lambda_hh of Eq. 12 for hair-hair contact [J], per segment pair.
+        hair_diameter: xi for hair-hair contact [m]: the diameter of a guide strand's bundle.
+        hair_hair_dhat: soft barrier width for hair-hair contact [m] (1.5 xi in the paper).
+        barrier_join_fraction: b_p of Eq. 12, d_b = xi + b_p * dhat; the paper anneals it from
+            0.9 to 0.01 while training, 0.01 being its final value.
+        barrier_variant: "monotone" (default) or "paper" (Eq. 12-14 literally).
+        hair_hair_capacity_per_segment: pair-buffer capacity of the hair-hair broad phase, in
+            candidate pairs per segment; overflow is reported, never dropped silently.
+    """
+
+    stretch_weight: float = 1.0e5
+    bending_weight: float = 1.0e-6
+    bending_eps: float = 1.0e-6
+    auxiliary_weight: float = 1.0
+    smoothness_weight: float = 1.0e3
+    vertex_mass: float = 1.0e-5
+    gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)
+    gravity_weight: float = 1.0
+    root_alignment_weight: float = 1.0e-3
+    root_alignment_segments: int = 3
+    root_alignment_eps: float = 1.0e-8
+    inertia_weight: float = 1.0
+    time_step: float = 1.0 / 60.0
+    hair_body_weight: float = 1.0e3
+    hair_body_xi: float = 1.0e-3
+    hair_body_dhat: float = 1.5e-3
+    hair_hair_weight: float = 0.0
+    hair_diameter: float = 2.0e-3
+    hair_hair_dhat: float = 3.0e-3
+    barrier_join_fraction: float = 0.01
+    barrier_variant: str = "monotone"
+    hair_hair_capacity_per_segment: int = 16
+
+    def replace(self, **changes) -> "EnergyConfig":
+        """A copy with some fields changed (validated)."""
+        return dataclasses.replace(self, **changes)
+
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, float) and not math.isfinite(value):
+                raise ValueError(f"{f.name}: expected a finite number, got {value}")
+        for name in ("hair_body_xi", "hair_body_dhat", "hair_diameter", "hair_hair_dhat", "time_step"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"{name}: expected a positive length/time, got {getattr(self, name)}")
+        if not 0.0 < self.barrier_join_fraction < 1.0:
+            raise ValueError(f"barrier_join_fraction: expected a value in (0, 1), got {self.barrier_join_fraction}")
+        if self.barrier_variant not in ("paper", "monotone"):
+            raise ValueError(f"barrier_variant: expected 'paper' or 'monotone', got {self.barrier_variant!r}")
+        if self.root_alignment_segments < 0:
+            raise ValueError(f"root_alignment_segments: expected >= 0, got {self.root_alignment_segments}")
+        if len(self.gravity) != 3:
+            raise ValueError(f"gravity: expected 3 numbers, got {self.gravity}")
+
+    def weights(self) -> dict[str, float]:
+        """The weight of each term by name (zero turns the term off)."""
+        return {
+            "stretch": self.stretch_weight,
+            "bending": self.bending_weight,
+            "auxiliary": self.auxiliary_weight,
+            "smoothness": self.smoothness_weight,
+            "gravity": self.gravity_weight,
+            "root_alignment": self.root_alignment_weight,
+            "inertia": self.inertia_weight,
+            "hair_body_contact": self.hair_body_weight,
+            "hair_hair_contact": self.hair_hair_weight,
+        }

@@ -1,0 +1,1 @@
+"""hairwarp.evaluation."""
