@@ -1,0 +1,1 @@
+"""Subcommands of the `hairwarp` command line, one module each."""

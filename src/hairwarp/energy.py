@@ -1,0 +1,160 @@
+"""The total hair energy: Eq. 5 (static) and Eq. 6 without the functional regularization
+(that term belongs to the networks, `hairwarp.models`).
+
+Composition, in as few kernel launches as the physics allows:
+    1. every strand term (Eq. 7-11, 15, 16) in one fused pass over the vertices
+       (`hairwarp.ops.strand_energies`);
+    2. hair-body contact (Eq. 12, d = signed distance to the body) in one pass over the
+       vertices (`hairwarp.ops.hair_body_contact_energy`);
+    3. hair-hair contact (Eq. 12, d = segment-segment distance): broad phase into a pair
+       buffer, then one pass over the pairs (`hairwarp.ops.hair_hair_contact_energy`).
+Each returns its energy per batch item with a hand-written gradient; autograd adds them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+from hairwarp.config import ALL_TERMS, EnergyConfig
+
+
+@dataclass
+class EnergyInputs:
+    """What the energy compares hair positions against, for one frame of a batch.
+
+    Attributes:
+        rest_lengths: (M, N-1) rest segment lengths of P_init [m] (Eq. 7).
+        rigid: (B, M, N, 3) rigidly placed hair P_rigid [m] (Eq. 9); None drops Eq. 9.
+        scalp_normals: (B, M, 3) or (M, 3) posed outward scalp normals at the roots (Eq. 15);
+            None drops Eq. 15.
+        body: a `hairwarp.ops.BodyMesh` of the posed body (B meshes or one); None drops the
+            hair-body contact.
+        prev: (B, M, N, 3) positions at t-1 [m] (Eq. 16; no gradient flows into them).
+        prev2: (B, M, N, 3) positions at t-2 [m] (Eq. 16).
+    """
+
+    rest_lengths: torch.Tensor
+    rigid: torch.Tensor | None = None
+    scalp_normals: torch.Tensor | None = None
+    body: object | None = None
+    prev: torch.Tensor | None = None
+    prev2: torch.Tensor | None = None
+
+
+@dataclass
+class EnergyResult:
+    """The total energy per batch item and its parts.
+
+    Attributes:
+        total: (B,) differentiable w.r.t. the hair positions.
+        terms: name -> (B,) weighted value of each term (detached), names from
+            `hairwarp.config.ALL_TERMS`; terms switched off are absent.
+        hair_hair_pairs: number of hair-hair contact pairs found (all batch items), if computed.
+    """
+
+    total: torch.Tensor
+    terms: dict[str, torch.Tensor] = field(default_factory=dict)
+    hair_hair_pairs: int | None = None
+
+
+def _as_batched(x: torch.Tensor) -> torch.Tensor:
+    if x.dim() == 3:
+        return x.unsqueeze(0)
+    if x.dim() != 4 or x.shape[-1] != 3:
+        from hairwarp._validate import check_tensor
+
+        check_tensor("x", x, shape=(None, None, None, 3))
+    return x
+
+
+def total_energy(
+    x: torch.Tensor,
+    inputs: EnergyInputs,
+    config: EnergyConfig | None = None,
+    *,
+    dynamic: bool = False,
+    terms: tuple[str, ...] | None = None,
+) -> EnergyResult:
+    """The total energy of hair positions `x`: Eq. 5, or Eq. 6 (without L_func_reg) when `dynamic`.
+
+    Args:
+        x: (B, M, N, 3) or (M, N, 3) hair positions [m], float32 or float64. Vertices 0 and 1
+            of each strand are fixed: they get zero gradient.
+        inputs: rest lengths, rigid placement, scalp normals, body, previous states.
+        config: weights and constants (defaults: `EnergyConfig()`).
+        dynamic: add the inertia term of Eq. 16 (needs `inputs.prev` and `inputs.prev2`).
+        terms: restrict to a subset of `hairwarp.config.ALL_TERMS` (ablations).
+
+    Returns:
+        EnergyResult with `total` of shape (B,) ((1,) for an unbatched `x`).
+    """
+    from hairwarp import ops
+
+    config = config or EnergyConfig()
+    xb = _as_batched(x)
+    wanted = set(ALL_TERMS if terms is None else terms)
+    unknown = wanted - set(ALL_TERMS)
+    if unknown:
+        raise ValueError(f"terms: unknown term(s) {sorted(unknown)}; expected names from {ALL_TERMS}")
+    if not dynamic:
+        wanted.discard("inertia")
+    elif inputs.prev is None or inputs.prev2 is None:
+        raise ValueError("inputs.prev, inputs.prev2: the dynamic energy (Eq. 6) needs the two previous states")
+
+    strand_terms = tuple(t for t in ("stretch", "bending", "auxiliary", "smoothness", "gravity",
+                                     "root_alignment", "inertia") if t in wanted)
+    total, parts = ops.strand_energies(
+        xb,
+        inputs.rest_lengths,
+        config,
+        rigid=inputs.rigid,
+        scalp_normals=inputs.scalp_normals,
+        prev=inputs.prev if dynamic else None,
+        prev2=inputs.prev2 if dynamic else None,
+        terms=strand_terms,
+    )
+    result = EnergyResult(total=total, terms=dict(parts))
+
+    if "hair_body_contact" in wanted and inputs.body is not None and config.hair_body_weight != 0.0:
+        e_hb = ops.hair_body_contact_energy(
+            xb,
+            inputs.body,
+            config.hair_body_xi,
+            config.hair_body_dhat,
+            config.barrier_join_fraction,
+            weight=config.hair_body_weight,
+            variant=config.barrier_variant,
+        )
+        result.total = result.total + e_hb
+        result.terms["hair_body_contact"] = e_hb.detach()
+
+    if "hair_hair_contact" in wanted and config.hair_hair_weight != 0.0:
+        segments = xb.shape[1] * (xb.shape[2] - 1)
+        e_hh, info = ops.hair_hair_contact_energy(
+            xb,
+            config.hair_diameter,
+            config.hair_hair_dhat,
+            config.barrier_join_fraction,
+            weight=config.hair_hair_weight,
+            variant=config.barrier_variant,
+            capacity=config.hair_hair_capacity_per_segment * segments * xb.shape[0],
+        )
+        result.total = result.total + e_hh
+        result.terms["hair_hair_contact"] = e_hh.detach()
+        result.hair_hair_pairs = int(info["pair_count"]) if "pair_count" in info else None
+
+    if x.dim() == 3:
+        result.total = result.total.reshape(1)
+    return result
+
+
+def static_energy(x: torch.Tensor, inputs: EnergyInputs, config: EnergyConfig | None = None, **kw) -> EnergyResult:
+    """Eq. 5: the static total energy of a drape (see `total_energy`)."""
+    return total_energy(x, inputs, config, dynamic=False, **kw)
+
+
+def dynamic_energy(x: torch.Tensor, inputs: EnergyInputs, config: EnergyConfig | None = None, **kw) -> EnergyResult:
+    """Eq. 6 without L_func_reg: the static energy plus inertia (Eq. 16) (see `total_energy`)."""
+    return total_energy(x, inputs, config, dynamic=True, **kw)

@@ -1,0 +1,103 @@
+"""Accuracy metrics of Table 1 and beyond.
+
+Penetration and length change are the paper's Table 1 columns; the energy gap, the distance
+to the physics reference and the jitter measure are ours (Section "Metrics" of the harness).
+All take torch tensors and return Python floats or tensors on the input's device.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from hairwarp._validate import check_tensor
+
+
+def _batched(x: torch.Tensor, name: str = "x") -> torch.Tensor:
+    check_tensor(name, x, shape=("...", None, None, 3))
+    return x if x.dim() == 4 else x.reshape(-1, *x.shape[-3:])
+
+
+def penetration_percent(x: torch.Tensor, body, *, moving_only: bool = True) -> torch.Tensor:
+    """Share of hair vertices inside the body (signed distance < 0), in percent, per batch item.
+
+    Args:
+        x: (B, M, N, 3) or (M, N, 3) hair positions [m].
+        body: a `hairwarp.ops.BodyMesh` with one mesh or B meshes.
+        moving_only: count vertices 2..N-1 only. Roots sit on the scalp (|d| ~ float32 noise)
+            and vertex 1 is fixed with them, so neither is the method's doing.
+
+    Returns:
+        (B,) float tensor in [0, 100].
+    """
+    from hairwarp.ops import hair_body_signed_distance
+
+    xb = _batched(x)
+    d = hair_body_signed_distance(xb, body)  # (B, M, N)
+    if moving_only:
+        d = d[:, :, 2:]
+    return (d < 0).to(xb.dtype).mean(dim=(1, 2)) * 100.0
+
+
+def length_change_percent(x: torch.Tensor, rest_lengths: torch.Tensor) -> torch.Tensor:
+    """Mean |segment length / rest length - 1| in percent, per batch item (Table 1).
+
+    Args:
+        x: (B, M, N, 3) or (M, N, 3) hair positions [m].
+        rest_lengths: (M, N-1) rest segment lengths [m]; zero-length rest segments are skipped.
+
+    Returns:
+        (B,) float tensor.
+    """
+    xb = _batched(x)
+    check_tensor("rest_lengths", rest_lengths, shape=(xb.shape[1], xb.shape[2] - 1))
+    lengths = (xb[:, :, 1:] - xb[:, :, :-1]).norm(dim=-1)
+    valid = rest_lengths > 0
+    ratio = torch.where(valid, lengths / rest_lengths.clamp_min(1e-12), torch.ones_like(lengths))
+    err = (ratio - 1.0).abs() * valid
+    return err.sum(dim=(1, 2)) / valid.sum().clamp_min(1) * 100.0
+
+
+def energy_gap(energy: torch.Tensor, optimum: torch.Tensor | float) -> torch.Tensor:
+    """Relative gap (E - E*) / |E*| to the converged optimum E* of the same scene."""
+    optimum = torch.as_tensor(optimum, dtype=energy.dtype, device=energy.device)
+    return (energy - optimum) / optimum.abs().clamp_min(1e-30)
+
+
+def distance_to_reference(x: torch.Tensor, reference: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-frame mean and max vertex distance [m] between a sequence and the physics reference.
+
+    Args:
+        x: (T, M, N, 3) positions of a method over a motion.
+        reference: (T, M, N, 3) positions of the physics reference.
+
+    Returns:
+        (mean (T,), max (T,)) in metres.
+    """
+    check_tensor("x", x, shape=(None, None, None, 3))
+    check_tensor("reference", reference, shape=tuple(x.shape))
+    dist = (x - reference).norm(dim=-1)
+    return dist.mean(dim=(1, 2)), dist.amax(dim=(1, 2))
+
+
+def jitter(x: torch.Tensor, reference: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean norm of the second time difference of positions [m], beyond the reference's.
+
+    The second difference x_{t+1} - 2 x_t + x_{t-1} is the discrete acceleration times dt^2:
+    a smooth motion has it small, frame-to-frame flicker makes it large. With a reference, the
+    reference's own value is subtracted (a fast motion legitimately accelerates).
+
+    Args:
+        x: (T, M, N, 3) positions over T >= 3 frames.
+        reference: optional (T, M, N, 3) physics reference.
+
+    Returns:
+        scalar tensor [m].
+    """
+    check_tensor("x", x, shape=(None, None, None, 3))
+    if x.shape[0] < 3:
+        raise ValueError(f"x: jitter needs at least 3 frames, got {x.shape[0]}")
+    acc = (x[2:] - 2 * x[1:-1] + x[:-2]).norm(dim=-1).mean()
+    if reference is not None:
+        check_tensor("reference", reference, shape=tuple(x.shape))
+        acc = acc - (reference[2:] - 2 * reference[1:-1] + reference[:-2]).norm(dim=-1).mean()
+    return acc
