@@ -1,5 +1,23 @@
 """Torch autograd bridges over the Warp kernels. Every function takes and returns torch tensors."""
 
 from hairwarp.ops.barrier import barrier
+from hairwarp.ops.distances import edge_edge_distance, point_triangle_distance
+from hairwarp.ops.hair_body_contact import (
+    BodyMesh,
+    hair_body_contact_energy,
+    hair_body_signed_distance,
+    point_mesh_signed_distance,
+)
+from hairwarp.ops.hair_hair_contact import hair_hair_contact_energy, hair_hair_contact_pairs
 
-__all__ = ["barrier"]
+__all__ = [
+    "barrier",
+    "edge_edge_distance",
+    "point_triangle_distance",
+    "hair_hair_contact_energy",
+    "hair_hair_contact_pairs",
+    "BodyMesh",
+    "hair_body_contact_energy",
+    "hair_body_signed_distance",
+    "point_mesh_signed_distance",
+]

@@ -1,0 +1,329 @@
+"""Hair-body contact: signed distance to the posed body mesh and its barrier energy (Eq. 12).
+
+The contact term of HairFormer Eq. 12 takes d = the signed distance from a hair vertex to the
+body surface (negative inside), with xi = 1 mm and dhat = 1.5 mm for hair-body contact.
+
+Sign. `wp.mesh_query_point_sign_normal` signs the distance by the angle-weighted pseudo-normal
+of the closest feature (face, edge or vertex; Baerentzen & Aanaes 2005). It is local: it reads
+only the faces within `epsilon` of the closest distance, so it stays correct on a mesh cropped
+to the triangles hair can reach, as long as the closest point of every hair vertex survives the
+crop. `wp.mesh_query_point_sign_winding_number` is global (a solid-angle sum over the whole
+mesh): on a cropped, open mesh the winding number is no longer 0/1 and the sign breaks; without
+`support_winding_number=True` it silently falls back to ray parity, also global. Hence the
+pseudo-normal, on watertight, consistently oriented, outward meshes.
+
+Precision. `wp.Mesh` is float32: the query finds the closest face in float32, then the closest
+point on that face is recomputed in the caller's precision (float32 or float64) by the
+point-triangle functions of `hairwarp.kernels.distances`. In float64 the distance is exact
+on the face the float32 query picked;
+where two faces tie within float32 rounding (near an edge or a vertex) it can exceed the true
+distance by ~1e-7 of the coordinates, and the sign of points within that of the surface is
+float32's.
+
+Reach. The barrier is zero for d >= xi + dhat ("the reach"). A vertex outside the body and
+farther than the reach needs no exact distance; a vertex inside needs one at any depth (the
+extrapolated barrier keeps pushing it out), so a query capped at the reach cannot tell a far
+outside vertex from a deep inside one. The per-strand kernel walks each strand from the root
+and uses that the signed distance is 1-Lipschitz: after an exact query at an "anchor" vertex a
+with |d(a)| = D, the open ball B(a, D) holds no surface, so a later vertex p with
+r = |p - a| < D is on a's side with |d(p)| >= D - r, and in any case |d(p)| <= D + r. Vertices
+proven outside and beyond the reach skip the query; the others make an exact query capped at
+D + r (the cap prunes the BVH walk), which becomes the next anchor. Every vertex's result equals
+that of an unbounded query. The per-vertex kernel (one thread per vertex: the GPU's choice
+until there are enough strands to fill it) queries within the reach and, on a miss, once more
+without a cap.
+"""
+
+from typing import Any
+
+import warp as wp
+
+from hairwarp.kernels.barrier import barrier_energy, barrier_gradient
+from hairwarp.kernels.distances import point_triangle_closest_barycentric, point_triangle_distance_gradient_at
+
+# Gradients are hand-written beside each energy: no generated adjoints to compile.
+wp.set_module_options({"enable_backward": False})
+
+# max_dist of an unbounded query [m]: finite so that (max_dist + eps)^2 stays finite in float32.
+FAR = wp.constant(1.0e18)
+
+
+@wp.func
+def body_signed_distance(
+    mesh: wp.uint64,
+    epsilon: float,
+    vertices: wp.array(dtype=Any),
+    faces: wp.array(dtype=wp.int32),
+    vertex_offset: int,
+    p: Any,
+    max_dist: float,
+    zero_dist: Any,
+):
+    """Signed distance d [m] from `p` to the mesh (negative inside) and dd/dp.
+
+    Returns (found, d, gradient): found = 0 when no face lies strictly within `max_dist`
+    (then d = 0, gradient = 0). The gradient is the unit vector sign * (p - closest), the
+    outward direction; within `zero_dist` of the surface, where that direction is rounding
+    noise, it is the closest face's unit normal (the exact gradient on a face's interior).
+
+    Args:
+        mesh: `wp.Mesh` id (float32 points).
+        epsilon: tie tolerance of the pseudo-normal, as a fraction of the mesh's average edge
+            length (Warp's convention).
+        vertices: the mesh vertices in the caller's precision (vec3 or vec3d), for refinement.
+        faces: flat triangle indices (3 F).
+        vertex_offset: index of this mesh's first vertex in `vertices` (batched bodies).
+        p: query point (vec3 or vec3d).
+        max_dist: query radius [m].
+        zero_dist: distance below which p counts as on the surface [m].
+    """
+    zero = zero_dist * type(zero_dist)(0.0)
+    p32 = wp.vec3(wp.float32(p[0]), wp.float32(p[1]), wp.float32(p[2]))
+    q = wp.mesh_query_point_sign_normal(mesh, p32, max_dist, epsilon)
+    if not q.result:
+        return 0, zero, p * zero
+    a = vertices[vertex_offset + faces[3 * q.face + 0]]
+    b = vertices[vertex_offset + faces[3 * q.face + 1]]
+    c = vertices[vertex_offset + faces[3 * q.face + 2]]
+    u, v, w, dist2 = point_triangle_closest_barycentric(p, a, b, c)
+    sign = type(zero_dist)(q.sign)
+    if dist2 > zero_dist * zero_dist:
+        # n: unit (p - closest), exactly the face normal's direction in the face region.
+        dist, n, grad_a, grad_b, grad_c = point_triangle_distance_gradient_at(p, a, b, c, u, v, w)
+        return 1, sign * dist, sign * n
+    # On the surface: the outward face normal (whatever side rounding put p on).
+    normal = wp.cross(b - a, c - a)
+    return 1, sign * wp.sqrt(dist2), normal / wp.length(normal)
+
+
+@wp.kernel
+def signed_distance_kernel(
+    # In:
+    points: wp.array(dtype=Any),
+    mesh_ids: wp.array(dtype=wp.uint64),
+    mesh_epsilon: wp.array(dtype=float),
+    body_vertices: wp.array(dtype=Any),
+    faces: wp.array(dtype=wp.int32),
+    points_per_batch: int,
+    body_vertex_count: int,
+    body_batch_stride: int,
+    zero_dist: Any,
+    # Out:
+    distance_out: wp.array(dtype=Any),
+    gradient_out: wp.array(dtype=Any),
+):
+    """Exact signed distance and its gradient per point (unbounded query)."""
+    i = wp.tid()
+    body = (i // points_per_batch) * body_batch_stride
+    found, d, g = body_signed_distance(
+        mesh_ids[body],
+        mesh_epsilon[body],
+        body_vertices,
+        faces,
+        body * body_vertex_count,
+        points[i],
+        wp.float32(FAR),
+        zero_dist,
+    )
+    if found == 0:
+        # Only a mesh whose every face is a sliver can miss: report it as far outside.
+        d = type(zero_dist)(FAR)
+    distance_out[i] = d
+    gradient_out[i] = g
+
+
+@wp.kernel
+def hair_body_energy_strand_kernel(
+    # In:
+    x: wp.array(dtype=Any),
+    mesh_ids: wp.array(dtype=wp.uint64),
+    mesh_epsilon: wp.array(dtype=float),
+    body_vertices: wp.array(dtype=Any),
+    faces: wp.array(dtype=wp.int32),
+    num_strands: int,
+    num_vertices: int,
+    body_vertex_count: int,
+    body_batch_stride: int,
+    xi: Any,
+    dhat: Any,
+    bp: Any,
+    weight: Any,
+    variant: int,
+    zero_dist: Any,
+    # Out:
+    strand_energy_out: wp.array(dtype=Any),
+    gradient_out: wp.array(dtype=Any),
+    query_count_out: wp.array(dtype=wp.int32),
+):
+    """One thread per strand: sum_v>=2 weight * B(d_v) and its gradient per vertex (Eq. 12).
+
+    Walks the strand from the root, skipping the mesh query of vertices proven outside and
+    beyond the reach (see the module docstring). Writes every vertex's gradient (zero for the
+    fixed vertices 0, 1 and for vertices beyond the reach), the strand's energy and its number
+    of mesh queries.
+    """
+    s = wp.tid()
+    base = s * num_vertices
+    body = (s // num_strands) * body_batch_stride
+    mesh = mesh_ids[body]
+    epsilon = mesh_epsilon[body]
+    vertex_offset = body * body_vertex_count
+    zero = xi * type(xi)(0.0)
+    reach = xi + dhat
+    # Query radius slack over the carried upper bound: the query measures in float32.
+    slack = type(xi)(1.0e-4)
+
+    energy = zero
+    queries = int(0)
+    for v in range(wp.min(num_vertices, 2)):
+        gradient_out[base + v] = x[base + v] * zero
+
+    # The anchor is the last vertex measured exactly: |d| there is anchor_dist, on side
+    # anchor_side (+1 outside, -1 inside, 0 none yet). The open ball of that radius around it
+    # holds no surface, so a vertex within it is on the same side with |d| >= anchor_dist - r.
+    anchor = x[base]
+    anchor_dist = zero
+    anchor_side = zero
+    for v in range(2, num_vertices):
+        p = x[base + v]
+        ub = type(xi)(FAR)
+        if anchor_side != zero:
+            r = wp.length(p - anchor)
+            ub = anchor_dist + r
+            if anchor_side > zero and anchor_dist - r >= reach:
+                gradient_out[base + v] = p * zero
+                continue
+        # Exact query bounded by ub: its distance lets the following vertices skip theirs.
+        radius = wp.float32(wp.min(ub + slack * (type(xi)(1.0) + ub), type(xi)(FAR)))
+        found, d, g = body_signed_distance(
+            mesh, epsilon, body_vertices, faces, vertex_offset, p, radius, zero_dist
+        )
+        queries += 1
+        if found == 0 and radius < FAR:
+            # A float32 miss at the bound (or a sliver skipped): retry unbounded.
+            found, d, g = body_signed_distance(
+                mesh, epsilon, body_vertices, faces, vertex_offset, p, wp.float32(FAR), zero_dist
+            )
+            queries += 1
+        if found == 0:
+            # Every face a sliver: nothing to push against.
+            anchor_side = zero
+            gradient_out[base + v] = p * zero
+            continue
+        anchor = p
+        anchor_dist = wp.abs(d)
+        anchor_side = type(xi)(1.0)
+        if d < zero:
+            anchor_side = type(xi)(-1.0)
+        energy += weight * barrier_energy(d, xi, dhat, bp, variant)
+        gradient_out[base + v] = (weight * barrier_gradient(d, xi, dhat, bp, variant)) * g
+    strand_energy_out[s] = energy
+    query_count_out[s] = queries
+
+
+@wp.kernel
+def hair_body_energy_vertex_kernel(
+    # In:
+    x: wp.array(dtype=Any),
+    mesh_ids: wp.array(dtype=wp.uint64),
+    mesh_epsilon: wp.array(dtype=float),
+    body_vertices: wp.array(dtype=Any),
+    faces: wp.array(dtype=wp.int32),
+    num_strands: int,
+    num_vertices: int,
+    body_vertex_count: int,
+    body_batch_stride: int,
+    xi: Any,
+    dhat: Any,
+    bp: Any,
+    weight: Any,
+    variant: int,
+    zero_dist: Any,
+    # Out:
+    vertex_energy_out: wp.array(dtype=Any),
+    gradient_out: wp.array(dtype=Any),
+    query_count_out: wp.array(dtype=wp.int32),
+):
+    """One thread per vertex (wide GPU launches): weight * B(d) and its gradient (Eq. 12).
+
+    A query within the reach first; on a miss the vertex is either outside beyond the reach or
+    inside deeper than it, and only an unbounded query tells which.
+    """
+    i = wp.tid()
+    v = i % num_vertices
+    zero = xi * type(xi)(0.0)
+    p = x[i]
+    if v < 2:
+        vertex_energy_out[i] = zero
+        gradient_out[i] = p * zero
+        query_count_out[i] = 0
+        return
+    body = (i // (num_strands * num_vertices)) * body_batch_stride
+    mesh = mesh_ids[body]
+    epsilon = mesh_epsilon[body]
+    vertex_offset = body * body_vertex_count
+    reach32 = wp.float32(xi + dhat)
+    queries = int(1)
+    found, d, g = body_signed_distance(
+        mesh, epsilon, body_vertices, faces, vertex_offset, p, reach32, zero_dist
+    )
+    if found == 0:
+        found, d, g = body_signed_distance(
+            mesh, epsilon, body_vertices, faces, vertex_offset, p, wp.float32(FAR), zero_dist
+        )
+        queries = 2
+    e = zero
+    gradient = p * zero
+    if found != 0:
+        e = weight * barrier_energy(d, xi, dhat, bp, variant)
+        gradient = (weight * barrier_gradient(d, xi, dhat, bp, variant)) * g
+    vertex_energy_out[i] = e
+    gradient_out[i] = gradient
+    query_count_out[i] = queries
+
+
+@wp.func
+def aabb_distance_sq(c: wp.vec3, lower: wp.vec3, upper: wp.vec3):
+    """Squared distance from `c` to the box [lower, upper] (zero inside)."""
+    e = wp.max(lower - c, wp.vec3(0.0)) + wp.max(c - upper, wp.vec3(0.0))
+    return wp.dot(e, e)
+
+
+@wp.kernel
+def crop_mark_faces_kernel(
+    # In:
+    vertices: wp.array(dtype=wp.vec3),
+    faces: wp.array(dtype=wp.int32),
+    num_faces: int,
+    body_vertex_count: int,
+    centers: wp.array(dtype=wp.vec3),
+    radii: wp.array(dtype=float),
+    num_balls: int,
+    centers_batch_stride: int,
+    bound_centers: wp.array(dtype=wp.vec3),
+    bound_radii: wp.array(dtype=float),
+    # Out:
+    keep_out: wp.array(dtype=wp.int32),
+):
+    """keep[b, f] = 1 if the bounding box of face f of body b meets any ball (conservative:
+    a triangle inside its box meets a ball only if the box does). One bounding ball of all the
+    balls rejects far faces before the per-ball loop."""
+    i = wp.tid()
+    b = i // num_faces
+    f = i % num_faces
+    offset = b * body_vertex_count
+    pa = vertices[offset + faces[3 * f + 0]]
+    pb = vertices[offset + faces[3 * f + 1]]
+    pc = vertices[offset + faces[3 * f + 2]]
+    lower = wp.min(wp.min(pa, pb), pc)
+    upper = wp.max(wp.max(pa, pb), pc)
+    keep_out[i] = 0
+    r = bound_radii[b]
+    if aabb_distance_sq(bound_centers[b], lower, upper) > r * r:
+        return
+    first = b * centers_batch_stride * num_balls
+    for k in range(num_balls):
+        r = radii[k]
+        if aabb_distance_sq(centers[first + k], lower, upper) <= r * r:
+            keep_out[i] = 1
+            return

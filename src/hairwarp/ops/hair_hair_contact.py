@@ -1,0 +1,397 @@
+"""Hair-hair contact energy (HairFormer Eq. 12-14 with d = segment-segment distance): torch
+bridge over `hairwarp.kernels.hair_hair_contact`.
+
+Which segment pairs count:
+    - Segments of *different* strands only. Non-adjacent segments of the same strand are left
+      out: with the paper's discretisation (100 vertices, segments of a few mm) segments i and
+      i + 2 of one strand are always closer than xi + dhat (5 mm for a 2 mm guide), so
+      self-contact would need an arbitrary exclusion window along the strand, and a curl whose
+      pitch is below xi + dhat would be pushed open by its own barrier. A strand's own shape is
+      the job of the stretch, bending and smoothness terms (Eq. 7-10).
+    - Segments with index >= `skip_root_segments` (default 2) only: segment 0 joins the two
+      fixed vertices and segment 1 touches vertex 1. Roots are packed on the scalp closer than a
+      guide bundle's diameter (5 mm grid spacing vs xi + dhat = 5 mm), so contact there is not
+      physical, and vertices 0, 1 are fixed anyway (Section 3.4), so the penalty could only act
+      through a lever on vertex 2. Whatever the setting, vertices 0 and 1 get zero gradient.
+
+Normalisation: energy = weight * sum over pairs of B(d), a sum (not a mean), per batch item;
+`weight` is lambda_hh of Eq. 12 [J per pair at B = 1].
+
+Broad phase: one `wp.HashGrid` over all segment midpoints of the whole batch, built with the
+batch item as the point *group*, so a query only visits its own item: one build and one launch
+for any batch size, with no cross-item candidates to reject (one grid per item would cost B
+builds and B launches; one ungrouped grid over items that overlap in space, as poses of one
+hairstyle do, would make every query visit B times the candidates). Cells have the query
+radius as width: max segment length + xi + dhat.
+
+Host synchronisations: the grid's cell size needs the max segment length on the host, and the
+pair count is read back to size the narrow phase and detect overflow: two reads per call.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import torch
+import warp as wp
+from torch.autograd.function import once_differentiable
+
+from hairwarp import _warp
+from hairwarp._validate import check_positive, check_tensor
+from hairwarp.config import EnergyConfig
+from hairwarp.kernels import hair_hair_contact as hh_kernels
+from hairwarp.ops.barrier import barrier_variant_id, check_barrier_parameters
+
+OVERFLOW_POLICIES = ("grow", "raise", "warn")
+DEFAULT_SKIP_ROOT_SEGMENTS = 2
+# Hash-grid table size (cells hash into it; collisions only add candidates that the distance
+# test rejects). 64^3 entries cost 2 MB of start/end indices per device.
+_GRID_DIM = 64
+# The grid works on float32 midpoints; this relative slack on the query radius covers their
+# rounding, so no pair within the cutoff is missed (the exact test uses the input precision).
+_RADIUS_SLACK = 1e-4
+
+
+class HairHairCapacityError(RuntimeError):
+    """The pair buffer was too small and `on_overflow="raise"`; `needed` holds the count."""
+
+    def __init__(self, needed: int, capacity: int):
+        super().__init__(
+            f"capacity: hair-hair contact found {needed} segment pairs but the pair buffer holds {capacity}; "
+            f"pass capacity >= {needed} (or on_overflow='grow')"
+        )
+        self.needed = needed
+        self.capacity = capacity
+
+
+@dataclass
+class HairHairContactInfo:
+    """Diagnostics of one hair-hair contact evaluation.
+
+    Attributes:
+        pair_count: number of segment pairs closer than xi + dhat (the energy sums over all of
+            them unless `on_overflow="warn"` dropped some).
+        overflow: True if `pair_count` exceeded the capacity the call was given.
+        capacity: the pair-buffer capacity the call was given.
+    """
+
+    pair_count: int
+    overflow: bool
+    capacity: int
+
+    def __getitem__(self, key: str):
+        return getattr(self, key)
+
+
+@dataclass
+class HairHairPairs:
+    """Result of the hair-hair broad phase.
+
+    Attributes:
+        pairs: (P, 2) int64 flat segment ids (i < j) of the pairs closer than xi + dhat, sorted;
+            segment (b, m, i) has id (b * M + m) * (N - 1) + i. P = min(pair_count, capacity).
+        pair_count: number of pairs found (may exceed `capacity` when `overflow`).
+        overflow: True if `pair_count` exceeded the capacity the call was given.
+        capacity: the pair-buffer capacity the call was given.
+        shape: (B, M, N) of the hair the pairs index into.
+    """
+
+    pairs: torch.Tensor
+    pair_count: int
+    overflow: bool
+    capacity: int
+    shape: tuple[int, int, int]
+
+    def __getitem__(self, key: str):
+        return getattr(self, key)
+
+    def unravel(self) -> torch.Tensor:
+        """(P, 2, 3) int64: (batch item, strand, segment index) of both segments of each pair."""
+        _, m, n = self.shape
+        seg = self.pairs
+        strand = seg // (n - 1)
+        return torch.stack([strand // m, strand % m, seg % (n - 1)], dim=-1)
+
+
+# One hash grid per device, reused across calls (its table is the expensive allocation).
+_grids: dict[str, wp.HashGrid] = {}
+
+
+def _hash_grid(device: str) -> wp.HashGrid:
+    if device not in _grids:
+        _grids[device] = wp.HashGrid(_GRID_DIM, _GRID_DIM, _GRID_DIM, device=device)
+    return _grids[device]
+
+
+def _check_hair(x) -> torch.Tensor:
+    """x: (M, N, 3) or (B, M, N, 3) float32/float64, finite; returned as (B, M, N, 3)."""
+    check_tensor("x", x, shape=("...", 3))
+    if x.dim() not in (3, 4):
+        raise ValueError(f"x: expected shape (M, N, 3) or (B, M, N, 3), got {tuple(x.shape)}")
+    return x if x.dim() == 4 else x.unsqueeze(0)
+
+
+def _check_options(capacity, skip_root_segments, on_overflow):
+    if capacity is not None:
+        if isinstance(capacity, bool) or not isinstance(capacity, int) or capacity < 0:
+            raise ValueError(f"capacity: expected None or an int >= 0, got {capacity!r}")
+    skip = skip_root_segments
+    if isinstance(skip, bool) or not isinstance(skip, int) or skip < 0:
+        raise ValueError(f"skip_root_segments: expected an int >= 0, got {skip_root_segments!r}")
+    if on_overflow not in OVERFLOW_POLICIES:
+        raise ValueError(f"on_overflow: expected one of {list(OVERFLOW_POLICIES)}, got {on_overflow!r}")
+
+
+# Pair counts that outgrew the default capacity, by number of segments: a call with
+# capacity=None starts at 1.25 x the largest such count, so a training loop over one hairstyle
+# pays the "grow" rerun once, not every step. A performance memo only: results never depend on it.
+_learned_capacity: dict[int, int] = {}
+
+
+def default_capacity(num_segments: int) -> int:
+    """Pair-buffer capacity used for capacity=None.
+
+    `EnergyConfig.hair_hair_capacity_per_segment` times `num_segments`, or 1.25 times the
+    largest pair count an earlier call with as many segments needed, whichever is larger.
+    """
+    configured = EnergyConfig().hair_hair_capacity_per_segment * num_segments
+    return max(configured, _learned_capacity.get(num_segments, 0))
+
+
+def _broad_phase(x4, cutoff, capacity, skip_root_segments, on_overflow):
+    """Broad phase on (B, M, N, 3) contiguous detached hair.
+
+    Returns:
+        pairs (P, 2) int32 flat segment ids (unordered), the count found, whether it exceeded
+        the capacity, and the capacity used first.
+    """
+    b, m, n, _ = x4.shape
+    num_segments = b * m * max(n - 1, 0)
+    requested = default_capacity(num_segments) if capacity is None else capacity
+    device = x4.device
+    if num_segments == 0 or m < 2:
+        return torch.zeros(0, 2, dtype=torch.int32, device=device), 0, False, requested
+
+    x_flat = x4.detach().reshape(-1, 3)
+    # Host read 1: the cell size. Two segments closer than the cutoff have midpoints at most
+    # cutoff + max length apart; the float32 midpoints add up to |coordinate| * 2^-24 each.
+    max_len, max_coord = torch.stack(
+        [(x4[:, :, 1:] - x4[:, :, :-1]).norm(dim=-1).max(), x_flat.abs().max()]
+    ).tolist()
+    query_radius = (cutoff + max_len) * (1.0 + _RADIUS_SLACK) + 4.0 * max_coord * 2.0**-23
+
+    wp_device = _warp.warp_device(device)
+    midpoints = torch.empty(num_segments, 3, dtype=torch.float32, device=device)
+    groups = torch.empty(num_segments, dtype=torch.int32, device=device)
+    count = torch.zeros(1, dtype=torch.int32, device=device)
+
+    def run(cap):
+        count.zero_()
+        pairs = torch.empty(max(cap, 1), 2, dtype=torch.int32, device=device)
+        with _warp.launch_scope(device):
+            wp.launch(
+                hh_kernels.hair_hair_pairs_kernel,
+                dim=num_segments,
+                inputs=[
+                    wp.uint64(grid.id),
+                    x_wp,
+                    mid_wp,
+                    group_wp,
+                    n,
+                    skip_root_segments,
+                    float(query_radius),
+                    _warp.scalar(cutoff, x4.dtype),
+                    cap,
+                ],
+                outputs=[_warp.as_warp(count), _warp.as_warp(pairs)],
+                device=wp_device,
+            )
+        # Host read 2: the pair count.
+        return pairs, int(count.item())
+
+    with _warp.launch_scope(device):
+        x_wp = _warp.as_warp(x_flat, vec3=True)
+        mid_wp = wp.from_torch(midpoints, dtype=wp.vec3)
+        group_wp = _warp.as_warp(groups)
+        wp.launch(
+            hh_kernels.segment_midpoints_kernel,
+            dim=num_segments,
+            inputs=[x_wp, n, m],
+            outputs=[mid_wp, group_wp],
+            device=wp_device,
+        )
+        grid = _hash_grid(wp_device)
+        grid.build(mid_wp, float(query_radius), groups=group_wp)
+
+    pairs, found = run(requested)
+    overflow = found > requested
+    kept = found
+    if overflow:
+        if on_overflow == "raise":
+            raise HairHairCapacityError(found, requested)
+        if on_overflow == "grow":
+            if capacity is None:
+                learned = max(_learned_capacity.get(num_segments, 0), found + found // 4)
+                _learned_capacity[num_segments] = learned
+            # The same positions give the same pairs: one rerun with exactly enough room.
+            pairs, again = run(found)
+            if again != found:
+                raise RuntimeError(f"hair-hair broad phase: rerun found {again} pairs, first run {found}")
+        else:
+            kept = requested
+            warnings.warn(
+                f"hair-hair contact: {found} segment pairs found but capacity is {requested}; "
+                f"{found - requested} pairs dropped from the energy. Pass capacity >= {found}.",
+                RuntimeWarning,
+                stacklevel=3,
+            )
+    return pairs[:kept], found, overflow, requested
+
+
+class _HairHairContactEnergy(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x4, pairs, xi, dhat, bp, weight, variant_id):
+        b, m, n, _ = x4.shape
+        energy = torch.zeros(b, dtype=torch.float64, device=x4.device)  # float64 sum: see the kernel
+        gradient = torch.zeros_like(x4)
+        num_pairs = pairs.shape[0]
+        if num_pairs > 0:
+            with _warp.launch_scope(x4.device):
+                wp.launch(
+                    hh_kernels.hair_hair_energy_kernel,
+                    dim=num_pairs,
+                    inputs=[
+                        _warp.as_warp(x4, vec3=True),
+                        _warp.as_warp(pairs),
+                        n,
+                        m,
+                        _warp.scalar(xi, x4.dtype),
+                        _warp.scalar(dhat, x4.dtype),
+                        _warp.scalar(bp, x4.dtype),
+                        _warp.scalar(weight, x4.dtype),
+                        variant_id,
+                    ],
+                    outputs=[_warp.as_warp(energy), _warp.as_warp(gradient, vec3=True)],
+                    device=_warp.warp_device(x4.device),
+                )
+        ctx.save_for_backward(gradient)
+        return energy.to(x4.dtype)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_energy):
+        (gradient,) = ctx.saved_tensors
+        return grad_energy[:, None, None, None] * gradient, None, None, None, None, None, None
+
+
+def hair_hair_contact_pairs(
+    x: torch.Tensor,
+    xi: float,
+    dhat: float,
+    capacity: int | None = None,
+    *,
+    skip_root_segments: int = DEFAULT_SKIP_ROOT_SEGMENTS,
+    on_overflow: str = "grow",
+) -> HairHairPairs:
+    """Broad phase of hair-hair contact: segment pairs closer than xi + dhat (not differentiable).
+
+    Args:
+        x: hair positions [m], (M, N, 3) or (B, M, N, 3), float32 or float64; vertex 0 the root.
+        xi: hard barrier [m] (the guide bundle's diameter).
+        dhat: soft barrier width [m]; pairs with distance < xi + dhat are returned.
+        capacity: pair-buffer size; None = `default_capacity(B * M * (N - 1))`: the config's
+            `hair_hair_capacity_per_segment` per segment, raised after a call had to grow.
+        skip_root_segments: segments with index below this along each strand take no part
+            (2: those touching the fixed vertices 0 and 1; see the module notes).
+        on_overflow: what to do when more pairs than `capacity` are found: "grow" (rerun with
+            a buffer of exactly the needed size; complete result), "raise"
+            (`HairHairCapacityError` with the needed count) or "warn" (RuntimeWarning, keep the
+            first `capacity` pairs found; which ones is arbitrary on the GPU).
+
+    Returns:
+        `HairHairPairs` (pairs (P, 2) int64 flat segment ids, sorted; pair_count; overflow;
+        capacity; shape).
+
+    Raises:
+        ValueError: naming the argument, for bad inputs.
+        HairHairCapacityError: on overflow with `on_overflow="raise"`.
+    """
+    x4 = _check_hair(x)
+    xi, dhat, _ = check_barrier_parameters(xi, dhat, 0.5)
+    _check_options(capacity, skip_root_segments, on_overflow)
+    x4 = x4.detach().contiguous()
+    pairs, found, overflow, requested = _broad_phase(x4, xi + dhat, capacity, skip_root_segments, on_overflow)
+    pairs = pairs.long()
+    if pairs.shape[0] > 1:
+        # Deterministic order (GPU atomics write in any order): lexicographic by (i, j).
+        key = pairs[:, 0] * max(1, x4.shape[0] * x4.shape[1] * (x4.shape[2] - 1)) + pairs[:, 1]
+        pairs = pairs[torch.argsort(key)]
+    return HairHairPairs(pairs, found, overflow, requested, tuple(x4.shape[:3]))
+
+
+def hair_hair_contact_energy(
+    x: torch.Tensor,
+    xi: float,
+    dhat: float,
+    bp: float,
+    weight: float = 1.0,
+    variant: str = "monotone",
+    capacity: int | None = None,
+    *,
+    skip_root_segments: int = DEFAULT_SKIP_ROOT_SEGMENTS,
+    on_overflow: str = "grow",
+) -> tuple[torch.Tensor, HairHairContactInfo]:
+    """Hair-hair contact energy L_hh of HairFormer Eq. 12, differentiable w.r.t. `x`.
+
+    L_hh = weight * sum over pairs (segment of strand m, segment of strand m' != m) with
+    distance d < xi + dhat of B(d), per batch item (a sum, not a mean). Segments touching the
+    fixed vertices 0 and 1 are left out (`skip_root_segments`), and those vertices get zero
+    gradient; see the module notes for the rules and why.
+
+    Args:
+        x: hair positions [m], (M, N, 3) or (B, M, N, 3), float32 or float64; vertex 0 the root.
+        xi: hard barrier [m]: the guide bundle's diameter (`EnergyConfig.hair_diameter`).
+        dhat: soft barrier width [m] (`EnergyConfig.hair_hair_dhat`, 1.5 xi in the paper).
+        bp: join fraction of the barrier in (0, 1) (`EnergyConfig.barrier_join_fraction`).
+        weight: lambda_hh [J per pair at B = 1], >= 0 (`EnergyConfig.hair_hair_weight`).
+        variant: barrier extrapolation, "monotone" (default) or "paper" (see `ops.barrier`).
+        capacity: pair-buffer size; None = `EnergyConfig.hair_hair_capacity_per_segment` times
+            the number of segments B * M * (N - 1), or 1.25 times the largest count an earlier
+            call with as many segments had to grow to, if larger (`default_capacity`).
+        skip_root_segments: segments with index below this along each strand take no part.
+        on_overflow: "grow" (default: rerun with enough room, the energy is complete), "raise"
+            (`HairHairCapacityError`) or "warn" (RuntimeWarning; energy over the pairs kept).
+
+    Returns:
+        (energy, info): energy of shape (B,) for batched input, () for (M, N, 3), dtype and
+        device of `x`; info a `HairHairContactInfo` (pair_count, overflow, capacity; also
+        readable as info["pair_count"]).
+
+    Raises:
+        ValueError: naming the argument, for bad inputs (shape, dtype, NaN/Inf, barrier
+            parameters, variant, capacity, on_overflow).
+        HairHairCapacityError: on overflow with `on_overflow="raise"`.
+    """
+    x4 = _check_hair(x)
+    xi, dhat, bp = check_barrier_parameters(xi, dhat, bp)
+    weight = check_positive("weight", weight, allow_zero=True)
+    variant_id = barrier_variant_id(variant)
+    _check_options(capacity, skip_root_segments, on_overflow)
+    x4c = x4.contiguous()
+    pairs, found, overflow, requested = _broad_phase(
+        x4c.detach(), xi + dhat, capacity, skip_root_segments, on_overflow
+    )
+    energy = _HairHairContactEnergy.apply(x4c, pairs.contiguous(), xi, dhat, bp, weight, variant_id)
+    if x.dim() == 3:
+        energy = energy[0]
+    return energy, HairHairContactInfo(found, overflow, requested)
+
+
+__all__ = [
+    "HairHairCapacityError",
+    "HairHairContactInfo",
+    "HairHairPairs",
+    "hair_hair_contact_energy",
+    "hair_hair_contact_pairs",
+]
