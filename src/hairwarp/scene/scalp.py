@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
+
+from hairwarp.scene import _geometry
 
 
 @dataclass
@@ -26,3 +29,140 @@ class Scalp:
     @property
     def num_roots(self) -> int:
         return int(self.uv.shape[0])
+
+
+# The scalp cap: directions from the cranium's centre whose angle from vertical (y) is at
+# most the rim angle, which blends smoothly with the azimuth from FRONT_DEG at the forehead
+# (the hairline) through SIDE_DEG at the sides (above the ears) to BACK_DEG at the back (the
+# nape) [deg].
+SCALP_FRONT_DEG = 55.0
+SCALP_SIDE_DEG = 88.0
+SCALP_BACK_DEG = 140.0
+# The sphere fitted to the cranium uses the upper part of the head region: vertices above
+# this fraction of its height (the face and jaw below it are not round).
+_CRANIUM_FRACTION = 0.55
+# Triangles whose centroid lies within this many cranium radii of its centre are searched.
+_NEAR_HEAD = 2.0
+# Triangles each scalp ray tests: those whose centroid direction is closest to the ray's.
+_RAY_CANDIDATES = 128
+
+
+def fit_cranium_sphere(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Least-squares sphere through the top part of a head: (centre (3,), radius ()) [m].
+
+    Args:
+        points: (H, 3) head-region vertices [m], y up.
+    """
+    y = points[:, 1]
+    cut = y.min() + _CRANIUM_FRACTION * (y.max() - y.min())
+    p = points[y >= cut]
+    # |p|^2 = 2 p.c + (r^2 - |c|^2): linear in (c, r^2 - |c|^2).
+    a = torch.cat([2 * p, torch.ones_like(p[:, :1])], 1)
+    b = (p * p).sum(1, keepdim=True)
+    sol = torch.linalg.lstsq(a, b).solution[:, 0]
+    centre = sol[:3]
+    radius = torch.sqrt(sol[3] + (centre * centre).sum())
+    return centre, radius
+
+
+def scalp_directions(
+    uv: torch.Tensor,
+    front_deg: float = SCALP_FRONT_DEG,
+    side_deg: float = SCALP_SIDE_DEG,
+    back_deg: float = SCALP_BACK_DEG,
+) -> torch.Tensor:
+    """Unit directions (M, 3) from the cranium's centre for scalp UVs (M, 2) in [0, 1]^2.
+
+    The UV square maps onto the unit disk (elliptical square-to-disk map, so the grid's
+    corners reach the rim too); a disk point at radius r and azimuth psi gives the direction
+    at angle r * rim(psi) from vertical, azimuth psi, where rim(psi) = side cos^2 psi +
+    (front or back) sin^2 psi (continuous, with a continuous slope). u runs from the body's
+    right to its left (+x), v from the forehead (v = 0, +z) to the nape (v = 1, -z).
+    """
+    a = 2 * uv[:, 0] - 1
+    b = 2 * uv[:, 1] - 1
+    x = a * torch.sqrt(1 - b * b / 2)  # towards the body's left
+    z = b * torch.sqrt(1 - a * a / 2)  # towards the back
+    r = torch.sqrt(x * x + z * z)
+    safe = r.clamp_min(1e-12)
+    cos_psi2 = torch.where(r > 1e-12, (x / safe) ** 2, torch.ones_like(r))
+    back, front = math.radians(back_deg), math.radians(front_deg)
+    end = torch.where(z > 0, torch.full_like(r, back), torch.full_like(r, front))
+    rim = math.radians(side_deg) * cos_psi2 + end * (1 - cos_psi2)
+    theta = rim * r
+    s = torch.where(r > 1e-12, torch.sin(theta) / safe, rim)  # sin(theta) / r, its limit at the pole
+    return torch.stack([s * x, torch.cos(theta), -s * z], -1)
+
+
+def grid_uv(resolution: int, dtype=torch.float32, device=None) -> torch.Tensor:
+    """(resolution^2, 2) cell-centre UVs, row-major: root m = row * resolution + col has
+    u = (col + 0.5) / resolution, v = (row + 0.5) / resolution."""
+    t = (torch.arange(resolution, dtype=torch.float64, device=device) + 0.5) / resolution
+    v, u = torch.meshgrid(t, t, indexing="ij")
+    return torch.stack([u.reshape(-1), v.reshape(-1)], 1).to(dtype)
+
+
+def build_scalp(
+    body,
+    resolution: int = 32,
+    front_deg: float = SCALP_FRONT_DEG,
+    side_deg: float = SCALP_SIDE_DEG,
+    back_deg: float = SCALP_BACK_DEG,
+) -> Scalp:
+    """The scalp grid of a body's rest head: `resolution`^2 roots on the surface.
+
+    Each root is where the ray from the cranium's centre (a sphere fitted to the top of the
+    head region) in its UV's direction (`scalp_directions`) first leaves the body; its normal is
+    the mesh's area-weighted vertex normal interpolated at that point. Deterministic.
+
+    Args:
+        body: a `hairwarp.scene.body.Body` (its rest vertices, faces, head region).
+        resolution: grid cells per side (32 in the paper: 1024 roots).
+        front_deg, side_deg, back_deg: the scalp's rim, as angles from vertical seen from
+            the cranium's centre at the forehead, the sides and the back [deg].
+
+    Returns:
+        `Scalp` (float32, on the body's device), root m at row m // resolution, column
+        m % resolution.
+
+    Raises:
+        ValueError: on a bad resolution, or when a ray misses the head region (the cap is
+            too large for this head).
+    """
+    if not isinstance(resolution, int) or isinstance(resolution, bool) or resolution < 1:
+        raise ValueError(f"resolution: expected a positive int, got {resolution!r}")
+    for name, value in (("front_deg", front_deg), ("side_deg", side_deg), ("back_deg", back_deg)):
+        if not 0.0 < float(value) < 180.0:
+            raise ValueError(f"{name}: expected an angle in (0, 180) degrees, got {value}")
+    vertices = body.rest_vertices.to(torch.float64)
+    faces = body.faces.long().to(vertices.device)
+    head = body.head_vertex_indices.to(vertices.device)
+    centre, radius = fit_cranium_sphere(vertices[head])
+    # Each ray tests the triangles near the head (the nape lies outside the head region, so
+    # the region itself is not enough) seen from the centre closest to its direction; the
+    # triangle it leaves through is among them (a cone of a few degrees holds it).
+    near = (vertices[faces].mean(1) - centre).norm(dim=-1) < _NEAR_HEAD * radius
+    near_faces = faces[near]
+    seen = vertices[near_faces].mean(1) - centre
+    seen = seen / seen.norm(dim=-1, keepdim=True)
+
+    uv = grid_uv(resolution, torch.float64, vertices.device)
+    directions = scalp_directions(uv, front_deg, side_deg, back_deg)
+    origins = centre.expand_as(directions)
+    cone = (directions @ seen.T).topk(min(_RAY_CANDIDATES, near_faces.shape[0]), dim=1).indices
+    t, face, bary = _geometry.ray_mesh_first_exit(origins, directions, vertices, near_faces, cone)
+    if bool((face < 0).any()):
+        raise ValueError(
+            f"body: {int((face < 0).sum())} scalp rays find no head surface; shrink the rim angles"
+        )
+    positions = origins + t[:, None] * directions
+    normals_v = _geometry.vertex_normals(vertices, faces)
+    corners = near_faces[face]  # (M, 3)
+    normals = (bary[:, :, None] * normals_v[corners]).sum(1)
+    normals = normals / normals.norm(dim=-1, keepdim=True)
+    return Scalp(
+        uv=uv.to(torch.float32),
+        positions=positions.to(torch.float32),
+        normals=normals.to(torch.float32),
+        resolution=resolution,
+    )
