@@ -9,6 +9,17 @@ from hairwarp.ops.hair_body_contact import (
     point_mesh_signed_distance,
 )
 from hairwarp.ops.hair_hair_contact import hair_hair_contact_energy, hair_hair_contact_pairs
+from hairwarp.ops.strand_energies import (
+    auxiliary_energy,
+    bending_energy,
+    compute_rest_lengths,
+    gravity_energy,
+    inertia_energy,
+    root_alignment_energy,
+    smoothness_energy,
+    strand_energies,
+    stretch_energy,
+)
 
 __all__ = [
     "barrier",
@@ -20,4 +31,13 @@ __all__ = [
     "hair_body_contact_energy",
     "hair_body_signed_distance",
     "point_mesh_signed_distance",
+    "auxiliary_energy",
+    "bending_energy",
+    "compute_rest_lengths",
+    "gravity_energy",
+    "inertia_energy",
+    "root_alignment_energy",
+    "smoothness_energy",
+    "strand_energies",
+    "stretch_energy",
 ]

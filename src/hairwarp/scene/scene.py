@@ -1,0 +1,171 @@
+"""A scene: body + hairstyle + motion, and what each frame hands to the physics.
+
+Data flows one way: scene -> rigid placement (Eq. 1) -> a method proposes hair positions ->
+the energy (Eq. 5/6) scores them. `Scene.frames(...)` does the first step for a batch of frames
+and returns everything a method or the energy needs, on one device, with the body cropped to
+the triangles the hair can reach (`BodyMesh.crop_for_hair`: provably the same contact result).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from hairwarp.energy import EnergyInputs
+from hairwarp.scene.body import Body, PosedBody, default_body
+from hairwarp.scene.hairstyles import Hairstyle, generate_hairstyle
+from hairwarp.scene.motion import Motion, procedural_motion
+from hairwarp.scene.placement import RigidHair, rigid_placement, root_search
+from hairwarp.scene.scalp import Scalp, build_scalp
+
+
+@dataclass(eq=False)
+class SceneFrames:
+    """A batch of B frames of a scene, ready for a method and the energy.
+
+    Attributes:
+        frame_indices: (B,) the motion frames.
+        posed: the posed bodies (vertices (B, V, 3), M_head (B, 4, 4)).
+        rigid: the rigid placement (positions (B, M, N, 3), normals (B, M, 3)).
+        body_mesh: `hairwarp.ops.BodyMesh` of the B posed bodies, cropped to the hair's reach.
+        inputs: the `EnergyInputs` of these frames (no previous states).
+        betas: (B, 16) body shapes; poses: (B, 66) body poses (the networks' inputs).
+    """
+
+    frame_indices: torch.Tensor
+    posed: PosedBody
+    rigid: RigidHair
+    body_mesh: object
+    inputs: EnergyInputs
+    betas: torch.Tensor
+    poses: torch.Tensor
+
+
+@dataclass(eq=False)
+class Scene:
+    """Body, hairstyle and motion of one scene.
+
+    Attributes:
+        body: the body model.
+        scalp: the scalp grid the hairstyle grows from.
+        hairstyle: rest-pose strands (M, N, 3) [m] with root UVs.
+        motion: poses (T, 66), trans (T, 3), betas (16,), fps. A static scene is a motion of
+            one frame.
+        name: a label.
+    """
+
+    body: Body
+    scalp: Scalp
+    hairstyle: Hairstyle
+    motion: Motion
+    name: str = ""
+
+    def __post_init__(self):
+        strands = self.hairstyle.strands
+        self._rest_lengths = (strands[:, 1:] - strands[:, :-1]).norm(dim=-1)
+        self._strand_lengths = self._rest_lengths.sum(dim=1)
+        self._search = None
+        self._cache = {}
+
+    @property
+    def num_frames(self) -> int:
+        return self.motion.num_frames
+
+    @property
+    def rest_lengths(self) -> torch.Tensor:
+        """(M, N-1) rest segment lengths of P_init [m] (Eq. 7)."""
+        return self._rest_lengths
+
+    @property
+    def strand_lengths(self) -> torch.Tensor:
+        """(M,) rest arc length of each strand [m]."""
+        return self._strand_lengths
+
+    def _on(self, device: torch.device, dtype: torch.dtype):
+        key = (str(device), dtype)
+        if key not in self._cache:
+            strands = self.hairstyle.strands.to(device=device, dtype=dtype)
+            self._cache[key] = {
+                "strands": strands,
+                "root_uv": self.hairstyle.root_uv.to(device),
+                "rest_lengths": self._rest_lengths.to(device=device, dtype=dtype),
+                "strand_lengths": self._strand_lengths.to(device=device, dtype=dtype),
+                "search": None,
+            }
+        return self._cache[key]
+
+    def frames(self, indices=None, *, device="cpu", dtype=torch.float32, crop: bool = True) -> SceneFrames:
+        """Pose the body and place the hair rigidly (Eq. 1) for a batch of frames.
+
+        Args:
+            indices: frame indices (int, sequence or tensor); None for all frames.
+            device: torch device of every output.
+            dtype: float32 (default) or float64.
+            crop: crop the body mesh to the triangles the hair can reach (no change to any
+                contact result, fewer triangles to query).
+
+        Returns:
+            SceneFrames.
+        """
+        from hairwarp.ops import BodyMesh
+
+        device = torch.device(device)
+        if indices is None:
+            indices = torch.arange(self.num_frames)
+        indices = torch.as_tensor(indices, dtype=torch.long).reshape(-1)
+        if indices.numel() == 0:
+            raise ValueError("indices: expected at least one frame")
+        if int(indices.min()) < 0 or int(indices.max()) >= self.num_frames:
+            raise ValueError(f"indices: frames must lie in [0, {self.num_frames}), got {indices.tolist()}")
+        cache = self._on(device, dtype)
+        poses = self.motion.poses[indices].to(device=device, dtype=dtype)
+        trans = self.motion.trans[indices].to(device=device, dtype=dtype)
+        betas = self.motion.betas.to(device=device, dtype=dtype).expand(len(indices), -1)
+        posed = self.body.pose(betas=betas, poses=poses, trans=trans)
+        if cache["search"] is None:
+            cache["search"] = root_search(self.body, cache["strands"][:, 0])
+        rigid = rigid_placement(cache["strands"], posed, self.body, scalp=self.scalp,
+                                root_uv=cache["root_uv"], search=cache["search"])
+        faces = self.body.faces.to(device=device, dtype=torch.int32)
+        body_mesh = BodyMesh(posed.vertices.to(dtype), faces)
+        if crop:
+            body_mesh = body_mesh.crop_for_hair(rigid.positions[:, :, 0], cache["strand_lengths"])
+        inputs = EnergyInputs(
+            rest_lengths=cache["rest_lengths"],
+            rigid=rigid.positions,
+            scalp_normals=rigid.normals,
+            body=body_mesh,
+        )
+        return SceneFrames(indices, posed, rigid, body_mesh, inputs, betas, poses)
+
+
+def static_motion(poses: torch.Tensor | None = None, betas: torch.Tensor | None = None, name: str = "rest") -> Motion:
+    """A one-frame 'motion' holding a single pose (rest pose by default)."""
+    poses = torch.zeros(1, 66) if poses is None else torch.as_tensor(poses, dtype=torch.float32).reshape(1, 66)
+    betas = torch.zeros(16) if betas is None else torch.as_tensor(betas, dtype=torch.float32).reshape(16)
+    return Motion(poses=poses, trans=torch.zeros(1, 3), betas=betas, fps=60.0, name=name)
+
+
+def default_scene(hairstyle: str = "long_straight", motion: str | None = None, *, seed: int = 0,
+                  duration: float | None = None) -> Scene:
+    """The embedded default: default body, a procedural hairstyle, a procedural motion.
+
+    Args:
+        hairstyle: a preset name (`hairwarp.scene.hairstyles.list_hairstyle_presets()`).
+        motion: a procedural motion name (`hairwarp.scene.motion.list_motions()`), or None for
+            the rest pose (one frame).
+        seed: seed of the hairstyle's randomness.
+        duration: motion length [s] (None: the motion's natural length).
+
+    Returns:
+        Scene; nothing is downloaded.
+    """
+    from hairwarp.scene.hairstyles import hairstyle_preset
+
+    body = default_body()
+    scalp = build_scalp(body)
+    style = generate_hairstyle(scalp, hairstyle_preset(hairstyle, seed=seed))
+    mot = static_motion() if motion is None else procedural_motion(motion, duration=duration)
+    return Scene(body=body, scalp=scalp, hairstyle=style, motion=mot,
+                 name=f"{hairstyle}/{motion or 'rest'}")
