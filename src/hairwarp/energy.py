@@ -143,7 +143,7 @@ def total_energy(
         )
         result.total = result.total + e_hh
         result.terms["hair_hair_contact"] = e_hh.detach()
-        result.hair_hair_pairs = int(info["pair_count"]) if "pair_count" in info else None
+        result.hair_hair_pairs = int(info.pair_count)
 
     if x.dim() == 3:
         result.total = result.total.reshape(1)
