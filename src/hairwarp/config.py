@@ -34,6 +34,13 @@ ALL_TERMS = STRAND_TERMS + CONTACT_TERMS
 class EnergyConfig:
     """Weights and physical constants of the total energy (Eq. 5 static, Eq. 6 dynamic).
 
+    The paper gives no values. Ours were chosen on the default scene (long straight hair on
+    the default body at rest, 1024 x 100): with them an L-BFGS drape takes penetration from
+    40.6 % to 0 % at 0.33 % mean length change. Mind the normalisations of the paper, which
+    we keep: Eq. 7, 9, 10, 15, 16 are means over vertices or segments (so their weights are
+    large: k_s = 1e8 over 1e5 segments is a per-segment stiffness of ~1e3 J/m^2), while
+    Eq. 8, 11 and the contact terms are sums.
+
     Attributes:
         stretch_weight: k_s of Eq. 7 [J/m^2]; multiplies the mean squared segment-length error.
         bending_weight: k_b of Eq. 8 [J/rad]; multiplies the summed turning angles.
@@ -48,7 +55,10 @@ class EnergyConfig:
         root_alignment_segments: k'_align of Eq. 15: moving segments per strand aligned with the
             scalp normal.
         root_alignment_eps: epsilon_norm of Eq. 15 [m].
-        inertia_weight: lambda_inertia of Eq. 16 (dimensionless multiplier).
+        inertia_weight: lambda_inertia of Eq. 16 (dimensionless). Eq. 16 is a mean over the
+            M N_mov moving vertices while gravity (Eq. 11) is a sum: lambda_inertia = M N_mov
+            (~1e5 for 1024 x 100) makes the pair physical (the implicit-Euler incremental
+            potential); a weight of 1 would make the dynamics all but quasi-static.
         time_step: Delta t of Eq. 16 [s] (1/60 in the paper).
         hair_body_weight: lambda_hb of Eq. 12 for hair-body contact [J], per vertex.
         hair_body_xi: hard barrier xi for hair-body contact [m] (1 mm in the paper).
@@ -63,25 +73,25 @@ class EnergyConfig:
             candidate pairs per segment; overflow is reported, never dropped silently.
     """
 
-    stretch_weight: float = 1.0e5
+    stretch_weight: float = 1.0e8
     bending_weight: float = 1.0e-6
     bending_eps: float = 1.0e-6
-    auxiliary_weight: float = 1.0
+    auxiliary_weight: float = 1.0e2
     smoothness_weight: float = 1.0e3
     vertex_mass: float = 1.0e-5
     gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)
     gravity_weight: float = 1.0
-    root_alignment_weight: float = 1.0e-3
+    root_alignment_weight: float = 1.0
     root_alignment_segments: int = 3
     root_alignment_eps: float = 1.0e-8
-    inertia_weight: float = 1.0
+    inertia_weight: float = 1.0e5
     time_step: float = 1.0 / 60.0
     hair_body_weight: float = 1.0e3
     hair_body_xi: float = 1.0e-3
     hair_body_dhat: float = 1.5e-3
-    hair_hair_weight: float = 0.0
-    hair_diameter: float = 2.0e-3
-    hair_hair_dhat: float = 3.0e-3
+    hair_hair_weight: float = 1.0e3
+    hair_diameter: float = 5.0e-4
+    hair_hair_dhat: float = 7.5e-4
     barrier_join_fraction: float = 0.01
     barrier_variant: str = "monotone"
     hair_hair_capacity_per_segment: int = 16

@@ -1,0 +1,166 @@
+"""Energy benchmark: forward + backward of each loss term and of the total, the Warp path
+(`hairwarp.ops`, `hairwarp.energy`) against the plain-torch path (`hairwarp.torch_reference`),
+at the paper's sizes: 1024 strands x 100 vertices on the default body (13 348 vertices, cropped
+to the hair's reach), batch 1 and 32 (B different frames of a head-turn motion).
+
+Writes {"device", "machine", "sizes", "results": [{"name", "warp_ms", "torch_ms", ...}]},
+a result named "total" included (Eq. 6 without L_func_reg: every term, inertia too).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import torch
+
+from hairwarp.bench.timing import machine_description, time_ms
+from hairwarp.config import EnergyConfig
+
+STRAND_TERM_NAMES = ("stretch", "bending", "auxiliary", "smoothness", "gravity", "root_alignment", "inertia")
+
+
+def build_energy_inputs(batch: int, device: torch.device, *, hairstyle: str = "long_straight",
+                        noise: float = 1e-3, seed: int = 0):
+    """Hair positions near the rigid placement of `batch` frames of the default scene.
+
+    Returns:
+        (x (B, M, N, 3) requiring grad, EnergyInputs with prev/prev2, scene, frames).
+    """
+    from hairwarp.scene.scene import default_scene
+
+    scene = default_scene(hairstyle, "head_turn")
+    idx = torch.linspace(0, scene.num_frames - 1, batch).round().long()
+    frames = scene.frames(idx, device=device)
+    g = torch.Generator(device="cpu").manual_seed(seed)
+    rigid = frames.rigid.positions
+    jitter = (torch.randn(rigid.shape, generator=g) * noise).to(device)
+    jitter[:, :, :2] = 0
+    x = (rigid + jitter).detach().requires_grad_(True)
+    prev = (rigid + 0.5 * jitter).detach()
+    inputs = replace(frames.inputs, prev=prev, prev2=rigid.detach())
+    return x, inputs, scene, frames
+
+
+def _closures(x, inputs, config: EnergyConfig):
+    """name -> (warp fn, torch fn), each returning a (B,) energy."""
+    from hairwarp import energy as hw_energy
+    from hairwarp import ops
+    from hairwarp.torch_reference import energy as ref_energy
+    from hairwarp.torch_reference import hair_hair_contact as ref_hh
+    from hairwarp.torch_reference import strand_energies as ref
+
+    c = config
+    m = c.vertex_mass
+    args = {
+        "stretch": ((inputs.rest_lengths, c.stretch_weight), {}),
+        "bending": ((c.bending_weight, c.bending_eps), {}),
+        "auxiliary": ((inputs.rigid, c.auxiliary_weight), {}),
+        "smoothness": ((c.smoothness_weight,), {}),
+        "gravity": ((m, c.gravity, c.gravity_weight), {}),
+        "root_alignment": ((inputs.scalp_normals, c.root_alignment_weight, c.root_alignment_segments,
+                            c.root_alignment_eps), {}),
+        "inertia": ((inputs.prev, inputs.prev2, m, c.time_step, c.inertia_weight), {}),
+    }
+    out = {}
+    for name in STRAND_TERM_NAMES:
+        a, kw = args[name]
+        warp_fn = getattr(ops, f"{name}_energy")
+        torch_fn = getattr(ref, f"{name}_energy")
+        out[name] = (lambda f=warp_fn, a=a: f(x, *a), lambda f=torch_fn, a=a: f(x, *a))
+    body = inputs.body
+    out["hair_body_contact"] = (
+        lambda: ops.hair_body_contact_energy(x, body, c.hair_body_xi, c.hair_body_dhat, c.barrier_join_fraction,
+                                             weight=c.hair_body_weight, variant=c.barrier_variant),
+        lambda: ref_energy.hair_body_energy(x, body, c, "nearest_vertex"),
+    )
+    out["hair_hair_contact"] = (
+        lambda: ops.hair_hair_contact_energy(x, c.hair_diameter, c.hair_hair_dhat, c.barrier_join_fraction,
+                                             weight=c.hair_hair_weight, variant=c.barrier_variant)[0],
+        lambda: ref_hh.hair_hair_contact_energy(x, c.hair_diameter, c.hair_hair_dhat, c.barrier_join_fraction,
+                                                c.hair_hair_weight, c.barrier_variant, method="grid")[0],
+    )
+    out["total"] = (
+        lambda: hw_energy.total_energy(x, inputs, c, dynamic=True).total,
+        lambda: ref_energy.total_energy(x, inputs, c, dynamic=True).total,
+    )
+    return out
+
+
+def run_energy_benchmark(device: torch.device, batches=(1, 32), *, config: EnergyConfig | None = None,
+                         names=None, skip_torch_above_ms: float = 60_000.0, progress: bool = True) -> dict:
+    """Time forward + backward of every term and the total, Warp vs plain torch.
+
+    Args:
+        device: where to run.
+        batches: batch sizes.
+        config: energy weights (default `EnergyConfig()`).
+        names: subset of term names (plus "total"); None for all.
+        skip_torch_above_ms: after one untimed call slower than this, the torch path of that
+            term is timed once, not repeated (the CPU's brute-force peers can take minutes).
+        progress: print each row as it is measured.
+
+    Returns:
+        The benchmark record (see the module docstring).
+    """
+    import time
+
+    from hairwarp import set_finite_checks
+
+    config = config or EnergyConfig()
+    results = []
+    sizes = {}
+    previous_checks = set_finite_checks(False)  # the inputs are ours: no NaN scans in the timed loop
+    try:
+        for batch in batches:
+            x, inputs, scene, frames = build_energy_inputs(batch, device)
+            sizes = {"strands": int(x.shape[1]), "vertices_per_strand": int(x.shape[2]),
+                     "body_vertices": scene.body.num_vertices, "body_faces": scene.body.num_faces,
+                     "body_faces_after_crop": int(frames.body_mesh.num_faces), "batches": list(batches)}
+            for name, (warp_fn, torch_fn) in _closures(x, inputs, config).items():
+                if names is not None and name not in names:
+                    continue
+
+                def step(fn):
+                    def run():
+                        x.grad = None
+                        fn().sum().backward()
+                    return run
+
+                warp_ms = time_ms(step(warp_fn), device, warmup=2, repeats=5, min_time_s=0.2)
+                t0 = time.perf_counter()
+                step(torch_fn)()
+                first = (time.perf_counter() - t0) * 1e3
+                if first > skip_torch_above_ms:
+                    torch_ms, torch_note = first, "timed once"
+                else:
+                    torch_ms = time_ms(step(torch_fn), device, warmup=1, repeats=3, min_time_s=0.2)
+                    torch_note = ""
+                row = {"name": name, "batch": batch, "warp_ms": warp_ms, "torch_ms": torch_ms,
+                       "speedup": torch_ms / warp_ms if warp_ms > 0 else None}
+                if torch_note:
+                    row["note"] = torch_note
+                results.append(row)
+                if progress:
+                    print(f"  B={batch:<3d} {name:<18s} warp {warp_ms:10.3f} ms   torch {torch_ms:10.3f} ms   "
+                          f"x{row['speedup']:.1f}", flush=True)
+    finally:
+        set_finite_checks(previous_checks)
+    return {"device": str(device), "machine": machine_description(device), "sizes": sizes,
+            "config": {k: v for k, v in vars(config).items()}, "results": results}
+
+
+def markdown_table(record: dict) -> str:
+    """The benchmark as a markdown table (one row per term and batch)."""
+    lines = [f"Device: {record['machine']}; sizes: {record['sizes']}", "",
+             "| term | batch | Warp fwd+bwd (ms) | plain torch fwd+bwd (ms) | speed-up |",
+             "|---|---:|---:|---:|---:|"]
+    for r in record["results"]:
+        lines.append(f"| {r['name']} | {r['batch']} | {r['warp_ms']:.3f} | {r['torch_ms']:.3f} | "
+                     f"{r['speedup']:.1f}x |")
+    return "\n".join(lines)
+
+
+def write_json(record: dict, path: str) -> None:
+    with open(path, "w") as f:
+        json.dump(record, f, indent=2, default=str)
