@@ -106,18 +106,20 @@ def test_corpus_style_reconstructs(basis, scalp):
     # The tool's corpus is `sample_hairstyle_params` from `default_rng(seed)`: its first style.
     rng = np.random.default_rng(basis.info["seed"])
     style = generate_hairstyle(scalp, sample_hairstyle_params(rng))
-    assert style.num_strands == 1024
+    assert style.num_strands > 900  # a few too-short strands may be filtered (Section 3.1)
     s = style.strands.double()
-    rec, _ = basis.decode(basis.encode(s))
-    err = _mean_error(rec, s)
+    rec, _ = basis.decode(basis.encode(s, style.root_uv.double()))
+    err = _mean_error(rec[style.root_index], s)
     assert 0 < err < _CORPUS_ERROR
     print(f"corpus style: mean vertex error {1000 * err:.2f} mm")
 
 
 def test_new_style_of_the_family_reconstructs(basis, scalp):
     for name in ("long_straight", "medium_wavy"):
-        s = generate_hairstyle(scalp, name).strands.double()
-        err = _mean_error(basis.decode(basis.encode(s))[0], s)
+        style = generate_hairstyle(scalp, name)
+        s = style.strands.double()
+        rec = basis.decode(basis.encode(s, style.root_uv.double()))[0]
+        err = _mean_error(rec[style.root_index], s)
         print(f"{name}: mean vertex error {1000 * err:.2f} mm")
         assert err < _HELDOUT_ERROR, name
 

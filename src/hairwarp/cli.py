@@ -17,6 +17,8 @@ _COMMANDS = {
     "drape": "hairwarp.commands.drape",
     "simulate": "hairwarp.commands.simulate",
     "bench": "hairwarp.commands.bench",
+    "train": "hairwarp.commands.train",
+    "finetune": "hairwarp.commands.finetune",
 }
 
 

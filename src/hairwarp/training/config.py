@@ -1,0 +1,631 @@
+"""Training settings of the HairFormer networks (Sections 4.1, 4.2): dataclasses, TOML, `--set`.
+
+Three dataclasses hold every knob of a run, each phase size a field (the paper's 1 000 / 20 000
+hair latents and its AMASS dancers are targets for a GPU cluster, not requirements on a laptop):
+
+    DataConfig              what the sampler draws: hair subset, latents, motions, body shapes.
+    StaticTrainingConfig    the four-phase curriculum of the static network (Section 4.2.1) and
+                            of the Quaffure (adapted) baseline (same loss, Section 4.3.1).
+    DynamicTrainingConfig   the dynamic network (Section 4.2.2) and the fine-tuning (Fig. 4).
+
+Paper defaults (Section 4.1, 4.2): Adam, learning rate 1e-4, batch 32; dt = 1/60 s, T_w = 10,
+one frame every 2-5 frames per sequence, dynamic-score filter at the median of 500 sequences;
+b_p annealed from 0.9 to 0.01; deformations clipped at 0.01 m early in static training.
+
+A config round-trips through plain dicts (`to_dict` / `from_dict`), TOML files (`load_config`,
+`write_toml`) and command-line overrides `key=value` with dotted keys for nested tables
+(`apply_overrides(cfg, ["data.num_vertices=20", "phase_steps=[2, 2, 0, 0]"])`); values are
+TOML literals, a bare word is a string, and `none` sets an optional field to None.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import tomllib
+from dataclasses import dataclass, field
+from typing import Any
+
+from hairwarp.config import EnergyConfig
+from hairwarp.models import DynamicConfig, QuaffureConfig, StaticConfig
+from hairwarp.scene.motion import DEFAULT_FPS, list_motions
+
+MODEL_PRESETS = ("paper", "shipped", "tiny")
+STATIC_MODEL_KINDS = ("static", "quaffure")
+BP_SCHEDULES = ("linear", "geometric")
+LATENT_SOURCES = ("corpus", "sample")
+DTYPES = ("float32", "float64")
+SCALP_GRID = 32  # roots per side of the scalp grid (Section 3.1: 32 x 32 = 1024 strands)
+
+
+# ------------------------------------------------------------------------------------ checks
+def _fail(owner: str, name: str, expected: str, value) -> None:
+    raise ValueError(f"{owner}.{name}: expected {expected}, got {value!r}")
+
+
+def _int(owner: str, name: str, value, minimum: int = 0) -> None:
+    if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
+        _fail(owner, name, f"an int >= {minimum}", value)
+
+
+def _number(owner: str, name: str, value, minimum: float = 0.0, *, strict: bool = False,
+            maximum=None) -> None:
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    ok = ok and (value > minimum if strict else value >= minimum)
+    ok = ok and (maximum is None or value <= maximum)
+    if not ok:
+        bound = f"> {minimum}" if strict else f">= {minimum}"
+        bound += "" if maximum is None else f" and <= {maximum}"
+        _fail(owner, name, f"a finite number {bound}", value)
+
+
+def _choice(owner: str, name: str, value, choices) -> None:
+    if value not in choices:
+        _fail(owner, name, f"one of {list(choices)}", value)
+
+
+# ------------------------------------------------------------------------------------ base
+class _TrainingConfig:
+    """Dict round trip with validation and type coercion from TOML / command-line values."""
+
+    def to_dict(self) -> dict:
+        """The settings as plain data: dicts, lists, str, numbers, bools and None."""
+        return _plain(dataclasses.asdict(self))
+
+    @classmethod
+    def from_dict(cls, data: dict):
+        """Build the config from `to_dict`'s output (or a parsed TOML file).
+
+        Missing keys keep their defaults; ints are accepted for float fields, lists for tuple
+        fields, and the string "none" for optional fields.
+
+        Raises:
+            ValueError: on a key that is not a field (named), or a value that fails validation.
+        """
+        if not isinstance(data, dict):
+            raise ValueError(f"{cls.__name__}: expected a table (dict), got {type(data).__name__}")
+        fields = {f.name: f for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - set(fields))
+        if unknown:
+            raise ValueError(f"{cls.__name__}: unknown setting(s) {unknown}; known: {sorted(fields)}")
+        defaults = cls()
+        kwargs = {}
+        for name, value in data.items():
+            default = getattr(defaults, name)
+            kwargs[name] = _coerce(cls.__name__, name, value, default, fields[name])
+        return cls(**kwargs)
+
+    def replace(self, **changes):
+        """A validated copy with some fields changed."""
+        return dataclasses.replace(self, **changes)
+
+
+def _plain(value):
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    return value
+
+
+def _optional(f: dataclasses.Field) -> bool:
+    return "None" in str(f.type)
+
+
+def _coerce(owner: str, name: str, value, default, f: dataclasses.Field):
+    if isinstance(value, str) and value.lower() in ("none", "null") and _optional(f):
+        return None
+    if isinstance(default, _TrainingConfig):
+        if isinstance(value, type(default)):
+            return value
+        return type(default).from_dict(value)
+    if isinstance(default, tuple) and isinstance(value, list):
+        return tuple(value)
+    if isinstance(default, list) and isinstance(value, tuple):
+        return list(value)
+    if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if default is None and isinstance(value, int) and not isinstance(value, bool) and "float" in str(f.type):
+        return float(value)
+    return value
+
+
+# ------------------------------------------------------------------------------------ data
+@dataclass
+class DataConfig(_TrainingConfig):
+    """What the training sampler draws (`hairwarp.training.data.TrainingSampler`).
+
+    Attributes:
+        strand_stride: keep every k-th root of the 32 x 32 scalp grid along u and v (1: all
+            1024 strands; 4: an 8 x 8 sub-grid of 64) to train faster; the network still sees
+            the full latent and predicts the full deformation map.
+        num_vertices: N, vertices per strand; the decoded strands (100 vertices) are resampled
+            by arc length when this differs (the network's N follows it).
+        latent_source: "corpus": z = encode(procedural hairstyle i) with random parameters
+            (`sample_hairstyle_params`), so z lies on the family the basis was fitted on;
+            "sample": z ~ N(0, latent_scale^2 I). Either way P_init = decode(z) (Section 3.1:
+            the initial hair is generated from z), so z and the physics agree exactly.
+        latent_scale: standard deviation of the "sample" latents.
+        corpus_seed: seed of the hairstyle corpus, the subjects and the dynamic-score
+            threshold: the same on every rank and run.
+        motions: procedural motions in the pool (`hairwarp.scene.motion.list_motions()`).
+        motion_variants: jittered copies of each procedural motion (variant 0 the nominal
+            motion); variant v is performed by subject v mod num_subjects.
+        amass_paths: AMASS `.npz` files added to the pool (each file one sequence; files with
+            equal betas are one subject).
+        num_subjects: size of the representative set of body shapes (the "dancers"); phases
+            0-2 use their mean shape, phase 3 and dynamic training each subject's shape plus
+            noise.
+        shape_std: standard deviation of the representative betas (SMPL units).
+        beta_noise_std: Gaussian noise added to betas in phase 3 and dynamic training.
+        head_rotation_radii: semi-axes [rad] of the phase-1 ellipsoid of head rotation vectors
+            about x (nod), y (turn) and z (tilt), reached at the end of phase 1.
+        phase1_rest_fraction: share of phase-1 samples kept at the rest pose (no rotation),
+            so the rest drape is not forgotten while the radii grow.
+        fps: frame rate the motions are played at [1/s] (60: dt = 1/60 s, Section 4.2.2).
+        crop_body: crop each posed body to the triangles the hair can reach (no change to any
+            contact result, fewer triangles to query).
+        pose_cache_size: posed bodies (noise-free motion frames) kept in memory.
+        hairstyle_cache_size: decoded hairstyles kept in memory.
+    """
+
+    strand_stride: int = 1
+    num_vertices: int = 100
+    latent_source: str = "corpus"
+    latent_scale: float = 1.0
+    corpus_seed: int = 0
+    motions: list = field(default_factory=list_motions)
+    motion_variants: int = 4
+    amass_paths: list = field(default_factory=list)
+    num_subjects: int = 8
+    shape_std: float = 1.0
+    beta_noise_std: float = 0.1
+    head_rotation_radii: tuple = (0.6, 1.0, 0.5)
+    phase1_rest_fraction: float = 0.1
+    fps: float = DEFAULT_FPS
+    crop_body: bool = True
+    pose_cache_size: int = 512
+    hairstyle_cache_size: int = 64
+
+    def __post_init__(self):
+        owner = type(self).__name__
+        _int(owner, "strand_stride", self.strand_stride, 1)
+        if SCALP_GRID % self.strand_stride:
+            _fail(owner, "strand_stride", f"a divisor of {SCALP_GRID}", self.strand_stride)
+        _int(owner, "num_vertices", self.num_vertices, 3)
+        _choice(owner, "latent_source", self.latent_source, LATENT_SOURCES)
+        _number(owner, "latent_scale", self.latent_scale, strict=True)
+        _int(owner, "corpus_seed", self.corpus_seed)
+        self.motions = list(self.motions)
+        known = list_motions()
+        for name in self.motions:
+            _choice(owner, "motions", name, known)
+        self.amass_paths = [os.fspath(p) for p in self.amass_paths]
+        if not self.motions and not self.amass_paths:
+            _fail(owner, "motions", "at least one motion (or amass_paths)", self.motions)
+        _int(owner, "motion_variants", self.motion_variants, 1)
+        _int(owner, "num_subjects", self.num_subjects, 1)
+        _number(owner, "shape_std", self.shape_std)
+        _number(owner, "beta_noise_std", self.beta_noise_std)
+        self.head_rotation_radii = tuple(self.head_rotation_radii)
+        if len(self.head_rotation_radii) != 3:
+            _fail(owner, "head_rotation_radii", "3 numbers", self.head_rotation_radii)
+        for r in self.head_rotation_radii:
+            _number(owner, "head_rotation_radii", r, maximum=math.pi)
+        _number(owner, "phase1_rest_fraction", self.phase1_rest_fraction, maximum=1.0)
+        _number(owner, "fps", self.fps, strict=True)
+        if not isinstance(self.crop_body, bool):
+            _fail(owner, "crop_body", "true or false", self.crop_body)
+        _int(owner, "pose_cache_size", self.pose_cache_size)
+        _int(owner, "hairstyle_cache_size", self.hairstyle_cache_size)
+
+    @property
+    def num_strands(self) -> int:
+        """M, strands per hairstyle after the sub-grid selection."""
+        return (SCALP_GRID // self.strand_stride) ** 2
+
+    @classmethod
+    def tiny(cls) -> DataConfig:
+        """64 strands x 20 vertices, 2 motions, no variants, uncropped bodies (with so few hair
+        vertices the crop costs more than it saves): for CPU tests and examples."""
+        return cls(strand_stride=4, num_vertices=20, motions=["nod", "whiplash"], motion_variants=1,
+                   num_subjects=2, crop_body=False, pose_cache_size=64, hairstyle_cache_size=16)
+
+
+def _check_energy(owner: str, energy: dict) -> None:
+    if not isinstance(energy, dict):
+        _fail(owner, "energy", "a table of EnergyConfig fields", energy)
+    try:
+        EnergyConfig(**energy)
+    except TypeError as exc:
+        raise ValueError(f"{owner}.energy: {exc}") from None
+    except ValueError as exc:
+        raise ValueError(f"{owner}.energy.{exc}") from None
+
+
+def _check_model_keys(owner: str, model: dict, config_cls, reserved=()) -> None:
+    if not isinstance(model, dict):
+        _fail(owner, "model", f"a table of {config_cls.__name__} fields", model)
+    known = {f.name for f in dataclasses.fields(config_cls)} - set(reserved)
+    unknown = sorted(set(model) - known)
+    if unknown:
+        raise ValueError(f"{owner}.model: unknown {config_cls.__name__} field(s) {unknown}; known: {sorted(known)}")
+
+
+def energy_config(overrides: dict, **fixed) -> EnergyConfig:
+    """EnergyConfig from a run's `energy` table plus fields the trainer sets (e.g. b_p)."""
+    return EnergyConfig(**{**overrides, **fixed})
+
+
+# ------------------------------------------------------------------------------------ static
+@dataclass
+class StaticTrainingConfig(_TrainingConfig):
+    """The static network's curriculum (Section 4.2.1); also the Quaffure (adapted) baseline.
+
+    Attributes:
+        model_kind: "static" (HairFormer, Section 3.2) or "quaffure" (Section 4.3.1).
+        model_preset: "paper" (`StaticConfig()`), "shipped" or "tiny" network sizes.
+        model: overrides of the network config's fields (e.g. {num_heads = 4}); latent_dim
+            and num_vertices always follow the data (512 and `data.num_vertices`).
+        phase_steps: optimizer steps of phases 0-3: 0 one rest body + one hairstyle; 1 head
+            rotations on growing ellipsoids; 2 `phase2_hairstyles` hairstyles + the motions of
+            one subject; 3 `phase3_hairstyles`, all motions and subjects, noisy shapes.
+        phase2_hairstyles: hairstyle pool of phase 2 (1 000 in the paper).
+        phase3_hairstyles: hairstyle pool of phase 3 (20 000 in the paper).
+        batch_size: samples per step (32 in the paper); phase 0 uses 1 (its samples are all
+            the same: one body, one pose, one hairstyle).
+        learning_rate: Adam step size (1e-4 in the paper).
+        bp_start: b_p at the first step (0.9 in the paper).
+        bp_end: b_p at the last step (0.01 in the paper).
+        bp_schedule: "linear" or "geometric" interpolation over all steps.
+        deformation_clip: clamp of each deformation component [m] early in training (0.01).
+        clip_steps: steps during which the clip applies; None: phase 0.
+        grad_clip_norm: clip the gradient norm to this (0: off; the paper does not clip).
+        checkpoint_every: write `checkpoint.pt` every this many steps (0: only at the end).
+        dtype: "float32" (training) or "float64" (checks).
+        energy: overrides of `hairwarp.config.EnergyConfig` fields (b_p is set per step).
+        data: what the sampler draws.
+    """
+
+    model_kind: str = "static"
+    model_preset: str = "paper"
+    model: dict = field(default_factory=dict)
+    phase_steps: tuple = (1000, 2000, 10000, 50000)
+    phase2_hairstyles: int = 1000
+    phase3_hairstyles: int = 20000
+    batch_size: int = 32
+    learning_rate: float = 1.0e-4
+    bp_start: float = 0.9
+    bp_end: float = 0.01
+    bp_schedule: str = "linear"
+    deformation_clip: float = 0.01
+    clip_steps: int | None = None
+    grad_clip_norm: float = 0.0
+    checkpoint_every: int = 1000
+    dtype: str = "float32"
+    energy: dict = field(default_factory=dict)
+    data: DataConfig = field(default_factory=DataConfig)
+
+    def __post_init__(self):
+        owner = type(self).__name__
+        _choice(owner, "model_kind", self.model_kind, STATIC_MODEL_KINDS)
+        _choice(owner, "model_preset", self.model_preset, MODEL_PRESETS)
+        _check_model_keys(owner, self.model, StaticConfig if self.model_kind == "static" else QuaffureConfig)
+        self.phase_steps = tuple(self.phase_steps)
+        if len(self.phase_steps) != 4:
+            _fail(owner, "phase_steps", "4 step counts (phases 0-3)", self.phase_steps)
+        for s in self.phase_steps:
+            _int(owner, "phase_steps", s)
+        if sum(self.phase_steps) == 0:
+            _fail(owner, "phase_steps", "at least one step in total", self.phase_steps)
+        _int(owner, "phase2_hairstyles", self.phase2_hairstyles, 1)
+        _int(owner, "phase3_hairstyles", self.phase3_hairstyles, 1)
+        _int(owner, "batch_size", self.batch_size, 1)
+        _number(owner, "learning_rate", self.learning_rate, strict=True)
+        _number(owner, "bp_start", self.bp_start, strict=True, maximum=1.0)
+        _number(owner, "bp_end", self.bp_end, strict=True, maximum=1.0)
+        if self.bp_start >= 1.0 or self.bp_end >= 1.0:
+            _fail(owner, "bp_start/bp_end", "values in (0, 1)", (self.bp_start, self.bp_end))
+        _choice(owner, "bp_schedule", self.bp_schedule, BP_SCHEDULES)
+        _number(owner, "deformation_clip", self.deformation_clip, strict=True)
+        if self.clip_steps is not None:
+            _int(owner, "clip_steps", self.clip_steps)
+        _number(owner, "grad_clip_norm", self.grad_clip_norm)
+        _int(owner, "checkpoint_every", self.checkpoint_every)
+        _choice(owner, "dtype", self.dtype, DTYPES)
+        _check_energy(owner, self.energy)
+        if isinstance(self.data, dict):
+            self.data = DataConfig.from_dict(self.data)
+        if not isinstance(self.data, DataConfig):
+            _fail(owner, "data", "a DataConfig", self.data)
+
+    @property
+    def total_steps(self) -> int:
+        """Steps of the whole curriculum."""
+        return int(sum(self.phase_steps))
+
+    @property
+    def clip_until(self) -> int:
+        """First step without the deformation clip."""
+        return self.phase_steps[0] if self.clip_steps is None else self.clip_steps
+
+    @classmethod
+    def tiny(cls, model_kind: str = "static") -> StaticTrainingConfig:
+        """A CPU-sized curriculum: tiny network, 64 x 20 hair, a few steps per phase."""
+        return cls(
+            model_kind=model_kind, model_preset="tiny", phase_steps=(4, 4, 4, 4), phase2_hairstyles=2,
+            phase3_hairstyles=3, batch_size=2, learning_rate=1e-3, checkpoint_every=0, data=DataConfig.tiny(),
+        )
+
+
+# ------------------------------------------------------------------------------------ dynamic
+@dataclass
+class DynamicTrainingConfig(_TrainingConfig):
+    """The dynamic network (Section 4.2.2) and its fine-tuning on one motion (Fig. 4).
+
+    Each batch item is a sequence of `warmup_frames + rollout_frames` frames of one motion,
+    subsampled every k in [subsample_min, subsample_max] frames (one k per sequence) and kept
+    when its dynamic score reaches the `dynamic_quantile` of `dynamic_candidates` random
+    sequences. The GRU runs from a zero state over the warm-up frames without gradient; their
+    last two drapes are the previous states of the first rollout frames. The loss (Eq. 6) is
+    averaged over the rollout frames; gradients flow back through the GRU over the rollout
+    (truncated back-propagation through time), never through previous hair states (Eq. 16).
+
+    Attributes:
+        static_checkpoint: the trained static network (a `hairwarp train static` checkpoint).
+        model_preset: sizes of the dynamic parts: "paper" (`DynamicConfig()`), "shipped" or
+            "tiny".
+        model: overrides of `DynamicConfig` fields (num_static_dynamic_layers,
+            motion_hidden_dim, fusion, lora_rank, lora_alpha, func_reg_weight);
+            motion_dim and window follow the data.
+        steps: optimizer steps.
+        hairstyles: hairstyle pool (the static phase 3's 20 000 in the paper).
+        batch_size: sequences per step (32 in the paper).
+        learning_rate: Adam step size (1e-4 in the paper).
+        warmup_frames: frames run without gradient before the rollout (>= 2: they supply the
+            two previous states of Eq. 16).
+        rollout_frames: frames whose Eq. 6 loss is averaged and back-propagated.
+        subsample_min: smallest frame interval k (2 in the paper).
+        subsample_max: largest frame interval k (5 in the paper).
+        window: T_w, motion-descriptor frames per step (10 in the paper).
+        dynamic_filter: drop sequences whose dynamic score is under the threshold.
+        dynamic_candidates: random sequences whose scores set the threshold (500).
+        dynamic_quantile: quantile of those scores used as threshold (0.5, the median).
+        barrier_join_fraction: b_p of the contact barrier (the static curriculum's final 0.01).
+        deformation_clip: optional clamp of each deformation component [m] (None: off).
+        grad_clip_norm: clip the gradient norm to this (0: off).
+        checkpoint_every: write `checkpoint.pt` every this many steps (0: only at the end).
+        dtype: "float32" or "float64".
+        energy: overrides of `EnergyConfig` fields.
+        data: what the sampler draws (its strand subset and N must match the static network).
+    """
+
+    static_checkpoint: str = ""
+    model_preset: str = "paper"
+    model: dict = field(default_factory=dict)
+    steps: int = 20000
+    hairstyles: int = 20000
+    batch_size: int = 32
+    learning_rate: float = 1.0e-4
+    warmup_frames: int = 3
+    rollout_frames: int = 4
+    subsample_min: int = 2
+    subsample_max: int = 5
+    window: int = 10
+    dynamic_filter: bool = True
+    dynamic_candidates: int = 500
+    dynamic_quantile: float = 0.5
+    barrier_join_fraction: float = 0.01
+    deformation_clip: float | None = None
+    grad_clip_norm: float = 0.0
+    checkpoint_every: int = 1000
+    dtype: str = "float32"
+    energy: dict = field(default_factory=dict)
+    data: DataConfig = field(default_factory=DataConfig)
+
+    def __post_init__(self):
+        owner = type(self).__name__
+        self.static_checkpoint = os.fspath(self.static_checkpoint)
+        _choice(owner, "model_preset", self.model_preset, MODEL_PRESETS)
+        if isinstance(self.model, dict):
+            for name in ("motion_dim", "window", "static"):
+                if name in self.model:
+                    _fail(owner, f"model.{name}", "not set (it follows the data and the static network)",
+                          self.model[name])
+        _check_model_keys(owner, self.model, DynamicConfig)
+        _int(owner, "steps", self.steps, 1)
+        _int(owner, "hairstyles", self.hairstyles, 1)
+        _int(owner, "batch_size", self.batch_size, 1)
+        _number(owner, "learning_rate", self.learning_rate, strict=True)
+        _int(owner, "warmup_frames", self.warmup_frames, 2)
+        _int(owner, "rollout_frames", self.rollout_frames, 1)
+        _int(owner, "subsample_min", self.subsample_min, 1)
+        _int(owner, "subsample_max", self.subsample_max, 1)
+        if self.subsample_max < self.subsample_min:
+            _fail(owner, "subsample_max", f">= subsample_min={self.subsample_min}", self.subsample_max)
+        _int(owner, "window", self.window, 1)
+        if not isinstance(self.dynamic_filter, bool):
+            _fail(owner, "dynamic_filter", "true or false", self.dynamic_filter)
+        _int(owner, "dynamic_candidates", self.dynamic_candidates, 1)
+        _number(owner, "dynamic_quantile", self.dynamic_quantile, maximum=1.0)
+        _number(owner, "barrier_join_fraction", self.barrier_join_fraction, strict=True, maximum=1.0)
+        if self.barrier_join_fraction >= 1.0:
+            _fail(owner, "barrier_join_fraction", "a value in (0, 1)", self.barrier_join_fraction)
+        if self.deformation_clip is not None:
+            _number(owner, "deformation_clip", self.deformation_clip, strict=True)
+        _number(owner, "grad_clip_norm", self.grad_clip_norm)
+        _int(owner, "checkpoint_every", self.checkpoint_every)
+        _choice(owner, "dtype", self.dtype, DTYPES)
+        _check_energy(owner, self.energy)
+        if isinstance(self.data, dict):
+            self.data = DataConfig.from_dict(self.data)
+        if not isinstance(self.data, DataConfig):
+            _fail(owner, "data", "a DataConfig", self.data)
+
+    @property
+    def frames_per_sequence(self) -> int:
+        """Warm-up plus rollout frames."""
+        return self.warmup_frames + self.rollout_frames
+
+    @classmethod
+    def tiny(cls, static_checkpoint: str = "") -> DynamicTrainingConfig:
+        """A CPU-sized run: tiny dynamic parts, 2 sequences of 2 + 2 frames, 64 x 20 hair."""
+        return cls(
+            static_checkpoint=static_checkpoint, model_preset="tiny", steps=4, hairstyles=2, batch_size=2,
+            learning_rate=1e-3, warmup_frames=2, rollout_frames=2, window=3, dynamic_candidates=16,
+            checkpoint_every=0, data=DataConfig.tiny(),
+        )
+
+
+# ------------------------------------------------------------------------------------ files
+CONFIG_CLASSES = {
+    "static": StaticTrainingConfig,
+    "quaffure": StaticTrainingConfig,
+    "dynamic": DynamicTrainingConfig,
+}
+
+
+def parse_value(text: str) -> Any:
+    """A command-line value as a TOML literal (numbers, true/false, [lists], "strings");
+    anything that does not parse is taken as a bare string."""
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def apply_overrides(config, overrides):
+    """A copy of `config` with `key=value` overrides applied (dotted keys reach nested tables).
+
+    Args:
+        config: a StaticTrainingConfig or DynamicTrainingConfig.
+        overrides: iterable of "key=value" strings, e.g. "batch_size=8",
+            "data.motions=['nod']", "energy.hair_hair_weight=10", "clip_steps=none".
+
+    Returns:
+        The validated new config.
+
+    Raises:
+        ValueError: naming the override that is malformed or sets an unknown or bad field.
+    """
+    data = config.to_dict()
+    for item in overrides or ():
+        if not isinstance(item, str) or "=" not in item:
+            raise ValueError(f"--set: expected key=value, got {item!r}")
+        key, text = (s.strip() for s in item.split("=", 1))
+        if not key:
+            raise ValueError(f"--set: empty key in {item!r}")
+        parts = key.split(".")
+        node = data
+        for depth, part in enumerate(parts[:-1]):
+            if part not in node:
+                raise ValueError(f"--set {key}: unknown setting {'.'.join(parts[:depth + 1])!r}")
+            if not isinstance(node[part], dict):
+                raise ValueError(f"--set {key}: {'.'.join(parts[:depth + 1])!r} is not a table")
+            node = node[part]
+        # The model and energy tables take new keys (they are validated when the config is
+        # rebuilt); every other table only knows its fields.
+        free = len(parts) >= 2 and parts[-2] in ("model", "energy")
+        if parts[-1] not in node and not free:
+            raise ValueError(f"--set {key}: unknown setting {key!r}")
+        node[parts[-1]] = parse_value(text)
+    try:
+        return type(config).from_dict(data)
+    except ValueError as exc:
+        raise ValueError(f"--set: {exc}") from None
+
+
+def load_config(path, kind: str = "static", overrides=()):
+    """Read a TOML config file (or none) for a kind of run and apply `--set` overrides.
+
+    Args:
+        path: a `.toml` file whose top-level keys are the config's fields and whose tables
+            [data], [energy], [model] are the nested ones; None for the defaults.
+        kind: "static", "quaffure" or "dynamic".
+        overrides: "key=value" strings applied after the file.
+
+    Returns:
+        StaticTrainingConfig (model_kind = kind for static/quaffure) or DynamicTrainingConfig.
+
+    Raises:
+        ValueError: an unknown kind, an unreadable file, or a bad setting (named).
+        FileNotFoundError: if `path` does not exist.
+    """
+    if kind not in CONFIG_CLASSES:
+        raise ValueError(f"kind: expected one of {list(CONFIG_CLASSES)}, got {kind!r}")
+    cls = CONFIG_CLASSES[kind]
+    data: dict = {}
+    if path is not None:
+        with open(os.fspath(path), "rb") as f:
+            try:
+                data = tomllib.load(f)
+            except tomllib.TOMLDecodeError as exc:
+                raise ValueError(f"{os.fspath(path)}: not valid TOML ({exc})") from None
+    if cls is StaticTrainingConfig:
+        if "model_kind" in data and data["model_kind"] != kind:
+            raise ValueError(
+                f"{os.fspath(path)}: model_kind = {data['model_kind']!r} but the command trains {kind!r}"
+            )
+        data["model_kind"] = kind
+    try:
+        config = cls.from_dict(data)
+    except ValueError as exc:
+        where = os.fspath(path) if path is not None else "config"
+        raise ValueError(f"{where}: {exc}") from None
+    return apply_overrides(config, overrides)
+
+
+def _toml_value(value) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (int, float)):
+        return repr(value) if isinstance(value, int) or math.isfinite(value) else json.dumps(str(value))
+    if isinstance(value, str):
+        return json.dumps(value)  # a JSON string is a valid TOML basic string
+    if value is None:
+        return '"none"'
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    raise ValueError(f"cannot write {type(value).__name__} to TOML")
+
+
+def to_toml(config) -> str:
+    """The config as TOML text that `load_config` reads back to an equal config."""
+    data = config.to_dict()
+    lines, tables = [], []
+    for key, value in data.items():
+        if isinstance(value, dict):
+            tables.append((key, value))
+        else:
+            lines.append(f"{key} = {_toml_value(value)}")
+    for key, table in tables:
+        lines.append("")
+        lines.append(f"[{key}]")
+        for k, v in table.items():
+            lines.append(f"{k} = {_toml_value(v)}")
+    return "\n".join(lines) + "\n"
+
+
+def write_toml(config, path) -> None:
+    """Write `to_toml(config)` to `path`."""
+    with open(os.fspath(path), "w", encoding="utf-8") as f:
+        f.write(to_toml(config))
+
+
+__all__ = [
+    "BP_SCHEDULES",
+    "CONFIG_CLASSES",
+    "DataConfig",
+    "DynamicTrainingConfig",
+    "LATENT_SOURCES",
+    "MODEL_PRESETS",
+    "StaticTrainingConfig",
+    "apply_overrides",
+    "energy_config",
+    "load_config",
+    "parse_value",
+    "to_toml",
+    "write_toml",
+]

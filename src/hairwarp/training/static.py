@@ -1,0 +1,283 @@
+"""Static training: the four-phase curriculum of HairFormer Section 4.2.1 (and Quaffure's).
+
+Loss (Eq. 5): the batch mean of the static energy of the drape
+    P = apply_deformation(P_rigid, net(z, beta, Theta), root_uv)        (Eq. 2, Section 4.2.3)
+scored by `hairwarp.energy.total_energy` (every strand term, hair-body contact through the
+Warp kernels, hair-hair contact when its weight is non-zero).
+
+Curriculum: phase 0 one rest body and one hairstyle; phase 1 the same with head rotations
+sampled on ellipsoids whose radii grow over the phase; phase 2 `phase2_hairstyles` hairstyles
+and the motions of one subject; phase 3 `phase3_hairstyles`, every motion and subject, noisy
+shapes (`TrainingSampler.static_batch`). The contact barrier's join fraction b_p is annealed
+from 0.9 to 0.01 over the whole run (`barrier_schedule`), and deformations are clipped at
+0.01 m during the first `clip_steps` steps (phase 0 by default). The Quaffure (adapted)
+baseline trains on exactly this loss and curriculum (Section 4.3.1).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import torch
+from torch import nn
+
+from hairwarp.energy import total_energy
+from hairwarp.models import QuaffureConfig, QuaffureNetwork, StaticConfig, StaticNetwork, apply_deformation
+from hairwarp.training._common import (
+    DTYPES,
+    Trainer,
+    load_training_checkpoint,
+    stored_config,
+    stored_seed,
+    term_means,
+)
+from hairwarp.training.config import StaticTrainingConfig, energy_config
+from hairwarp.training.data import HairBatch, TrainingSampler
+
+
+def barrier_schedule(
+    step: int, total_steps: int, start: float = 0.9, end: float = 0.01, kind: str = "linear"
+) -> float:
+    """b_p of the contact barrier at `step` (Section 4.2.1: 0.9 at the start, 0.01 at the end).
+
+    Args:
+        step: 0-based step index.
+        total_steps: steps of the run (the last step, total_steps - 1, gets `end`).
+        start: b_p at step 0.
+        end: b_p at the last step.
+        kind: "linear" interpolation, or "geometric" (linear in log b_p: more steps near the
+            small values that resolve the last penetrations).
+
+    Returns:
+        b_p, between `start` and `end` (steps past the end get `end`).
+    """
+    if not isinstance(total_steps, int) or total_steps < 1:
+        raise ValueError(f"total_steps: expected a positive int, got {total_steps!r}")
+    if not isinstance(step, int) or step < 0:
+        raise ValueError(f"step: expected a non-negative int, got {step!r}")
+    for name, value in (("start", start), ("end", end)):
+        if not 0.0 < float(value) < 1.0:
+            raise ValueError(f"{name}: expected a value in (0, 1), got {value!r}")
+    t = 1.0 if total_steps == 1 else min(step / (total_steps - 1), 1.0)
+    if kind == "linear":
+        return float(start + (end - start) * t)
+    if kind == "geometric":
+        return float(math.exp(math.log(start) + (math.log(end) - math.log(start)) * t))
+    raise ValueError(f"kind: expected 'linear' or 'geometric', got {kind!r}")
+
+
+def curriculum_phase(step: int, phase_steps) -> tuple[int, float]:
+    """The curriculum phase of `step` and the position in it.
+
+    Args:
+        step: 0-based step index.
+        phase_steps: steps of phases 0-3 (zero skips a phase).
+
+    Returns:
+        (phase, progress): progress in [0, 1] is (step - phase start + 1) / phase length, so the
+        phase's last step has 1 (phase 1 then reaches its full radii). Steps past the end stay
+        in the last non-empty phase with progress 1.
+    """
+    if not isinstance(step, int) or step < 0:
+        raise ValueError(f"step: expected a non-negative int, got {step!r}")
+    start = 0
+    last = None
+    for phase, length in enumerate(phase_steps):
+        if length <= 0:
+            continue
+        last = phase
+        if step < start + length:
+            return phase, (step - start + 1) / length
+        start += length
+    if last is None:
+        raise ValueError(f"phase_steps: expected at least one step, got {tuple(phase_steps)}")
+    return last, 1.0
+
+
+_STATIC_PRESETS = {"paper": StaticConfig, "shipped": StaticConfig.shipped, "tiny": StaticConfig.tiny}
+_QUAFFURE_PRESETS = {"paper": QuaffureConfig, "shipped": QuaffureConfig, "tiny": QuaffureConfig.tiny}
+
+
+def model_config(config: StaticTrainingConfig, latent_dim: int = 512):
+    """The network config of a run: the preset, the `model` overrides, and the data's sizes
+    (latent_dim = d_z of the hair basis, num_vertices = `data.num_vertices`)."""
+    presets = _STATIC_PRESETS if config.model_kind == "static" else _QUAFFURE_PRESETS
+    base = presets[config.model_preset]()
+    fixed = {"latent_dim": latent_dim, "num_vertices": config.data.num_vertices}
+    clash = sorted(k for k in fixed if k in config.model and config.model[k] != fixed[k])
+    if clash:
+        raise ValueError(f"model: {clash} follow the data ({fixed}); remove them from [model]")
+    try:
+        return dataclasses.replace(base, **{**config.model, **fixed})
+    except TypeError as exc:
+        raise ValueError(f"model: {exc}") from None
+
+
+def build_model(config: StaticTrainingConfig, latent_dim: int = 512) -> nn.Module:
+    """A fresh StaticNetwork or QuaffureNetwork for `config` (seed torch first)."""
+    cfg = model_config(config, latent_dim)
+    return StaticNetwork(cfg) if config.model_kind == "static" else QuaffureNetwork(cfg)
+
+
+def static_loss(model: nn.Module, batch: HairBatch, energy, clip: float | None = None):
+    """Eq. 5 averaged over the batch for the drapes a static network predicts.
+
+    Args:
+        model: a StaticNetwork or QuaffureNetwork (forward(z, beta, theta, clip) -> map).
+        batch: the samples (latents, shapes, poses, rigid placement, energy inputs).
+        energy: the `EnergyConfig` (b_p of this step inside).
+        clip: optional clamp of each deformation component [m].
+
+    Returns:
+        (loss () tensor, terms {name: batch-mean float}, positions (B, M, N, 3)).
+    """
+    deformation = model(batch.z, batch.betas, batch.poses, clip=clip)
+    positions = apply_deformation(batch.rigid, deformation, batch.root_uv)
+    result = total_energy(positions, batch.inputs, energy)
+    return result.total.mean(), term_means(result.terms), positions
+
+
+class StaticTrainer(Trainer):
+    """Trains a static network (or the Quaffure baseline) through the curriculum.
+
+    Args:
+        config: the run's settings; None with `resume` takes the checkpoint's.
+        out: output folder (config.toml, log.jsonl, checkpoint.pt); None writes nothing.
+        device: torch device.
+        seed: seeds the network's initialisation and the sampler; a resumed run keeps the
+            checkpoint's seed, so it draws the batches the uninterrupted run would have.
+        rank: this process's rank (a data-parallel run draws different batches per rank;
+            rank 0 writes the files).
+        world_size: number of ranks.
+        resume: a checkpoint (file or run folder) to continue from: weights, optimizer
+            state and step.
+        sampler: a ready `TrainingSampler` (tests share one); None builds it from the config.
+
+    Raises:
+        ValueError: on a bad config, a checkpoint of another model kind or sizes.
+    """
+
+    def __init__(
+        self,
+        config: StaticTrainingConfig | None = None,
+        *,
+        out=None,
+        device: torch.device | str = "cpu",
+        seed: int = 0,
+        rank: int = 0,
+        world_size: int = 1,
+        resume=None,
+        sampler: TrainingSampler | None = None,
+    ):
+        device = torch.device(device)
+        ckpt = None
+        if resume is not None:
+            dtype = DTYPES[(config.dtype if config is not None else "float32")]
+            ckpt = load_training_checkpoint(resume, device, dtype, ("static", "quaffure"))
+            seed = stored_seed(ckpt, seed)
+            if config is None:
+                config = stored_config(ckpt, StaticTrainingConfig)
+                if config is None:
+                    raise ValueError("resume: the checkpoint stores no training config; pass config")
+        if config is None:
+            config = StaticTrainingConfig()
+        if not isinstance(config, StaticTrainingConfig):
+            raise ValueError(f"config: expected a StaticTrainingConfig, got {type(config).__name__}")
+        self.config = config
+        self.kind = config.model_kind
+        self.dtype = DTYPES[config.dtype]
+        self.device = device
+        if sampler is None:
+            sampler = TrainingSampler(config.data, seed=seed, rank=rank, world_size=world_size, device=device,
+                                      dtype=self.dtype)
+        elif (sampler.config != config.data or sampler.dtype != self.dtype or sampler.device != device
+              or (sampler.seed, sampler.rank, sampler.world_size) != (seed, rank, world_size)):
+            raise ValueError("sampler: built for another data config, dtype, device, seed or rank")
+        self.sampler = sampler
+        expected = model_config(config, sampler.latent_dim)
+        if ckpt is not None:
+            if type(ckpt.model).kind != config.model_kind or ckpt.config != expected:
+                raise ValueError(
+                    f"resume: the checkpoint's network differs from the config's {config.model_kind} "
+                    "network (kind or sizes)"
+                )
+            self.model = ckpt.model
+        else:
+            torch.manual_seed(seed)
+            self.model = build_model(config, sampler.latent_dim).to(device=device, dtype=self.dtype)
+        self.model.train()
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.learning_rate)
+        if ckpt is not None and ckpt.optimizer_state is not None:
+            ckpt.restore_optimizer(self.optimizer)
+            for group in self.optimizer.param_groups:
+                group["lr"] = config.learning_rate
+        self._setup_run(out, seed, rank, world_size, 0 if ckpt is None else ckpt.step)
+
+    @property
+    def total_steps(self) -> int:
+        return self.config.total_steps
+
+    def schedule(self, step: int) -> dict:
+        """Phase, progress in it, b_p and the deformation clip of `step`."""
+        cfg = self.config
+        phase, progress = curriculum_phase(step, cfg.phase_steps)
+        bp = barrier_schedule(step, cfg.total_steps, cfg.bp_start, cfg.bp_end, cfg.bp_schedule)
+        clip = cfg.deformation_clip if step < cfg.clip_until else None
+        return {"phase": phase, "progress": progress, "bp": bp, "clip": clip}
+
+    def next_batch(self, step: int) -> HairBatch:
+        cfg = self.config
+        s = self.schedule(step)
+        pool = {2: cfg.phase2_hairstyles, 3: cfg.phase3_hairstyles}.get(s["phase"], 1)
+        return self.sampler.static_batch(step, s["phase"], s["progress"], cfg.batch_size, pool)
+
+    def compute_loss(self, batch: HairBatch, step: int):
+        s = self.schedule(step)
+        energy = energy_config(self.config.energy, barrier_join_fraction=s["bp"])
+        loss, terms, _ = static_loss(self.model, batch, energy, s["clip"])
+        extras = {"phase": s["phase"], "bp": s["bp"], "clip": s["clip"], "batch_size": batch.batch_size}
+        return loss, terms, extras
+
+
+def train_static(
+    config: StaticTrainingConfig | None = None,
+    out=None,
+    *,
+    device: torch.device | str = "cpu",
+    seed: int = 0,
+    resume=None,
+    steps: int | None = None,
+    progress: bool = True,
+) -> StaticTrainer:
+    """Train a static network (or Quaffure, `config.model_kind`) and write its checkpoint.
+
+    Args:
+        config: settings (`StaticTrainingConfig()` when None, or the checkpoint's on resume).
+        out: output folder for config.toml, log.jsonl and checkpoint.pt (None: none).
+        device: torch device.
+        seed: initialisation and sampling seed.
+        resume: checkpoint (file or folder) to continue from.
+        steps: run at most this many steps (None: to the end of the curriculum).
+        progress: show the progress bar.
+
+    Returns:
+        The trainer (its `model`, `history`, `step`).
+    """
+    trainer = StaticTrainer(config, out=out, device=device, seed=seed, resume=resume)
+    try:
+        trainer.train(steps, progress=progress)
+    finally:
+        trainer.close()
+    return trainer
+
+
+__all__ = [
+    "StaticTrainer",
+    "barrier_schedule",
+    "build_model",
+    "curriculum_phase",
+    "model_config",
+    "static_loss",
+    "train_static",
+]

@@ -1,0 +1,541 @@
+"""Training loops (HairFormer Sections 3.3, 3.4.5, 4.1, 4.2): sampler, curriculum, b_p schedule,
+static and dynamic steps, stop-gradient inertia, checkpoints and resume, fine-tuning, configs,
+the command line, bad input.
+
+Tiny networks on 64 strands x 20 vertices (`DataConfig.tiny()`), the real code path (decoded
+latents, posed default body, Eq. 1 placement, Warp energies); the whole file runs in about a
+minute on two CPU cores.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+
+import numpy as np
+import pytest
+import torch
+
+from hairwarp import cli
+from hairwarp.config import EnergyConfig
+from hairwarp.models import DynamicNetwork, StaticNetwork, load_checkpoint
+from hairwarp.ops import BodyMesh, hair_body_contact_energy
+from hairwarp.scene.motion import DESCRIPTOR_DIM_NO_BETAS, JOINT
+from hairwarp.training import (
+    DataConfig,
+    DynamicTrainer,
+    DynamicTrainingConfig,
+    StaticTrainer,
+    StaticTrainingConfig,
+    TrainingSampler,
+    apply_overrides,
+    barrier_schedule,
+    curriculum_phase,
+    dynamic_loss,
+    finetune,
+    inertia_history,
+    load_config,
+    to_toml,
+)
+from hairwarp.training import dynamic as dynamic_module
+from references import placement as placement_ref
+from references import training as ref
+
+# float64 placement vs the numpy reference of Eq. 1: the same formula, other summation orders.
+_F64_TOL = 1e-9
+# float64 inertia gradients vs the loop reference: rounding only.
+_GRAD_TOL = 1e-10
+# b_p from the float formula vs the reference: rounding only.
+_BP_TOL = 1e-12
+# One Adam step moves every weight by about the learning rate, whatever the gradient's size;
+# with the stiff inextensibility of the default energy (k_s = 1e8) the first-order decrease
+# wins for steps of 1e-5 (the paper's 1e-4 overshoots on the tiny network's first step).
+_STEP_LR = 1e-5
+# Cropped vs full body: the same closest points, but the float32 BVHs of the two meshes may
+# return a point on a shared edge from either neighbouring triangle (float32 rounding).
+_CROP_REL_TOL = 1e-7
+# Faces within this distance [m] of the head centre hold every root's closest point.
+_REFERENCE_RADIUS = 0.3
+
+
+@pytest.fixture(scope="module")
+def data():
+    return DataConfig.tiny()
+
+
+@pytest.fixture(scope="module")
+def sampler(data):
+    return TrainingSampler(data, seed=0)
+
+
+@pytest.fixture(scope="module")
+def static_config(data):
+    return StaticTrainingConfig.tiny().replace(phase_steps=(1, 1, 1, 1), data=data)
+
+
+@pytest.fixture(scope="module")
+def static_checkpoint(tmp_path_factory, static_config, sampler):
+    out = tmp_path_factory.mktemp("static")
+    trainer = StaticTrainer(static_config.replace(phase_steps=(1, 1, 0, 0)), out=out, sampler=sampler)
+    trainer.train(progress=False)
+    trainer.close()
+    return os.path.join(out, "checkpoint.pt")
+
+
+@pytest.fixture(scope="module")
+def dynamic_config(data, static_checkpoint):
+    return DynamicTrainingConfig.tiny(static_checkpoint).replace(data=data, steps=2)
+
+
+@pytest.fixture(scope="module")
+def dynamic_checkpoint(tmp_path_factory, dynamic_config, sampler):
+    out = tmp_path_factory.mktemp("dynamic")
+    trainer = DynamicTrainer(dynamic_config, out=out, sampler=sampler)
+    trainer.train(progress=False)
+    trainer.close()
+    return os.path.join(out, "checkpoint.pt")
+
+
+# ------------------------------------------------------------------------------- schedules
+@pytest.mark.parametrize("kind", ["linear", "geometric"])
+def test_barrier_schedule_goes_from_0_9_to_0_01(kind):
+    total = 50
+    values = [barrier_schedule(s, total, kind=kind) for s in range(total)]
+    assert values[0] == pytest.approx(0.9, abs=_BP_TOL)
+    assert values[-1] == pytest.approx(0.01, abs=_BP_TOL)
+    assert all(a > b for a, b in zip(values, values[1:]))  # strictly decreasing
+    for s in (0, 7, 25, 49, 80):
+        want = ref.barrier_join_fraction(s, total, kind=kind)
+        assert barrier_schedule(s, total, kind=kind) == pytest.approx(want, abs=_BP_TOL)
+    assert barrier_schedule(0, 1) == pytest.approx(0.01)  # a one-step run ends where it starts
+
+
+def test_trainer_anneals_bp_over_the_whole_curriculum(static_config, sampler):
+    cfg = static_config.replace(phase_steps=(3, 2, 4, 3))
+    trainer_schedule = StaticTrainer(cfg, sampler=sampler).schedule
+    bps = [trainer_schedule(s)["bp"] for s in range(cfg.total_steps)]
+    assert bps[0] == pytest.approx(0.9) and bps[-1] == pytest.approx(0.01)
+    assert all(a > b for a, b in zip(bps, bps[1:]))
+    clips = [trainer_schedule(s)["clip"] for s in range(cfg.total_steps)]
+    assert clips == [0.01] * 3 + [None] * 9  # the clip holds during phase 0 by default
+
+
+def test_curriculum_phase():
+    steps = (2, 0, 3, 1)
+    got = [curriculum_phase(s, steps) for s in range(8)]
+    assert [p for p, _ in got] == [0, 0, 2, 2, 2, 3, 3, 3]  # phase 1 skipped, past the end stays
+    assert [round(f, 6) for _, f in got[:6]] == [0.5, 1.0, round(1 / 3, 6), round(2 / 3, 6), 1.0, 1.0]
+
+
+def test_schedule_bad_input():
+    with pytest.raises(ValueError, match="total_steps"):
+        barrier_schedule(0, 0)
+    with pytest.raises(ValueError, match="start"):
+        barrier_schedule(0, 10, start=1.5)
+    with pytest.raises(ValueError, match="kind"):
+        barrier_schedule(0, 10, kind="cosine")
+    with pytest.raises(ValueError, match="phase_steps"):
+        curriculum_phase(0, (0, 0, 0, 0))
+    with pytest.raises(ValueError, match="step"):
+        curriculum_phase(-1, (1, 1, 1, 1))
+
+
+# ------------------------------------------------------------------------------- sampler
+def _same_batch(a, b):
+    pairs = ((a.z, b.z), (a.poses, b.poses), (a.betas, b.betas), (a.rigid, b.rigid))
+    return all(torch.equal(x, y) for x, y in pairs)
+
+
+def test_sampler_is_deterministic_per_seed_and_differs_per_rank(data, sampler):
+    again = TrainingSampler(data, seed=0)
+    other_rank = TrainingSampler(data, seed=0, rank=1, world_size=2)
+    other_seed = TrainingSampler(data, seed=1)
+    a = sampler.static_batch(5, 3, 0.5, 2, 3)
+    assert _same_batch(a, again.static_batch(5, 3, 0.5, 2, 3))  # same seed, rank, step: same batch
+    assert not _same_batch(a, other_rank.static_batch(5, 3, 0.5, 2, 3))
+    assert not _same_batch(a, other_seed.static_batch(5, 3, 0.5, 2, 3))
+    assert not _same_batch(a, sampler.static_batch(6, 3, 0.5, 2, 3))
+    kw = dict(num_hairstyles=2, window=3, candidates=16)
+    s1 = sampler.sequence_batch(2, 2, 2, 1, **kw)
+    s2 = again.sequence_batch(2, 2, 2, 1, **kw)
+    s3 = other_rank.sequence_batch(2, 2, 2, 1, **kw)
+    assert torch.equal(s1.poses, s2.poses) and torch.equal(s1.motion, s2.motion)
+    assert torch.equal(s1.rollout.rigid, s2.rollout.rigid)
+    assert not torch.equal(s1.poses, s3.poses)
+    # The corpus and the dynamic threshold are shared by every rank.
+    assert torch.equal(sampler.latent(1), other_rank.latent(1))
+    assert s1.info["threshold"] == s3.info["threshold"]
+
+
+def test_static_batches_follow_the_curriculum(sampler, data):
+    m, n = data.num_strands, data.num_vertices
+    b0 = sampler.static_batch(0, 0, 1.0, 4)
+    assert b0.batch_size == 1 and b0.hairstyle_ids == [0]
+    assert torch.equal(b0.poses[0], sampler.rest_pose)
+    assert torch.allclose(b0.betas[0], sampler.mean_betas)
+
+    b1 = sampler.static_batch(1, 1, 0.5, 6)
+    assert b1.rigid.shape == (6, m, n, 3) and b1.hairstyle_ids == [0] * 6
+    rotated = 0
+    for i, r in enumerate(b1.info["head_rotations"]):
+        scale = ref.head_rotation_fraction(r, data.head_rotation_radii)
+        assert scale == pytest.approx(0.0) or scale == pytest.approx(0.5)
+        rotated += scale > 0
+        # The neck and head joints share the rotation; nothing else moved.
+        neck = b1.poses[i, 3 * JOINT["neck"]:3 * JOINT["neck"] + 3]
+        head = b1.poses[i, 3 * JOINT["head"]:3 * JOINT["head"] + 3]
+        assert torch.allclose(neck + head, torch.tensor(r, dtype=torch.float32), atol=1e-6)
+    assert rotated > 0
+
+    b2 = sampler.static_batch(2, 2, 0.5, 4, num_hairstyles=3)
+    subject = sampler.entries[0].subject
+    assert all(0 <= i < 3 for i in b2.hairstyle_ids)
+    names = {e.name: e.subject for e in sampler.entries}
+    assert all(names[name] == subject for name in b2.info["motions"])
+
+    b3 = sampler.static_batch(3, 3, 0.5, 4, num_hairstyles=3)
+    # Phase 3 adds shape noise: no sample has a subject's exact shape.
+    assert all(not any(torch.equal(beta, s) for s in sampler.subject_betas) for beta in b3.betas)
+    # Energy inputs: rest lengths of P_init, roots shared by every hairstyle, one mesh per sample.
+    assert b3.inputs.rest_lengths.shape == (4, m, n - 1)
+    assert torch.allclose(b3.inputs.rest_lengths, (b3.strands[:, :, 1:] - b3.strands[:, :, :-1]).norm(dim=-1))
+    assert torch.equal(b3.strands[:, :, 0], sampler.roots.expand(4, -1, -1))
+    assert b3.inputs.body.batch_size == 4 and b3.inputs.scalp_normals.shape == (4, m, 3)
+
+
+def test_batched_placement_matches_eq1_reference(data):
+    """Different hairstyles and poses in one batch: each sample's P_rigid is Eq. 1's; the
+    cropped body gives the uncropped body's contact energy."""
+    s64 = TrainingSampler(data.replace(crop_body=True), seed=3, dtype=torch.float64)
+    batch = s64.static_batch(0, 3, 1.0, 2, num_hairstyles=3)
+    body = s64.body
+    posed = body.pose(betas=batch.betas, poses=batch.poses, trans=batch.trans)
+    faces = body.faces.long().numpy()
+    for b in range(2):
+        v = posed.vertices[b].numpy()
+        head_centre = v[body.head_vertex_indices.numpy()].mean(0)
+        near = np.linalg.norm(v[faces].mean(1) - head_centre, axis=1) < _REFERENCE_RADIUS
+        positions, align, _ = placement_ref.rigid_placement(
+            batch.strands[b].numpy(), v, posed.head_transform[b].numpy(), body.rest_vertices.double().numpy(),
+            body.head_vertex_indices.numpy(), faces[near],
+        )
+        assert np.abs(align).max() > 1e-3  # the pose and shape moved the head
+        assert np.abs(batch.rigid[b].numpy() - positions).max() < _F64_TOL
+    cropped = batch.inputs.body
+    assert cropped.num_faces < body.num_faces
+    full = BodyMesh(posed.vertices, body.faces.to(torch.int32))
+    x = batch.rigid + 0.01 * torch.randn(batch.rigid.shape, generator=torch.Generator().manual_seed(0),
+                                         dtype=torch.float64)
+    kw = dict(xi=1e-3, dhat=1.5e-3, bp=0.5, weight=1.0)
+    e_crop, e_full = hair_body_contact_energy(x, cropped, **kw), hair_body_contact_energy(x, full, **kw)
+    assert bool((e_full > 0).all())
+    assert torch.allclose(e_crop, e_full, rtol=_CROP_REL_TOL, atol=0)
+
+
+def test_sequence_batch(sampler, data):
+    cfg = dict(num_hairstyles=2, subsample=(2, 3), window=3, candidates=16)
+    batch = sampler.sequence_batch(0, 3, 2, 3, **cfg)
+    b, t = 3, 5
+    assert batch.poses.shape == (b, t, 66)
+    assert batch.motion.shape == (b, t, 3, DESCRIPTOR_DIM_NO_BETAS)
+    assert batch.warmup.rigid.shape == (b * 2, data.num_strands, data.num_vertices, 3)
+    assert batch.rollout.rigid.shape == (b * 3, data.num_strands, data.num_vertices, 3)
+    assert batch.warmup.inputs.body is None and batch.rollout.inputs.body.batch_size == b * 3
+    assert all(2 <= k <= 3 for k in batch.intervals)
+    threshold = batch.info["threshold"]
+    assert threshold > 0 and all(s >= threshold for s in batch.info["dynamic_scores"])
+    # Every frame of a sequence carries that sequence's hairstyle and shape.
+    for i in range(b):
+        assert torch.equal(batch.rollout.z[i * 3], batch.z[i])
+        assert torch.equal(batch.rollout.betas[i * 3 + 2], batch.betas[i])
+        assert torch.equal(batch.rollout.poses[i * 3:(i + 1) * 3], batch.poses[i, 2:])
+    unfiltered = sampler.sequence_batch(0, 2, 2, 2, dynamic_filter=False, **cfg)
+    assert unfiltered.info["threshold"] is None
+
+
+def test_sampler_bad_input(data, sampler):
+    with pytest.raises(ValueError, match="rank"):
+        TrainingSampler(data, rank=2, world_size=2)
+    with pytest.raises(ValueError, match="dtype"):
+        TrainingSampler(data, dtype=torch.float16)
+    with pytest.raises(ValueError, match="phase"):
+        sampler.static_batch(0, 4, 0.0, 2)
+    with pytest.raises(ValueError, match="batch_size"):
+        sampler.static_batch(0, 1, 0.0, 0)
+    with pytest.raises(ValueError, match="warmup_frames"):
+        sampler.sequence_batch(0, 2, 1, 2)
+    with pytest.raises(ValueError, match="frames"):
+        sampler.sequence_batch(0, 1, 2, 500, dynamic_filter=False)  # longer than any motion
+
+
+# ------------------------------------------------------------------------------- static
+@pytest.mark.parametrize("kind,phase", [("static", 0), ("static", 1), ("static", 3), ("quaffure", 2)])
+def test_one_static_step_lowers_the_loss(static_config, sampler, kind, phase):
+    cfg = static_config.replace(model_kind=kind, learning_rate=_STEP_LR)
+    trainer = StaticTrainer(cfg, sampler=sampler)
+    trainer.step = phase  # phase_steps (1, 1, 1, 1): step k is phase k
+    batch = trainer.next_batch(phase)
+    assert batch.info["phase"] == phase
+    before, terms = trainer.evaluate(batch)
+    assert math.isfinite(before) and terms["stretch"] >= 0 and terms["gravity"] != 0
+    record = trainer.train_step(batch)
+    assert record["loss"] == pytest.approx(before, rel=1e-5)  # train mode = eval mode (no dropout)
+    assert record["phase"] == phase and trainer.step == phase + 1
+    after, _ = trainer.evaluate(batch, phase)
+    assert after < before
+
+
+def test_static_training_writes_log_and_checkpoint(tmp_path, static_config, sampler):
+    with pytest.raises(ValueError, match="sampler"):
+        StaticTrainer(static_config, sampler=sampler, seed=5)  # the sampler draws with seed 0
+    trainer = StaticTrainer(static_config, out=tmp_path, sampler=sampler)
+    records = trainer.train(progress=False)
+    trainer.close()
+    assert [r["step"] for r in records] == [1, 2, 3, 4]
+    assert [r["phase"] for r in records] == [0, 1, 2, 3]
+    lines = [json.loads(line) for line in (tmp_path / "log.jsonl").read_text().splitlines()]
+    assert len(lines) == 4
+    assert set(lines[0]["terms"]) >= {"stretch", "bending", "gravity", "hair_body_contact"}
+    ckpt = load_checkpoint(tmp_path / "checkpoint.pt")
+    assert isinstance(ckpt.model, StaticNetwork) and ckpt.step == 4 and ckpt.optimizer_state is not None
+    assert ckpt.extra["training_config"] == static_config.to_dict() and ckpt.extra["seed"] == 0
+    assert load_config(tmp_path / "config.toml", "static") == static_config
+
+
+def test_resume_continues_with_identical_results(tmp_path, static_config, sampler):
+    straight = StaticTrainer(static_config, sampler=sampler)
+    full = straight.train(progress=False)
+    first = StaticTrainer(static_config, out=tmp_path, sampler=sampler)
+    first.train(2, progress=False)
+    first.close()
+    resumed = StaticTrainer(out=tmp_path / "resumed", resume=tmp_path, sampler=sampler)
+    assert resumed.step == 2 and resumed.config == static_config
+    rest = resumed.train(progress=False)
+    resumed.close()
+    assert [r["loss"] for r in rest] == [r["loss"] for r in full[2:]]
+    state_a, state_b = straight.model.state_dict(), resumed.model.state_dict()
+    assert len(state_a) > 10 and all(torch.equal(state_a[k], state_b[k]) for k in state_a)
+
+
+def test_non_finite_loss_raises_and_keeps_weights(static_config, sampler):
+    trainer = StaticTrainer(static_config, sampler=sampler)
+    with torch.no_grad():
+        next(trainer.model.head.parameters()).fill_(float("nan"))
+    poisoned = {k: torch.nan_to_num(v.clone()) for k, v in trainer.model.state_dict().items()}
+    with pytest.raises(ValueError, match="deformation_map"):
+        trainer.train_step()  # a NaN network output is refused, never turned into a silent NaN loss
+    assert trainer.step == 0 and not trainer.history
+    assert all(torch.equal(torch.nan_to_num(v), poisoned[k]) for k, v in trainer.model.state_dict().items())
+
+
+# ------------------------------------------------------------------------------- dynamic
+def test_inertia_history_stops_the_gradient(rng):
+    """Eq. 16 over a rollout with the previous states from `inertia_history`: each frame gets
+    its own term's gradient only (a torch Eq. 16, which would back-propagate into the history
+    if it were not detached)."""
+    m, n, r = 3, 5, 4
+    cfg = EnergyConfig()
+    warm = torch.tensor(rng.normal(size=(1, 2, m, n, 3)), requires_grad=True)
+    x = torch.tensor(rng.normal(size=(1, r, m, n, 3)), requires_grad=True)
+    prev, prev2 = inertia_history(warm, x)
+    assert not prev.requires_grad and not prev2.requires_grad
+    assert torch.equal(prev[0, 1:], x[0, :-1].detach()) and torch.equal(prev2[0, 2:], x[0, :-2].detach())
+    assert torch.equal(prev[0, 0], warm[0, 1].detach()) and torch.equal(prev2[0, :2], warm[0].detach())
+    proj = 2.0 * prev - prev2
+    energy = (cfg.inertia_weight / (m * (n - 2)) * cfg.vertex_mass / (2 * cfg.time_step**2)
+              * ((x - proj)[..., 2:, :] ** 2).sum())
+    energy.backward()
+    want = ref.rollout_inertia_gradient(warm[0].detach().numpy(), x[0].detach().numpy(), cfg.vertex_mass,
+                                        cfg.time_step, cfg.inertia_weight)
+    assert np.abs(want).max() > 0 and warm.grad is None
+    assert np.abs(x.grad[0].numpy() - want).max() < _GRAD_TOL * max(1.0, np.abs(want).max())
+    e = ref.inertia_energy(x[0].detach().numpy(), prev[0].numpy(), prev2[0].numpy(), cfg.vertex_mass,
+                           cfg.time_step, cfg.inertia_weight)
+    assert float(energy.detach()) == pytest.approx(e.sum(), rel=1e-12)
+
+
+def test_dynamic_loss_feeds_detached_previous_states(monkeypatch, dynamic_config, sampler):
+    trainer = DynamicTrainer(dynamic_config, sampler=sampler)
+    batch = trainer.next_batch(0)
+    seen = {}
+    real = dynamic_module.total_energy
+
+    def spy(x, inputs, config, **kw):
+        seen.update(x=x, inputs=inputs, kw=kw)
+        return real(x, inputs, config, **kw)
+
+    monkeypatch.setattr(dynamic_module, "total_energy", spy)
+    energy = EnergyConfig(barrier_join_fraction=0.01)
+    loss, terms, positions = dynamic_loss(trainer.model, batch, energy)
+    b, r = batch.batch_size, batch.rollout_frames
+    assert seen["kw"]["dynamic"] is True and seen["x"].requires_grad
+    prev = seen["inputs"].prev.reshape(positions.shape)
+    prev2 = seen["inputs"].prev2.reshape(positions.shape)
+    assert not prev.requires_grad and not prev2.requires_grad
+    assert torch.equal(prev[:, 1:], positions[:, :-1].detach())
+    assert terms["inertia"] > 0 and terms["func_reg"] == 0.0  # the dynamic head starts as the static head
+    assert positions.shape == (b, r, 64, 20, 3)
+
+
+def test_one_dynamic_step_lowers_the_loss_and_keeps_the_static_network(dynamic_config, sampler):
+    trainer = DynamicTrainer(dynamic_config.replace(learning_rate=_STEP_LR), sampler=sampler)
+    model = trainer.model
+    assert isinstance(model, DynamicNetwork)
+    static_before = {k: v.clone() for k, v in model.static.state_dict().items()}
+    trained = {id(p) for p in trainer._parameters()}
+    assert trained and not any(id(p) in trained for p in model.static.parameters())
+    batch = trainer.next_batch(0)
+    before, _ = trainer.evaluate(batch)
+    trainer.train_step(batch)
+    after, terms = trainer.evaluate(batch)
+    assert after < before
+    assert terms["func_reg"] > 0  # the dynamic head moved away from the static one
+    assert all(torch.equal(v, static_before[k]) for k, v in model.static.state_dict().items())
+
+
+def test_dynamic_checkpoint_and_finetune(tmp_path, dynamic_checkpoint):
+    ckpt = load_checkpoint(dynamic_checkpoint)
+    assert isinstance(ckpt.model, DynamicNetwork) and ckpt.step == 2
+    trainer = finetune(dynamic_checkpoint, "whiplash", iterations=1, out=tmp_path,
+                       overrides=["rollout_frames=1"], progress=False)
+    assert trainer.step == 1 and trainer.config.data.motions == ["whiplash"]
+    assert trainer.history[0]["intervals"] == [1] * trainer.config.batch_size
+    tuned = load_checkpoint(tmp_path / "checkpoint.pt")
+    before = ckpt.model.state_dict()
+    changed = [k for k, v in tuned.model.state_dict().items() if not torch.equal(v, before[k])]
+    assert changed and not any(k.startswith("static.") for k in changed)
+
+
+def test_dynamic_resume_continues_with_identical_results(tmp_path, dynamic_config, dynamic_checkpoint, sampler):
+    first = DynamicTrainer(dynamic_config, out=tmp_path, sampler=sampler)
+    first.train(1, progress=False)
+    first.close()
+    resumed = DynamicTrainer(resume=tmp_path, sampler=sampler)
+    assert resumed.step == 1 and resumed.config == dynamic_config
+    resumed.train(progress=False)
+    straight = load_checkpoint(dynamic_checkpoint).model.state_dict()  # the same run, uninterrupted
+    state = resumed.model.state_dict()
+    assert len(state) > 10 and all(torch.equal(state[k], straight[k]) for k in straight)
+
+
+def test_dynamic_bad_input(dynamic_config, static_checkpoint, sampler):
+    with pytest.raises(ValueError, match="static_checkpoint"):
+        DynamicTrainer(dynamic_config.replace(static_checkpoint=""), sampler=sampler)
+    with pytest.raises(ValueError, match="checkpoint"):
+        finetune(static_checkpoint, "whiplash", iterations=1, progress=False)
+    with pytest.raises(ValueError, match="data"):
+        DynamicTrainer(dynamic_config.replace(data=dynamic_config.data.replace(num_vertices=12)))
+    with pytest.raises(ValueError, match="warmup_positions, positions"):
+        inertia_history(torch.zeros(1, 1, 2, 3, 3), torch.zeros(1, 2, 2, 3, 3))
+
+
+# ------------------------------------------------------------------------------- configs, CLI
+def test_toml_config_and_set_overrides(tmp_path):
+    path = tmp_path / "cfg.toml"
+    path.write_text(
+        'model_preset = "tiny"\nphase_steps = [1, 2, 3, 4]\nbatch_size = 8\n'
+        "[data]\nstrand_stride = 4\nnum_vertices = 20\nmotions = [\"nod\"]\n"
+        "[energy]\nhair_hair_weight = 5\n"
+    )
+    cfg = load_config(path, "quaffure", ["batch_size=4", "data.num_vertices=16", "clip_steps=none",
+                                         "energy.bending_weight=2e-6", "model.channels=[16, 8, 8, 4]",
+                                         "learning_rate=3e-4", "bp_schedule=geometric"])
+    assert cfg.model_kind == "quaffure" and cfg.phase_steps == (1, 2, 3, 4) and cfg.batch_size == 4
+    assert cfg.data.num_vertices == 16 and cfg.data.strand_stride == 4 and cfg.data.motions == ["nod"]
+    assert cfg.energy == {"hair_hair_weight": 5, "bending_weight": 2e-6} and cfg.clip_steps is None
+    assert cfg.learning_rate == 3e-4 and cfg.bp_schedule == "geometric"
+    assert cfg.model == {"channels": [16, 8, 8, 4]}
+    again = tmp_path / "again.toml"
+    again.write_text(to_toml(cfg))
+    assert load_config(again, "quaffure") == cfg
+    dyn = load_config(None, "dynamic", ["static_checkpoint=/x/y.pt", "rollout_frames=6", "model.fusion=lora"])
+    assert dyn.static_checkpoint == "/x/y.pt" and dyn.rollout_frames == 6 and dyn.model == {"fusion": "lora"}
+    assert isinstance(apply_overrides(dyn, ["data.beta_noise_std=0"]).data.beta_noise_std, float)
+
+
+@pytest.mark.parametrize("override,match", [
+    ("nonsense", "key=value"),
+    ("foo=1", "foo"),
+    ("data.bar=1", "data.bar"),
+    ("batch_size=0", "batch_size"),
+    ("phase_steps=[1, 2]", "phase_steps"),
+    ("energy.nope=1", "nope"),
+    ("energy.hair_body_xi=-1", "hair_body_xi"),
+    ("data.motions=['dance']", "motions"),
+    ("bp_end=1.5", "bp_end"),
+    ("model.num_layers=3", "num_layers"),
+])
+def test_bad_overrides_name_the_setting(override, match):
+    with pytest.raises(ValueError, match=match):
+        load_config(None, "static", [override])
+
+
+def test_bad_config_files(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("batch_size = \n")
+    with pytest.raises(ValueError, match="TOML"):
+        load_config(bad, "static")
+    bad.write_text('model_kind = "quaffure"\n')
+    with pytest.raises(ValueError, match="model_kind"):
+        load_config(bad, "static")
+    with pytest.raises(FileNotFoundError):
+        load_config(tmp_path / "missing.toml", "static")
+    with pytest.raises(ValueError, match="kind"):
+        load_config(None, "transformer")
+
+
+def test_cli_train_static_two_steps(tmp_path, capsys):
+    cfg = tmp_path / "tiny.toml"
+    cfg.write_text(to_toml(StaticTrainingConfig.tiny()))
+    out = tmp_path / "run"
+    rc = cli.main(["train", "static", "--config", str(cfg), "--set", "phase_steps=[1, 1, 0, 0]",
+                   "--set", "data.motions=['nod']", "--out", str(out), "--seed", "1", "--no-progress"])
+    assert rc == 0
+    assert "2/2 steps" in capsys.readouterr().out
+    ckpt = load_checkpoint(out / "checkpoint.pt")
+    assert isinstance(ckpt.model, StaticNetwork) and ckpt.step == 2 and ckpt.extra["seed"] == 1
+    assert len((out / "log.jsonl").read_text().splitlines()) == 2
+    assert load_config(out / "config.toml", "static").phase_steps == (1, 1, 0, 0)
+    # Resuming a finished run runs nothing more and keeps the step.
+    assert cli.main(["train", "static", "--resume", str(out), "--out", str(out), "--no-progress"]) == 0
+    assert load_checkpoint(out / "checkpoint.pt").step == 2
+    # Errors: one line naming the bad argument, exit status 1.
+    capsys.readouterr()
+    assert cli.main(["train", "static", "--set", "batch_size=-3", "--out", str(tmp_path / "x")]) == 1
+    assert "batch_size" in capsys.readouterr().err
+    assert cli.main(["train", "quaffure", "--resume", str(out), "--out", str(tmp_path / "y")]) == 1
+    assert "static" in capsys.readouterr().err
+
+
+def test_cli_finetune(tmp_path, dynamic_checkpoint, capsys):
+    out = tmp_path / "ft"
+    rc = cli.main(["finetune", "--checkpoint", dynamic_checkpoint, "--motion", "whiplash",
+                   "--iterations", "1", "--set", "rollout_frames=1", "--set", "batch_size=1",
+                   "--out", str(out), "--no-progress"])
+    assert rc == 0 and "whiplash: 1 steps" in capsys.readouterr().out
+    assert load_checkpoint(out / "checkpoint.pt").step == 1
+    argv = ["finetune", "--checkpoint", dynamic_checkpoint, "--motion", "moonwalk", "--out", str(out)]
+    assert cli.main(argv) == 1
+    assert "motion" in capsys.readouterr().err
+
+
+def test_dataclass_configs_validate():
+    with pytest.raises(ValueError, match="strand_stride"):
+        DataConfig(strand_stride=5)
+    with pytest.raises(ValueError, match="warmup_frames"):
+        DynamicTrainingConfig(warmup_frames=1)
+    with pytest.raises(ValueError, match="model.window"):
+        DynamicTrainingConfig(model={"window": 3})
+    with pytest.raises(ValueError, match="fusoin"):
+        DynamicTrainingConfig(model={"fusoin": "lora"})
+    with pytest.raises(ValueError, match="subsample_max"):
+        DynamicTrainingConfig(subsample_min=4, subsample_max=2)
+    cfg = StaticTrainingConfig()
+    paper = (cfg.learning_rate, cfg.batch_size, cfg.bp_start, cfg.bp_end, cfg.deformation_clip)
+    assert paper == (1e-4, 32, 0.9, 0.01, 0.01)
+    dyn = DynamicTrainingConfig()
+    paper = (dyn.window, dyn.subsample_min, dyn.subsample_max, dyn.dynamic_candidates, dyn.dynamic_quantile)
+    assert paper == (10, 2, 5, 500, 0.5)
+    assert dataclasses.asdict(cfg)["data"]["num_vertices"] == 100 and cfg.data.num_strands == 1024
