@@ -57,10 +57,32 @@ def length_change_percent(x: torch.Tensor, rest_lengths: torch.Tensor) -> torch.
     return err.sum(dim=(1, 2)) / valid.sum().clamp_min(1) * 100.0
 
 
-def energy_gap(energy: torch.Tensor, optimum: torch.Tensor | float) -> torch.Tensor:
-    """Relative gap (E - E*) / |E*| to the converged optimum E* of the same scene."""
+def energy_gap(energy: torch.Tensor, optimum: torch.Tensor | float,
+               initial: torch.Tensor | float | None = None) -> torch.Tensor:
+    """Relative gap of an energy to the converged optimum E* of the same scene.
+
+    Without `initial`: (E - E*) / |E*|. With the energy E0 of the starting state (the rigid
+    placement): (E - E*) / (E0 - E*), 1 at the start and 0 at the optimum. The second form is
+    the one the harness reports: the gravity term (Eq. 11) measures height from an arbitrary
+    origin, so |E*| is no meaningful scale, while E0 - E* is the energy the method had to
+    remove. Negative values mean the method found a lower energy than the "optimum".
+
+    Args:
+        energy: (B,) or scalar total energies (Eq. 5) of a method's drapes.
+        optimum: E*, broadcastable to `energy`.
+        initial: optional E0, broadcastable to `energy`.
+
+    Returns:
+        Tensor shaped like `energy` (dimensionless).
+    """
+    check_tensor("energy", energy)
     optimum = torch.as_tensor(optimum, dtype=energy.dtype, device=energy.device)
-    return (energy - optimum) / optimum.abs().clamp_min(1e-30)
+    check_tensor("optimum", optimum)
+    if initial is None:
+        return (energy - optimum) / optimum.abs().clamp_min(1e-30)
+    initial = torch.as_tensor(initial, dtype=energy.dtype, device=energy.device)
+    check_tensor("initial", initial)
+    return (energy - optimum) / (initial - optimum).abs().clamp_min(1e-30)
 
 
 def distance_to_reference(x: torch.Tensor, reference: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -6,6 +6,16 @@ placement; the loss is the static total energy (Eq. 5), or Eq. 6 when previous s
 loss has not decreased for `patience` iterations (200 in the paper), at `max_iterations`, or
 when it diverges; a non-finite loss never comes back as a drape: the best finite iterate does,
 with the reason recorded.
+
+Notes on torch.optim.LBFGS as used here (one `step` per iteration, so that the stopping rule,
+the history and the progress bar see every iteration):
+- `max_eval` must be set: its default, `max_iter * 5 // 4`, is 1 for `max_iter=1`, which leaves
+  the strong-Wolfe line search no evaluation beyond its first trial step (a rejected unit step
+  then means no step at all, every iteration after).
+- Each `step` re-evaluates the loss at the point the previous line search ended on; the closure
+  caches the last few evaluations by exact parameter value, so that costs nothing.
+- torch accepts a curvature pair only when y.s > 1e-10 (absolute): in metres with soft weights
+  tiny steps may be skipped; the stiff default weights are far above it.
 """
 
 from __future__ import annotations
@@ -34,8 +44,16 @@ class DirectOptimizationConfig:
         adam_lr: Adam step size [m].
         lbfgs_lr: L-BFGS step scale (1 with the strong-Wolfe line search).
         lbfgs_history: L-BFGS memory.
+        lbfgs_line_search_evals: most energy evaluations of one strong-Wolfe line search.
         tolerance_grad: L-BFGS stops when the max gradient entry falls below this.
         record_every: record metrics in the history every this many iterations (0: never).
+            Recording time is excluded from `time_s` and the history's times.
+        lbfgs_restart: clear the L-BFGS memory after this many iterations without a decrease
+            (0: never). A stale curvature pair after a contact switches on or off can leave the
+            strong-Wolfe line search stepping nowhere; a fresh memory starts from the gradient.
+        divergence_factor: the run counts as diverged when the loss exceeds the initial loss
+            by more than this factor times max(|initial loss|, 1) (an absurd step size sends
+            the hair kilometres away long before float32 overflows).
     """
 
     method: str = "lbfgs"
@@ -45,14 +63,27 @@ class DirectOptimizationConfig:
     adam_lr: float = 1e-3
     lbfgs_lr: float = 1.0
     lbfgs_history: int = 20
+    lbfgs_line_search_evals: int = 25
     tolerance_grad: float = 1e-12
     record_every: int = 0
+    divergence_factor: float = 1e6
+    lbfgs_restart: int = 5
 
     def __post_init__(self):
         if self.method not in ("adam", "lbfgs"):
             raise ValueError(f"method: expected 'adam' or 'lbfgs', got {self.method!r}")
-        if self.max_iterations < 0 or self.patience < 1:
-            raise ValueError("max_iterations must be >= 0 and patience >= 1")
+        if self.max_iterations < 0:
+            raise ValueError(f"max_iterations: expected >= 0, got {self.max_iterations}")
+        if self.patience < 1:
+            raise ValueError(f"patience: expected >= 1, got {self.patience}")
+        if self.lbfgs_line_search_evals < 1:
+            raise ValueError(f"lbfgs_line_search_evals: expected >= 1, got {self.lbfgs_line_search_evals}")
+        if self.record_every < 0:
+            raise ValueError(f"record_every: expected >= 0, got {self.record_every}")
+        for name in ("adam_lr", "lbfgs_lr", "divergence_factor"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name}: expected a finite positive number, got {value}")
 
 
 @dataclass
@@ -64,8 +95,12 @@ class OptimizationResult:
         loss: the best total loss (sum over the batch).
         iterations: iterations run.
         stop_reason: "patience", "max_iterations", "tolerance", or "diverged: ...".
-        time_s: wall time of the optimization loop [s] (device synchronised).
-        history: one dict per iteration: iteration, loss, time_s (and metrics when recorded).
+        time_s: wall time of the optimization loop [s] (device synchronised), without the
+            time spent recording metrics.
+        history: one dict per iteration: iteration, loss (of the iterate the step started
+            from), time_s (loop time when that loss was known, recording excluded), and the
+            metrics of that iterate when recorded. Iteration 0 is the start.
+        evaluations: energy evaluations (gradient included) actually computed.
     """
 
     positions: torch.Tensor
@@ -74,6 +109,11 @@ class OptimizationResult:
     stop_reason: str
     time_s: float
     history: list[dict] = field(default_factory=list)
+    evaluations: int = 0
+
+
+# Evaluations the closure remembers (L-BFGS re-asks for the point its line search ended on).
+_CACHE_SIZE = 4
 
 
 def _sync(device: torch.device) -> None:
@@ -108,18 +148,22 @@ def optimize_drape(
     """
     from tqdm.auto import tqdm
 
+    from hairwarp._validate import check_tensor
+
     energy_config = energy_config or EnergyConfig()
     solver = solver or DirectOptimizationConfig()
+    check_tensor("x0", x0, shape=("...", None, None, 3), allow_empty=False)
     if x0.dim() == 3:
         x0 = x0.unsqueeze(0)
+    if x0.dim() != 4:
+        raise ValueError(f"x0: expected shape (B, M, N, 3) or (M, N, 3), got {tuple(x0.shape)}")
+    if x0.shape[2] < 3:
+        raise ValueError(f"x0: expected N >= 3 vertices per strand (0 and 1 are fixed), got {x0.shape[2]}")
     fixed = x0[:, :, :2].detach()
     free = x0[:, :, 2:].detach().clone().requires_grad_(True)
 
     def assemble(free_part):
         return torch.cat([fixed, free_part], dim=2)
-
-    def loss_fn():
-        return total_energy(assemble(free), inputs, energy_config, dynamic=dynamic).total.sum()
 
     if solver.method == "adam":
         opt = torch.optim.Adam([free], lr=solver.adam_lr)
@@ -128,62 +172,120 @@ def optimize_drape(
             [free],
             lr=solver.lbfgs_lr,
             max_iter=1,
+            max_eval=1 + solver.lbfgs_line_search_evals,
             history_size=solver.lbfgs_history,
             tolerance_grad=solver.tolerance_grad,
             tolerance_change=0.0,
             line_search_fn="strong_wolfe",
         )
 
+    cache: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []
+    use_cache = solver.method == "lbfgs"
+    evaluations = 0
+
     def closure():
+        nonlocal evaluations
+        if use_cache:
+            for point, value, grad in cache:
+                if torch.equal(point, free):  # the very iterate a line search ended on
+                    free.grad.copy_(grad)
+                    return value
         opt.zero_grad(set_to_none=False)
-        loss = loss_fn()
+        loss = total_energy(assemble(free), inputs, energy_config, dynamic=dynamic).total.sum()
         loss.backward()
+        evaluations += 1
+        if use_cache:
+            cache.append((free.detach().clone(), loss.detach(), free.grad.detach().clone()))
+            if len(cache) > _CACHE_SIZE:
+                cache.pop(0)
         return loss
 
     best_loss = math.inf
     best_free = free.detach().clone()
+    initial_loss = None
     since_best = 0
     history: list[dict] = []
     stop_reason = "max_iterations"
+    recording = 0.0  # seconds spent recording metrics, not counted as optimization time
+
+    def record_metrics(record: dict, part: torch.Tensor, index: int) -> None:
+        nonlocal recording
+        if metrics is None or not solver.record_every or index % solver.record_every:
+            return
+        t0 = time.perf_counter()
+        record.update(metrics(assemble(part)))
+        _sync(x0.device)
+        recording += time.perf_counter() - t0
+
     _sync(x0.device)
     start = time.perf_counter()
+
+    def clock() -> float:
+        return time.perf_counter() - start - recording
+
     bar = tqdm(total=solver.max_iterations, desc=f"drape ({solver.method})", disable=not progress, leave=False)
     iteration = 0
+    end_of_last_step = 0.0
+    diverged = False
     for iteration in range(1, solver.max_iterations + 1):
+        current = free.detach().clone()  # the iterate this step starts from: its loss comes back
         try:
             loss = opt.step(closure)
         except (RuntimeError, ValueError) as exc:  # e.g. a line search that met a NaN
             stop_reason = f"diverged: {exc}"
+            diverged = True
             break
         value = float(loss.detach())
-        bad_state = not bool(torch.isfinite(free).all())
-        if not math.isfinite(value) or bad_state:
-            stop_reason = "diverged: non-finite loss or positions"
+        if not math.isfinite(value):
+            stop_reason = f"diverged: non-finite loss ({value}) at iteration {iteration - 1}"
+            diverged = True
             break
+        if initial_loss is None:
+            initial_loss = value
         if value < best_loss - solver.min_decrease * abs(best_loss if math.isfinite(best_loss) else value):
             best_loss = value
-            best_free.copy_(free.detach())
+            best_free = current
             since_best = 0
         else:
             since_best += 1
-        record = {"iteration": iteration, "loss": value, "time_s": time.perf_counter() - start}
-        if metrics is not None and solver.record_every and iteration % solver.record_every == 0:
-            record.update(metrics(assemble(free.detach())))
+        record = {"iteration": iteration - 1, "loss": value, "time_s": end_of_last_step}
+        record_metrics(record, current, iteration - 1)
         history.append(record)
+        end_of_last_step = clock()
         bar.update(1)
         bar.set_postfix(loss=f"{value:.4e}")
+        if not bool(torch.isfinite(free).all()):
+            stop_reason = f"diverged: non-finite positions after iteration {iteration}"
+            diverged = True
+            break
+        if value > initial_loss + solver.divergence_factor * max(abs(initial_loss), 1.0):
+            stop_reason = f"diverged: loss grew from {initial_loss:.6g} to {value:.6g}"
+            diverged = True
+            break
         if since_best >= solver.patience:
             stop_reason = "patience"
             break
+        if solver.method == "lbfgs" and solver.lbfgs_restart and since_best and since_best % solver.lbfgs_restart == 0:
+            opt.state.clear()
         if solver.method == "lbfgs":
             grad = free.grad
             if grad is not None and float(grad.abs().max()) <= solver.tolerance_grad:
                 stop_reason = "tolerance"
                 break
     bar.close()
+    if iteration > 0 and not diverged:
+        # The last step's result has not been scored yet (L-BFGS: a cache hit, no evaluation).
+        value = float(closure().detach())
+        if math.isfinite(value):
+            record = {"iteration": iteration, "loss": value, "time_s": end_of_last_step}
+            record_metrics(record, free.detach(), iteration)
+            history.append(record)
+            if value < best_loss:
+                best_loss = value
+                best_free = free.detach().clone()
     _sync(x0.device)
-    elapsed = time.perf_counter() - start
-    if not math.isfinite(best_loss):  # not even the first step was finite: return the start
+    elapsed = clock()
+    if not math.isfinite(best_loss):  # not even the start was finite: return the start
         best_free = x0[:, :, 2:].detach().clone()
         with torch.no_grad():
             best_loss = float(total_energy(x0, inputs, energy_config, dynamic=dynamic).total.sum())
@@ -194,4 +296,5 @@ def optimize_drape(
         stop_reason=stop_reason,
         time_s=elapsed,
         history=history,
+        evaluations=evaluations,
     )
