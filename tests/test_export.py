@@ -23,7 +23,7 @@ from hairwarp.io.export import (
 )
 from hairwarp.io.usd import read_usd, write_usd
 
-from pxr import Sdf, Usd, UsdGeom  # usd-core: the `usd` extra, installed for the tests
+from pxr import Sdf, Usd, UsdGeom  # usd-core: a dependency of hairwarp
 
 # Unit changes (metersPerUnit != 1) divide then multiply in float64 and round to float32 twice:
 # at most a couple of float32 ulps of coordinates of order 1 m.

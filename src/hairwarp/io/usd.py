@@ -12,7 +12,7 @@ quarter turn about x: (x, y, z) -> (x, -z, y), the usual y-up to z-up conversion
 stage's metadata.
 
 `pxr` comes from the optional `usd-core` package (`pip install usd-core` or
-`pip install hairwarp[usd]`); it is imported only when these functions run.
+a dependency of hairwarp); it is imported only when these functions run.
 
 Layout of the stage::
 
@@ -54,7 +54,7 @@ def _pxr():
     except ImportError as err:  # pragma: no cover - usd-core is installed in the test env
         raise ImportError(
             "USD export needs the `pxr` module from usd-core: `pip install usd-core` "
-            "(or `pip install hairwarp[usd]`)"
+            "(pip install usd-core)"
         ) from err
     return Gf, Sdf, Usd, UsdGeom, Vt
 
