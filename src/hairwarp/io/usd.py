@@ -11,8 +11,8 @@ quarter turn about x: (x, y, z) -> (x, -z, y), the usual y-up to z-up conversion
 `meters_per_unit` rescales it (0.01 for a centimetre stage); `read_usd` undoes both from the
 stage's metadata.
 
-`pxr` comes from the optional `usd-core` package (`pip install usd-core` or
-a dependency of hairwarp); it is imported only when these functions run.
+`pxr` comes from the `usd-core` package (a dependency of hairwarp); it is imported only when
+these functions run.
 
 Layout of the stage::
 
@@ -53,8 +53,7 @@ def _pxr():
         from pxr import Gf, Sdf, Usd, UsdGeom, Vt
     except ImportError as err:  # pragma: no cover - usd-core is installed in the test env
         raise ImportError(
-            "USD export needs the `pxr` module from usd-core: `pip install usd-core` "
-            "(pip install usd-core)"
+            "USD export needs the `pxr` module from usd-core: `pip install usd-core`"
         ) from err
     return Gf, Sdf, Usd, UsdGeom, Vt
 
