@@ -148,25 +148,31 @@ def _same_batch(a, b):
     return all(torch.equal(x, y) for x, y in pairs)
 
 
-def test_sampler_is_deterministic_per_seed_and_differs_per_rank(data, sampler):
+def test_sampler_is_deterministic_per_seed_and_shards_per_rank(data, sampler):
     again = TrainingSampler(data, seed=0)
-    other_rank = TrainingSampler(data, seed=0, rank=1, world_size=2)
+    ranks = [TrainingSampler(data, seed=0, rank=r, world_size=2) for r in range(2)]
     other_seed = TrainingSampler(data, seed=1)
     a = sampler.static_batch(5, 3, 0.5, 2, 3)
-    assert _same_batch(a, again.static_batch(5, 3, 0.5, 2, 3))  # same seed, rank, step: same batch
-    assert not _same_batch(a, other_rank.static_batch(5, 3, 0.5, 2, 3))
+    assert _same_batch(a, again.static_batch(5, 3, 0.5, 2, 3))  # same seed, step: same batch
     assert not _same_batch(a, other_seed.static_batch(5, 3, 0.5, 2, 3))
     assert not _same_batch(a, sampler.static_batch(6, 3, 0.5, 2, 3))
+    # Each rank of 2 builds its own sample of the global batch of 2: different samples, and
+    # together the single-process batch (tests/test_distributed.py checks this further).
+    shares = [r.static_batch(5, 3, 0.5, 2, 3) for r in ranks]
+    assert [s.batch_size for s in shares] == [1, 1] and not torch.equal(shares[0].z, shares[1].z)
+    assert torch.equal(torch.cat([s.poses for s in shares]), a.poses)
+    assert torch.equal(torch.cat([s.z for s in shares]), a.z)
     kw = dict(num_hairstyles=2, window=3, candidates=16)
     s1 = sampler.sequence_batch(2, 2, 2, 1, **kw)
     s2 = again.sequence_batch(2, 2, 2, 1, **kw)
-    s3 = other_rank.sequence_batch(2, 2, 2, 1, **kw)
+    s3 = [r.sequence_batch(2, 2, 2, 1, **kw) for r in ranks]
     assert torch.equal(s1.poses, s2.poses) and torch.equal(s1.motion, s2.motion)
     assert torch.equal(s1.rollout.rigid, s2.rollout.rigid)
-    assert not torch.equal(s1.poses, s3.poses)
+    assert not torch.equal(s3[0].poses, s3[1].poses)
+    assert torch.equal(torch.cat([s.poses for s in s3]), s1.poses)
     # The corpus and the dynamic threshold are shared by every rank.
-    assert torch.equal(sampler.latent(1), other_rank.latent(1))
-    assert s1.info["threshold"] == s3.info["threshold"]
+    assert torch.equal(sampler.latent(1), ranks[1].latent(1))
+    assert s1.info["threshold"] == s3[1].info["threshold"]
 
 
 def test_static_batches_follow_the_curriculum(sampler, data):

@@ -33,11 +33,24 @@ def warp_device(device: torch.device) -> str:
     raise ValueError(f"device: expected a cpu or cuda tensor, got device {device}")
 
 
+def set_default_device(device: torch.device) -> None:
+    """Make `device` Warp's default device in this process (one rank of a data-parallel run).
+
+    Every bridge in `hairwarp.ops` names the device of its tensors and runs on torch's current
+    stream of that device, so launches never depend on this default; it keeps the Warp work
+    that names no device (third-party code, array creation) off cuda:0 on ranks that own
+    another GPU, where it would also open a CUDA context.
+    """
+    init()
+    wp.set_device(warp_device(torch.device(device)))
+
+
 def launch_scope(device: torch.device):
     """Context that makes Warp launches run on torch's current stream for `device`.
 
     On CPU there is no stream; on CUDA this keeps Warp and torch work ordered without a
-    host synchronisation.
+    host synchronisation. `device` "cuda" without an index means torch's current device (set
+    per rank by `torch.cuda.set_device`); the stream and Warp's device scope both follow it.
     """
     init()
     if device.type == "cuda":

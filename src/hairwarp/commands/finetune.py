@@ -4,7 +4,8 @@
     hairwarp finetune --checkpoint dyn/ --motion my_motion.npz --set learning_rate=5e-5
 
 The checkpoint must come from `hairwarp train dynamic` (it stores the data settings). The output
-folder receives config.toml, log.jsonl and the fine-tuned checkpoint.pt.
+folder receives config.toml, log.jsonl and the fine-tuned checkpoint.pt. Under torchrun the
+ranks fine-tune data-parallel, as `hairwarp train` does (docs/distributed.md).
 """
 
 from __future__ import annotations
@@ -56,6 +57,8 @@ def run(args) -> int:
             overrides = _flatten(tomllib.load(f)) + overrides
     trainer = finetune(args.checkpoint, args.motion, args.iterations, out=args.out, device=device,
                        seed=args.seed, overrides=overrides, progress=not args.no_progress)
+    if not trainer.is_main:  # under torchrun rank 0 reports
+        return 0
     last = trainer.history[-1]["loss"] if trainer.history else float("nan")
     print(f"finetune {args.motion}: {trainer.step} steps, last loss {last:.6g}; "
           f"checkpoint {os.path.join(args.out, 'checkpoint.pt')}")

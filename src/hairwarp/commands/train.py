@@ -4,9 +4,13 @@
     hairwarp train dynamic --static-checkpoint run/checkpoint.pt --out dyn/
     hairwarp train quaffure --out quaffure/
     hairwarp train static --resume run/            # continue where the run stopped
+    torchrun --nproc_per_node 2 --no-python hairwarp train static --device cuda --out run/
 
 The output folder receives config.toml (the full settings: `--config` it to repeat the run),
 log.jsonl (one JSON record per step: loss, per-term breakdown, phase, b_p) and checkpoint.pt.
+Under torchrun the ranks train data-parallel (DDP): batch_size is the global batch, each rank
+builds its share, rank 0 writes the files; --resume takes a checkpoint of any world size
+(docs/distributed.md).
 """
 
 from __future__ import annotations
@@ -62,6 +66,7 @@ def run(args) -> int:
     from hairwarp.cli import resolve_device
     from hairwarp.training._common import checkpoint_config
     from hairwarp.training.config import apply_overrides, load_config
+    from hairwarp.training.distributed import init_distributed
     from hairwarp.training.dynamic import DynamicTrainer
     from hairwarp.training.static import StaticTrainer
 
@@ -81,14 +86,18 @@ def run(args) -> int:
     else:
         config = load_config(args.config, args.kind, overrides)
     cls = DynamicTrainer if args.kind == "dynamic" else StaticTrainer
-    trainer = cls(config, out=args.out, device=device, seed=args.seed, resume=args.resume)
+    # Under torchrun: join the data-parallel run (each rank on its device); else one process.
+    ctx = init_distributed(device)
+    trainer = cls(config, out=args.out, device=ctx.device, seed=args.seed, rank=ctx.rank,
+                  world_size=ctx.world_size, resume=args.resume)
     if trainer.kind != args.kind:
         raise ValueError(f"--resume: the checkpoint trains a {trainer.kind} network, not {args.kind}")
     try:
         trainer.train(args.steps, progress=not args.no_progress)
     finally:
         trainer.close()
-    print(_summary(trainer, args.out))
+    if ctx.is_main:
+        print(_summary(trainer, args.out))
     return 0
 
 

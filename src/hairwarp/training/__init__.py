@@ -3,7 +3,8 @@
 Static curriculum (phases 0-3, b_p annealing, early deformation clip), dynamic training (frozen
 static network, subsampled dynamic-score-filtered sequences, GRU state carried over the
 frames, Eq. 6 with stop-gradient inertia and functional regularization), fine-tuning on one
-motion (Fig. 4), the batch sampler, and configs loadable from TOML with `--set` overrides.
+motion (Fig. 4), the batch sampler, configs loadable from TOML with `--set` overrides, and
+data-parallel training under torchrun (`hairwarp.training.distributed`).
 """
 
 from hairwarp.training.config import (
@@ -15,7 +16,8 @@ from hairwarp.training.config import (
     to_toml,
     write_toml,
 )
-from hairwarp.training.data import HairBatch, SequenceBatch, TrainingSampler
+from hairwarp.training.data import HairBatch, SequenceBatch, TrainingSampler, shard_bounds
+from hairwarp.training.distributed import DistributedContext, init_distributed
 from hairwarp.training.dynamic import DynamicTrainer, dynamic_loss, inertia_history, train_dynamic
 from hairwarp.training.finetune import finetune
 from hairwarp.training.static import (
@@ -28,6 +30,7 @@ from hairwarp.training.static import (
 
 __all__ = [
     "DataConfig",
+    "DistributedContext",
     "DynamicTrainer",
     "DynamicTrainingConfig",
     "HairBatch",
@@ -41,7 +44,9 @@ __all__ = [
     "dynamic_loss",
     "finetune",
     "inertia_history",
+    "init_distributed",
     "load_config",
+    "shard_bounds",
     "static_loss",
     "to_toml",
     "train_dynamic",

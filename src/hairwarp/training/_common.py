@@ -6,6 +6,10 @@ steps the optimizer and returns a record {step, loss, terms, ...} that also goes
 object per line, to `<out>/log.jsonl`. Checkpoints (`<out>/checkpoint.pt`) hold the weights,
 the optimizer state, the step and the training config (in `extra`), so a resumed run draws
 the same batches (they are keyed by the step) and continues exactly.
+
+Data parallelism (`hairwarp.training.distributed`): with world_size > 1 the trainer wraps its
+loss in DistributedDataParallel, each rank builds its share of the global batch, the logged
+loss is the global batch mean, and rank 0 alone writes the files (barriers around them).
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ import time
 import torch
 
 from hairwarp.models import load_checkpoint, save_checkpoint
+from hairwarp.training import distributed
 from hairwarp.training.config import to_toml
 
 CHECKPOINT_NAME = "checkpoint.pt"
@@ -66,9 +71,9 @@ def resolve_checkpoint(path) -> str:
 class Trainer:
     """Base of `StaticTrainer` and `DynamicTrainer` (not used directly).
 
-    Subclasses set `model`, `optimizer`, `sampler`, `config` and implement `total_steps`,
-    `next_batch(step)` and `compute_loss(batch, step)` -> (loss tensor, terms dict, record
-    extras dict).
+    Subclasses set `model`, `optimizer`, `sampler`, `config`, `device` and implement
+    `total_steps`, `next_batch(step)` and `compute_loss(batch, step, model=None)` -> (loss
+    tensor, terms dict, record extras dict).
     """
 
     kind = ""
@@ -79,6 +84,15 @@ class Trainer:
         self.step = step
         self.history: list[dict] = []
         self._log = None
+        self._ddp = None
+        if world_size > 1:
+            distributed.check_process_group(rank, world_size)
+            if self.config.batch_size < world_size:
+                raise ValueError(
+                    f"batch_size: the global batch of {self.config.batch_size} leaves some of the "
+                    f"{world_size} ranks without a sample (batch_size is global: use >= {world_size})"
+                )
+            self._ddp = distributed.wrap_ddp(self.model, self.compute_loss)
         if self.out is not None and self.is_main:
             os.makedirs(self.out, exist_ok=True)
             with open(os.path.join(self.out, CONFIG_NAME), "w", encoding="utf-8") as f:
@@ -97,12 +111,20 @@ class Trainer:
     def next_batch(self, step: int):  # pragma: no cover - abstract
         raise NotImplementedError
 
-    def compute_loss(self, batch, step: int):  # pragma: no cover - abstract
+    def compute_loss(self, batch, step: int, model=None):  # pragma: no cover - abstract
         raise NotImplementedError
+
+    def _before_resume(self) -> None:
+        """Wait until every rank gets here before a checkpoint is read (rank 0 of this very run
+        may have just written it)."""
+        distributed.barrier(self.device)
 
     # ------------------------------------------------------------------------------ steps
     def train_step(self, batch=None) -> dict:
         """One optimizer step on the current step's batch (or on `batch`).
+
+        Under DDP every rank calls this at every step with its own share of the batch; the
+        loss and terms of the record are then the global batch's means.
 
         Returns:
             The step's record: step (completed steps after it), loss, terms, time_s and
@@ -110,7 +132,7 @@ class Trainer:
 
         Raises:
             NonFiniteLossError: (a ValueError) if the loss is NaN or Inf; the weights are left
-                unchanged.
+                unchanged. Under DDP every rank raises at the same step.
         """
         start = time.perf_counter()
         step = self.step
@@ -118,21 +140,48 @@ class Trainer:
             batch = self.next_batch(step)
         self.model.train()
         self.optimizer.zero_grad(set_to_none=True)
-        loss, terms, extras = self.compute_loss(batch, step)
-        check_finite_loss(loss, step, terms)
-        loss.backward()
+        if self._ddp is None:
+            loss, terms, extras = self.compute_loss(batch, step)
+            check_finite_loss(loss, step, terms)
+            loss.backward()
+            value = float(loss.detach())
+        else:
+            loss, terms, extras, value = self._distributed_loss(batch, step)
+            # DDP averages the ranks' gradients: weighting each rank's batch mean by
+            # share * world_size makes that average the gradient of the global batch mean.
+            (loss * (batch.share * self.world_size)).backward()
         if self.config.grad_clip_norm > 0:
             torch.nn.utils.clip_grad_norm_(self._parameters(), self.config.grad_clip_norm)
         self.optimizer.step()
         self.step = step + 1
-        record = {"step": self.step, "loss": float(loss.detach()), "terms": terms, **extras,
+        record = {"step": self.step, "loss": value, "terms": terms, **extras,
                   "time_s": time.perf_counter() - start}
         self.history.append(record)
         self._write_log(record)
         return record
 
+    def _distributed_loss(self, batch, step: int):
+        """This rank's loss through DDP, and the global batch's loss and terms."""
+        failed = None
+        try:
+            loss, terms, extras = self._ddp(batch, step)
+        except ValueError as exc:  # bad network output, bad batch: stop every rank, not this one
+            failed = exc
+        if distributed.all_reduce_sum([0.0 if failed is None else 1.0], self.device)[0] > 0:
+            if failed is not None:
+                raise failed
+            raise ValueError(f"loss: another rank failed at step {step} (its error is in its own output)")
+        names = sorted(terms)
+        share = batch.share
+        sums = distributed.all_reduce_sum([float(loss.detach()) * share] + [terms[k] * share for k in names],
+                                          self.device)
+        value, terms = sums[0], dict(zip(names, sums[1:]))
+        check_finite_loss(torch.tensor(value), step, terms)  # the same verdict on every rank
+        return loss, terms, extras, value
+
     def evaluate(self, batch, step: int | None = None) -> tuple[float, dict]:
-        """The loss and its terms on `batch` without updating anything (at `step`'s schedule)."""
+        """The loss and its terms on `batch` without updating anything (at `step`'s schedule);
+        local to this rank (no collective)."""
         self.model.eval()
         with torch.no_grad():
             loss, terms, _ = self.compute_loss(batch, self.step if step is None else step)
@@ -196,11 +245,15 @@ class Trainer:
 
     def checkpoint_extra(self) -> dict:
         """Plain data stored with the weights: what a resume or a fine-tune needs."""
+        # world_size is for the record: a resume may use another (the batches are global).
         return {"training": self.kind, "training_config": self.config.to_dict(), "seed": self.seed,
                 "world_size": self.world_size}
 
     def save(self, path=None) -> str | None:
         """Write the model, optimizer state, step and config (rank 0 only).
+
+        Under torchrun every rank calls it (it ends with a barrier, so no rank reads the file
+        before it is complete).
 
         Args:
             path: file to write; None: `<out>/checkpoint.pt`.
@@ -208,18 +261,19 @@ class Trainer:
         Returns:
             The path written, or None on other ranks.
         """
-        if not self.is_main:
-            return None
         if path is None:
             if self.out is None:
                 raise ValueError("path: the trainer has no output folder; pass a path")
             path = os.path.join(self.out, CHECKPOINT_NAME)
-        path = os.fspath(path)
-        tmp = path + ".tmp"
-        save_checkpoint(tmp, self.model, optimizer=self.optimizer, step=self.step,
-                        extra=self.checkpoint_extra())
-        os.replace(tmp, path)  # a crash mid-write never leaves a truncated checkpoint
-        return path
+        written = None
+        if self.is_main:
+            written = os.fspath(path)
+            tmp = written + ".tmp"
+            save_checkpoint(tmp, self.model, optimizer=self.optimizer, step=self.step,
+                            extra=self.checkpoint_extra())
+            os.replace(tmp, written)  # a crash mid-write never leaves a truncated checkpoint
+        distributed.barrier(self.device)
+        return written
 
     def close(self) -> None:
         """Close the log file."""

@@ -23,10 +23,20 @@ the posed scalp normals depend only on the roots, which all hairstyles share, so
 `rigid_placement` of the roots serves the batch and each hairstyle is moved by its own frame's
 M_head: p_rigid = M_head p_init + dt_align + dt[s, 0], exactly `rigid_placement`'s result.
 
-Randomness. Each batch is a pure function of (seed, rank, step): the generator is keyed by
-them, so resuming at step k draws the very batches an uninterrupted run would, and ranks of a
-later torch.distributed run draw different batches (`rank`, `world_size`). The corpus, the
-subjects and the dynamic-score threshold depend on `corpus_seed` only: the same on every rank.
+Randomness. The global batch of a step is a pure function of (seed, step): the generator is
+keyed by them, so resuming at step k draws the very batches an uninterrupted run would. The
+corpus, the subjects and the dynamic-score threshold depend on `corpus_seed` only.
+
+Data parallelism (`rank`, `world_size`; see `hairwarp.training.distributed`). `batch_size` is
+the global batch. Every rank makes the global batch's random draws (a few numbers per sample:
+which hairstyle, motion, frame, rotation, noise; all ranks agree on them), then builds only its
+own share: the contiguous slice `shard_bounds(batch_size, rank, world_size)` of the samples,
+whose hairstyles it decodes, bodies it poses and places (the expensive part). So the ranks'
+shares are disjoint, and together they are exactly the batch a single process draws with the
+same seed, whatever the world size: a run resumed at another world size continues the same
+sequence of global batches. Phase 0's batch (one sample, always the same) is replicated on
+every rank. `HairBatch.share` / `SequenceBatch.share` is the weight of a rank's batch mean in
+the global mean (samples / global samples; 1 / world_size for the replicated batch).
 
 Caches: corpus latents (all, shared by the samplers of a process), decoded hairstyles (LRU,
 `hairstyle_cache_size`), posed bodies of noise-free motion frames (LRU, `pose_cache_size`),
@@ -86,6 +96,27 @@ def _generator(*keys: int) -> np.random.Generator:
     return np.random.default_rng([int(k) for k in keys])
 
 
+def shard_bounds(batch_size: int, rank: int, world_size: int) -> tuple[int, int]:
+    """The samples [lo, hi) of a global batch that `rank` of `world_size` builds.
+
+    Contiguous slices whose sizes differ by at most one (5 samples on 2 ranks: 2 and 3).
+
+    Raises:
+        ValueError: if a rank would get no sample (batch_size < world_size) or on bad ints.
+    """
+    for name, value, low in (("batch_size", batch_size, 1), ("world_size", world_size, 1), ("rank", rank, 0)):
+        if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < low:
+            raise ValueError(f"{name}: expected an int >= {low}, got {value!r}")
+    if rank >= world_size:
+        raise ValueError(f"rank: expected 0 <= rank < world_size={world_size}, got {rank}")
+    if batch_size < world_size:
+        raise ValueError(
+            f"batch_size: the global batch of {batch_size} leaves some of the {world_size} ranks without a "
+            "sample; use batch_size >= world size (batch_size is the global batch)"
+        )
+    return rank * batch_size // world_size, (rank + 1) * batch_size // world_size
+
+
 def _noise(g: np.random.Generator, std: float, like: torch.Tensor) -> torch.Tensor:
     return torch.as_tensor(g.normal(0.0, std, size=tuple(like.shape)), dtype=like.dtype)
 
@@ -114,7 +145,12 @@ class HairBatch:
         inputs: the `EnergyInputs` (rest lengths (B, M, N-1), rigid, posed scalp normals
             (B, M, 3), the cropped body meshes, or None when built without bodies).
         hairstyle_ids: corpus index of each sample's hairstyle.
-        info: what was drawn (phase, motions, frames...), plain data for logs.
+        info: what was drawn (phase, motions, frames...), plain data for logs; for a batch of
+            the sampler, the lists describe the global batch and "shard" is [lo, hi), the
+            samples this batch holds.
+        share: weight of this batch's mean in the global batch's mean: samples held / samples
+            of the global batch (1 in a single process; 1 / world_size for a batch replicated
+            on every rank).
     """
 
     z: torch.Tensor
@@ -127,9 +163,11 @@ class HairBatch:
     inputs: EnergyInputs
     hairstyle_ids: list
     info: dict = field(default_factory=dict)
+    share: float = 1.0
 
     @property
     def batch_size(self) -> int:
+        """Samples held (this rank's share of the global batch)."""
         return int(self.z.shape[0])
 
 
@@ -145,8 +183,9 @@ class SequenceBatch:
         warmup: HairBatch of the B * W warm-up frames (sequence-major: item b * W + w), without
             body meshes (no loss is evaluated on them).
         rollout: HairBatch of the B * R rollout frames (item b * R + r), with body meshes.
-        intervals: frame interval k of each sequence.
-        info: what was drawn, plain data.
+        intervals: frame interval k of each sequence held.
+        info: what was drawn, plain data (lists of the global batch; "shard" [lo, hi)).
+        share: weight of this batch's mean in the global batch's mean (see `HairBatch`).
     """
 
     z: torch.Tensor
@@ -157,9 +196,11 @@ class SequenceBatch:
     rollout: HairBatch
     intervals: list
     info: dict = field(default_factory=dict)
+    share: float = 1.0
 
     @property
     def batch_size(self) -> int:
+        """Sequences held (this rank's share of the global batch)."""
         return int(self.z.shape[0])
 
     @property
@@ -185,8 +226,9 @@ class TrainingSampler:
 
     Args:
         config: what to draw (`DataConfig()` when None).
-        seed: training seed (with `rank` and the step it keys every batch).
-        rank: this process's rank in a data-parallel run (0-based).
+        seed: training seed (with the step it keys every global batch).
+        rank: this process's rank in a data-parallel run (0-based): which share of each
+            global batch it builds.
         world_size: number of ranks.
         device: torch device of every batch tensor.
         dtype: float32 (training) or float64 (checks).
@@ -289,8 +331,14 @@ class TrainingSampler:
         return self.basis.latent_dim
 
     def generator(self, stream: int, step: int) -> np.random.Generator:
-        """The generator of one batch: keyed by (seed, rank, stream, step)."""
-        return _generator(self.seed, self.rank, stream, step)
+        """The generator of one global batch: keyed by (seed, stream, step), the same on every
+        rank. (The key's second slot, 0, once held the rank: kept so that single-process runs
+        draw the batches they always drew.)"""
+        return _generator(self.seed, 0, stream, step)
+
+    def shard(self, batch_size: int) -> tuple[int, int]:
+        """This rank's samples [lo, hi) of a global batch of `batch_size` (`shard_bounds`)."""
+        return shard_bounds(batch_size, self.rank, self.world_size)
 
     # ------------------------------------------------------------------------------ motions
     def _motion_pool(self) -> list[MotionEntry]:
@@ -455,16 +503,16 @@ class TrainingSampler:
 
         Args:
             step: global step (keys the generator).
-            phase: 0 (one rest body, one hairstyle: a batch of 1), 1 (head rotations on an
-                ellipsoid whose radii grow with `progress`), 2 (`num_hairstyles` hairstyles,
-                motions of subject 0) or 3 (`num_hairstyles`, all motions and subjects, noisy
-                shapes).
+            phase: 0 (one rest body, one hairstyle: a batch of 1, replicated on every rank),
+                1 (head rotations on an ellipsoid whose radii grow with `progress`), 2
+                (`num_hairstyles` hairstyles, motions of subject 0) or 3 (`num_hairstyles`, all
+                motions and subjects, noisy shapes).
             progress: position in the phase, in [0, 1] (phase 1's radius fraction).
-            batch_size: samples (phases 1-3).
+            batch_size: samples of the global batch (phases 1-3); this rank builds its share.
             num_hairstyles: hairstyle pool of phases 2-3 (corpus indices 0 .. n-1).
 
         Returns:
-            HairBatch.
+            HairBatch of this rank's samples (all of them in a single process).
         """
         if phase not in (0, 1, 2, 3):
             raise ValueError(f"phase: expected 0, 1, 2 or 3, got {phase!r}")
@@ -480,8 +528,13 @@ class TrainingSampler:
             if self._phase0 is None:
                 z, strands = self.hairstyles([0])
                 self._phase0 = self.place(z, strands, self.mean_betas[None], self.rest_pose[None], None,
-                                          hairstyle_ids=[0], info={"phase": 0, "hairstyles": [0]})
+                                          hairstyle_ids=[0], info={"phase": 0, "hairstyles": [0],
+                                                                   "global_batch_size": 1, "shard": [0, 1]})
+                self._phase0.share = 1.0 / self.world_size  # replicated: every rank holds it
             return self._phase0
+        lo, hi = self.shard(batch_size)
+        # The random draws of the whole global batch (cheap, identical on every rank); only
+        # samples lo..hi-1 are decoded, posed and placed below.
         if phase == 1:
             ids = [0] * batch_size
             fraction = min(max(float(progress), 0.0), 1.0)
@@ -512,9 +565,12 @@ class TrainingSampler:
             else:
                 keys = [(pool[p], f) for p, f in zip(picks, frames)]
             info.update(motions=[self.entries[pool[p]].name for p in picks], frames=frames)
-        z, strands = self.hairstyles(ids)
-        info["hairstyles"] = ids
-        return self.place(z, strands, betas, poses, trans, hairstyle_ids=ids, pose_keys=keys, info=info)
+        info.update(hairstyles=ids, global_batch_size=batch_size, shard=[lo, hi])
+        z, strands = self.hairstyles(ids[lo:hi])
+        batch = self.place(z, strands, betas[lo:hi], poses[lo:hi], trans[lo:hi], hairstyle_ids=ids[lo:hi],
+                           pose_keys=keys[lo:hi], info=info)
+        batch.share = (hi - lo) / batch_size
+        return batch
 
     def _phase_entries(self, phase: int) -> list[int]:
         if phase == 2:
@@ -607,7 +663,7 @@ class TrainingSampler:
 
         Args:
             step: global step (keys the generator).
-            batch_size: sequences.
+            batch_size: sequences of the global batch; this rank builds its share.
             warmup_frames: W frames without loss (>= 2).
             rollout_frames: R frames with loss (>= 1).
             num_hairstyles: hairstyle pool (corpus indices 0 .. n-1).
@@ -618,7 +674,7 @@ class TrainingSampler:
             quantile: threshold quantile (0.5: the median).
 
         Returns:
-            SequenceBatch.
+            SequenceBatch of this rank's sequences (all of them in a single process).
         """
         for name, value, low in (("batch_size", batch_size, 1), ("warmup_frames", warmup_frames, 2),
                                  ("rollout_frames", rollout_frames, 1), ("window", window, 1),
@@ -654,6 +710,21 @@ class TrainingSampler:
         betas = torch.stack([self.subject_betas[self.entries[c[0]].subject] for c in clips])
         if cfg.beta_noise_std > 0:
             betas = betas + _noise(g, cfg.beta_noise_std, betas)
+        info = {
+            "motions": [self.entries[c[0]].name for c in clips],
+            "intervals": [c[1] for c in clips],
+            "starts": [c[3] for c in clips],
+            "dynamic_scores": scores,
+            "threshold": threshold if dynamic_filter else None,
+            "hairstyles": ids,
+            "global_batch_size": batch_size,
+        }
+        # Every rank drew the whole global batch above (cheap); it builds sequences lo..hi-1.
+        first, stop = self.shard(batch_size)
+        info["shard"] = [first, stop]
+        clips, ids, betas = clips[first:stop], ids[first:stop], betas[first:stop]
+        share = (stop - first) / batch_size
+        batch_size = stop - first
 
         poses, trans, motion = [], [], []
         for e, k, offset, start in clips:
@@ -680,19 +751,11 @@ class TrainingSampler:
                 hairstyle_ids=[i for i in ids for _ in range(count)], build_body=build_body,
             )
 
-        info = {
-            "motions": [self.entries[c[0]].name for c in clips],
-            "intervals": [c[1] for c in clips],
-            "starts": [c[3] for c in clips],
-            "dynamic_scores": scores,
-            "threshold": threshold if dynamic_filter else None,
-            "hairstyles": ids,
-        }
         return SequenceBatch(
             z=z, betas=betas, poses=poses, motion=motion,
             warmup=part(0, warmup_frames, False), rollout=part(warmup_frames, frames, True),
-            intervals=[c[1] for c in clips], info=info,
+            intervals=[c[1] for c in clips], info=info, share=share,
         )
 
 
-__all__ = ["HairBatch", "MOTION_DIM", "MotionEntry", "SequenceBatch", "TrainingSampler"]
+__all__ = ["HairBatch", "MOTION_DIM", "MotionEntry", "SequenceBatch", "TrainingSampler", "shard_bounds"]

@@ -27,6 +27,7 @@ import torch
 
 from hairwarp.energy import total_energy
 from hairwarp.models import DynamicConfig, DynamicNetwork, apply_deformation
+from hairwarp.training import distributed
 from hairwarp.training._common import (
     DTYPES,
     Trainer,
@@ -120,8 +121,10 @@ class DynamicTrainer(Trainer):
         device: torch device.
         seed: seeds the new layers' initialisation and the sampler (a resume keeps the
             checkpoint's seed).
-        rank: this process's rank; world_size: number of ranks.
-        resume: a dynamic checkpoint to continue from (weights, optimizer state, step).
+        rank: this process's rank; world_size: number of ranks (> 1: DDP over the running
+            process group, see `StaticTrainer`).
+        resume: a dynamic checkpoint to continue from (weights, optimizer state, step),
+            written at any world size.
         init: a dynamic checkpoint whose weights start a new run (fresh optimizer, step 0):
             fine-tuning.
         sampler: a ready `TrainingSampler`; None builds it from the config.
@@ -151,9 +154,12 @@ class DynamicTrainer(Trainer):
         if resume is not None and init is not None:
             raise ValueError("resume, init: give one or the other")
         device = torch.device(device)
+        self.device = device
+        distributed.check_process_group(rank, world_size)
         source = resume if resume is not None else init
         ckpt = None
         if source is not None:
+            self._before_resume()
             dtype = DTYPES[config.dtype if config is not None else "float32"]
             ckpt = load_training_checkpoint(source, device, dtype, ("dynamic",))
             if resume is not None:
@@ -168,7 +174,6 @@ class DynamicTrainer(Trainer):
             raise ValueError(f"config: expected a DynamicTrainingConfig, got {type(config).__name__}")
         self.config = config
         self.dtype = DTYPES[config.dtype]
-        self.device = device
         if sampler is None:
             sampler = TrainingSampler(config.data, seed=seed, rank=rank, world_size=world_size, device=device,
                                       dtype=self.dtype)
@@ -178,11 +183,12 @@ class DynamicTrainer(Trainer):
         self.sampler = sampler
 
         if ckpt is not None:
-            model = ckpt.model
+            model = ckpt.model  # moved to the config's dtype below (float64 runs store float32 weights)
         else:
             if not config.static_checkpoint:
                 raise ValueError("static_checkpoint: dynamic training needs a trained static network "
                                  "(--static-checkpoint or static_checkpoint = ... in the config)")
+            self._before_resume()  # the static checkpoint may be this run's rank 0's fresh output
             static = load_training_checkpoint(config.static_checkpoint, device, self.dtype, ("static",)).model
             torch.manual_seed(seed)
             model = DynamicNetwork.from_static(static, dynamic_model_config(config, static.config))
@@ -219,16 +225,17 @@ class DynamicTrainer(Trainer):
             quantile=cfg.dynamic_quantile,
         )
 
-    def compute_loss(self, batch: SequenceBatch, step: int):
+    def compute_loss(self, batch: SequenceBatch, step: int, model: DynamicNetwork | None = None):
         cfg = self.config
         fixed = {"barrier_join_fraction": cfg.barrier_join_fraction}
         if "time_step" not in cfg.energy:
             # Eq. 16's dt is the frame time the motions are played at (1/60 s in the paper).
             fixed["time_step"] = 1.0 / cfg.data.fps
         energy = energy_config(cfg.energy, **fixed)
-        loss, terms, _ = dynamic_loss(self.model, batch, energy, cfg.deformation_clip)
-        extras = {"bp": cfg.barrier_join_fraction, "batch_size": batch.batch_size,
-                  "intervals": list(batch.intervals)}
+        loss, terms, _ = dynamic_loss(self.model if model is None else model, batch, energy, cfg.deformation_clip)
+        # The global batch's size and intervals (every rank drew them all).
+        extras = {"bp": cfg.barrier_join_fraction, "batch_size": batch.info.get("global_batch_size", batch.batch_size),
+                  "intervals": list(batch.info.get("intervals", batch.intervals))}
         return loss, terms, extras
 
 
@@ -247,7 +254,7 @@ def train_dynamic(
     Args:
         config: settings (the checkpoint's on resume when None).
         out: output folder (None: nothing written).
-        device: torch device.
+        device: torch device ("cuda" under torchrun: each rank's cuda:LOCAL_RANK).
         seed: initialisation and sampling seed.
         resume: a dynamic checkpoint (file or folder) to continue from.
         steps: run at most this many steps (None: `config.steps`).
@@ -255,8 +262,12 @@ def train_dynamic(
 
     Returns:
         The trainer.
+
+    Under torchrun (WORLD_SIZE > 1) this joins the data-parallel run, as `train_static` does.
     """
-    trainer = DynamicTrainer(config, out=out, device=device, seed=seed, resume=resume)
+    ctx = distributed.init_distributed(device)  # under torchrun: join the data-parallel run
+    trainer = DynamicTrainer(config, out=out, device=ctx.device, seed=seed, rank=ctx.rank,
+                             world_size=ctx.world_size, resume=resume)
     try:
         trainer.train(steps, progress=progress)
     finally:

@@ -16,6 +16,7 @@ import os
 import torch
 
 from hairwarp.scene.motion import list_motions
+from hairwarp.training import distributed
 from hairwarp.training._common import load_training_checkpoint, stored_config
 from hairwarp.training.config import DynamicTrainingConfig, apply_overrides
 from hairwarp.training.dynamic import DynamicTrainer
@@ -70,7 +71,7 @@ def finetune(
         motion: a procedural motion name or an AMASS `.npz` path ("whiplash": Fig. 4).
         iterations: optimizer steps (300: "a few hundred iterations").
         out: output folder (config.toml, log.jsonl, checkpoint.pt); None writes nothing.
-        device: torch device.
+        device: torch device ("cuda" under torchrun: each rank's cuda:LOCAL_RANK).
         seed: sampling seed.
         overrides: "key=value" settings applied last (e.g. "learning_rate=5e-5",
             "rollout_frames=8").
@@ -83,12 +84,14 @@ def finetune(
         ValueError: on a checkpoint that is not a dynamic one or stores no training config,
             an unknown motion, or a bad override.
     """
-    ckpt = load_training_checkpoint(checkpoint, torch.device(device), torch.float32, ("dynamic",))
+    ctx = distributed.init_distributed(device)  # under torchrun: data-parallel, each rank its GPU
+    ckpt = load_training_checkpoint(checkpoint, torch.device("cpu"), torch.float32, ("dynamic",))
     base = stored_config(ckpt, DynamicTrainingConfig)
     if base is None:
         raise ValueError("checkpoint: stores no training config (was it written by hairwarp train dynamic?)")
     config = apply_overrides(finetune_config(base, motion, iterations), overrides)
-    trainer = DynamicTrainer(config, out=out, device=device, seed=seed, init=checkpoint)
+    trainer = DynamicTrainer(config, out=out, device=ctx.device, seed=seed, rank=ctx.rank,
+                             world_size=ctx.world_size, init=checkpoint)
     try:
         trainer.train(progress=progress)
     finally:

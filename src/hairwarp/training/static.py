@@ -24,6 +24,7 @@ from torch import nn
 
 from hairwarp.energy import total_energy
 from hairwarp.models import QuaffureConfig, QuaffureNetwork, StaticConfig, StaticNetwork, apply_deformation
+from hairwarp.training import distributed
 from hairwarp.training._common import (
     DTYPES,
     Trainer,
@@ -147,11 +148,13 @@ class StaticTrainer(Trainer):
         device: torch device.
         seed: seeds the network's initialisation and the sampler; a resumed run keeps the
             checkpoint's seed, so it draws the batches the uninterrupted run would have.
-        rank: this process's rank (a data-parallel run draws different batches per rank;
-            rank 0 writes the files).
-        world_size: number of ranks.
+        rank: this process's rank (it builds its share of each global batch; rank 0 writes
+            the files).
+        world_size: number of ranks; > 1 needs the process group running
+            (`hairwarp.training.distributed.init_distributed`, as `train_static` does under
+            torchrun) and wraps the loss in DistributedDataParallel.
         resume: a checkpoint (file or run folder) to continue from: weights, optimizer
-            state and step.
+            state and step; it may come from a run with another world size.
         sampler: a ready `TrainingSampler` (tests share one); None builds it from the config.
 
     Raises:
@@ -171,8 +174,11 @@ class StaticTrainer(Trainer):
         sampler: TrainingSampler | None = None,
     ):
         device = torch.device(device)
+        self.device = device
+        distributed.check_process_group(rank, world_size)
         ckpt = None
         if resume is not None:
+            self._before_resume()
             dtype = DTYPES[(config.dtype if config is not None else "float32")]
             ckpt = load_training_checkpoint(resume, device, dtype, ("static", "quaffure"))
             seed = stored_seed(ckpt, seed)
@@ -187,7 +193,6 @@ class StaticTrainer(Trainer):
         self.config = config
         self.kind = config.model_kind
         self.dtype = DTYPES[config.dtype]
-        self.device = device
         if sampler is None:
             sampler = TrainingSampler(config.data, seed=seed, rank=rank, world_size=world_size, device=device,
                                       dtype=self.dtype)
@@ -202,7 +207,9 @@ class StaticTrainer(Trainer):
                     f"resume: the checkpoint's network differs from the config's {config.model_kind} "
                     "network (kind or sizes)"
                 )
-            self.model = ckpt.model
+            # A config stored in the checkpoint may ask for float64 where the checkpoint was
+            # loaded before the config was known (weights are stored as float32 either way).
+            self.model = ckpt.model.to(dtype=self.dtype)
         else:
             torch.manual_seed(seed)
             self.model = build_model(config, sampler.latent_dim).to(device=device, dtype=self.dtype)
@@ -232,11 +239,12 @@ class StaticTrainer(Trainer):
         pool = {2: cfg.phase2_hairstyles, 3: cfg.phase3_hairstyles}.get(s["phase"], 1)
         return self.sampler.static_batch(step, s["phase"], s["progress"], cfg.batch_size, pool)
 
-    def compute_loss(self, batch: HairBatch, step: int):
+    def compute_loss(self, batch: HairBatch, step: int, model: nn.Module | None = None):
         s = self.schedule(step)
         energy = energy_config(self.config.energy, barrier_join_fraction=s["bp"])
-        loss, terms, _ = static_loss(self.model, batch, energy, s["clip"])
-        extras = {"phase": s["phase"], "bp": s["bp"], "clip": s["clip"], "batch_size": batch.batch_size}
+        loss, terms, _ = static_loss(self.model if model is None else model, batch, energy, s["clip"])
+        size = batch.info.get("global_batch_size", batch.batch_size)
+        extras = {"phase": s["phase"], "bp": s["bp"], "clip": s["clip"], "batch_size": size}
         return loss, terms, extras
 
 
@@ -252,19 +260,26 @@ def train_static(
 ) -> StaticTrainer:
     """Train a static network (or Quaffure, `config.model_kind`) and write its checkpoint.
 
+    Under torchrun (RANK, WORLD_SIZE, LOCAL_RANK set, WORLD_SIZE > 1) this joins the
+    data-parallel run (`hairwarp.training.distributed`): each rank trains on its device with
+    its share of every global batch of `config.batch_size`; rank 0 writes the files. Otherwise
+    it trains in this process alone.
+
     Args:
         config: settings (`StaticTrainingConfig()` when None, or the checkpoint's on resume).
         out: output folder for config.toml, log.jsonl and checkpoint.pt (None: none).
-        device: torch device.
+        device: torch device ("cuda" under torchrun: each rank's cuda:LOCAL_RANK).
         seed: initialisation and sampling seed.
-        resume: checkpoint (file or folder) to continue from.
+        resume: checkpoint (file or folder) to continue from (any world size wrote it).
         steps: run at most this many steps (None: to the end of the curriculum).
-        progress: show the progress bar.
+        progress: show the progress bar (rank 0).
 
     Returns:
         The trainer (its `model`, `history`, `step`).
     """
-    trainer = StaticTrainer(config, out=out, device=device, seed=seed, resume=resume)
+    ctx = distributed.init_distributed(device)  # under torchrun: join the data-parallel run
+    trainer = StaticTrainer(config, out=out, device=ctx.device, seed=seed, rank=ctx.rank,
+                            world_size=ctx.world_size, resume=resume)
     try:
         trainer.train(steps, progress=progress)
     finally:
