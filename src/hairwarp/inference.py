@@ -85,22 +85,42 @@ class HairFormerSimulator:
     @torch.no_grad()
     def simulate(self, scene, frames) -> torch.Tensor:
         """Dynamic simulation over the frames (must be consecutive from frame 0): (T, M, N, 3)."""
+        poses = scene.motion.poses[frames.frame_indices.cpu()]
+        return self.simulate_poses(scene, poses, frames.betas[:1], frames.rigid.positions,
+                                   fps=float(scene.motion.fps))
+
+    @torch.no_grad()
+    def simulate_poses(self, scene, poses: torch.Tensor, betas: torch.Tensor, rigid: torch.Tensor,
+                       fps: float) -> torch.Tensor:
+        """Dynamic simulation of the scene's hairstyle over a pose sequence.
+
+        Args:
+            scene: anything with `hairstyle` (its strands give z, its root UVs the lookup).
+            poses: (T, 66) body poses of consecutive frames, axis-angle [rad].
+            betas: (1, 16) or (16,) body shape.
+            rigid: (T, M, N, 3) rigid placement of each frame [m] (Eq. 1).
+            fps: frame rate of the sequence [1/s].
+
+        Returns:
+            (T, M, N, 3) positions [m].
+        """
         from hairwarp.models.deformation import apply_deformation
         from hairwarp.scene.motion import motion_descriptor_windows
 
         if self.dynamic is None:
             raise ValueError("dynamic: this simulator has no dynamic network; use drape()")
-        rigid = frames.rigid.positions
         dtype = next(self.dynamic.parameters()).dtype
         t = rigid.shape[0]
+        if poses.shape[0] != t:
+            raise ValueError(f"poses: expected {t} frames (as rigid), got {poses.shape[0]}")
         z = self.latent(scene, rigid.device, dtype)
-        poses = frames.poses.to(dtype)[None]
-        betas = frames.betas[:1].to(dtype)
+        betas = betas.reshape(1, -1)
         window = self.dynamic.config.window
-        motion = motion_descriptor_windows(scene.motion.poses[frames.frame_indices].double(),
-                                           scene.motion.betas.double(), 1.0 / scene.motion.fps, window,
-                                           include_betas=False).to(device=rigid.device, dtype=dtype)[None]
-        out = self.dynamic.simulate(z, betas, poses, motion)
+        motion = motion_descriptor_windows(poses.detach().cpu().double(), betas[0].detach().cpu().double(),
+                                           1.0 / fps, window, include_betas=False)
+        motion = motion.to(device=rigid.device, dtype=dtype)[None]
+        out = self.dynamic.simulate(z, betas.to(device=rigid.device, dtype=dtype),
+                                    poses.to(device=rigid.device, dtype=dtype)[None], motion)
         maps = out.deformation_map.reshape(t, *out.deformation_map.shape[2:])
         root_uv = scene.hairstyle.root_uv.to(rigid.device)
         return apply_deformation(rigid.to(dtype), maps, root_uv).to(rigid.dtype)

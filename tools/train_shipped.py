@@ -1,0 +1,207 @@
+"""Train the shipped HairFormer checkpoints within a wall-clock budget (run on a GPU machine).
+
+    python tools/train_shipped.py static  --device cuda --minutes 6 --out OUT
+    python tools/train_shipped.py dynamic --device cuda --minutes 6 --static OUT/hairformer_static_run.pt --out OUT
+
+The curriculum's length depends on its total step count (phase boundaries, the b_p anneal of
+Section 4.2.1), so the step count is fixed before training: a short probe times a step of the
+costliest phase and the budget is divided by it. The corpus latents of the hairstyle pool are
+encoded up front on every CPU core (encoding a procedural hairstyle costs ~0.3 s, which would
+otherwise starve the GPU). Writes into OUT:
+
+- `<kind>_run/` (config.toml, log.jsonl, checkpoint.pt: float32 weights and optimizer state),
+- `hairformer_<kind>.pt`: the float16 weights to ship in `src/hairwarp/assets/`,
+- `train_<kind>.json`: sizes, steps, time per step, the loss at the start and the end.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import os
+import shutil
+import time
+
+import numpy as np
+import torch
+
+# The shipped size: every other root of the 32 x 32 scalp (256 strands) x 100 vertices in the
+# loss; the network still predicts the full 8 x 8 x N x 3 deformation map.
+STRAND_STRIDE = 2
+PHASE2_HAIRSTYLES = 128
+PHASE3_HAIRSTYLES = 512
+# Share of the steps in each curriculum phase (0: rest, 1: head rotations, 2: one subject, 3: all).
+PHASE_SHARES = (0.05, 0.15, 0.25, 0.55)
+
+
+def data_config():
+    from hairwarp.training.config import DataConfig
+
+    # Every hairstyle of the pool stays decoded (256 x 100 x 3 float32: 0.3 MB each): decoding one
+    # costs ~40 ms on the CPU, which at batch 32 would be most of a step.
+    return DataConfig(strand_stride=STRAND_STRIDE, hairstyle_cache_size=PHASE3_HAIRSTYLES, pose_cache_size=4096)
+
+
+def _encode_chunk(indices):
+    torch.set_num_threads(1)
+    from hairwarp.training.data import TrainingSampler
+
+    sampler = TrainingSampler(data_config(), device="cpu")
+    return [(i, sampler.latent(i).numpy()) for i in indices]
+
+
+def precompute_latents(sampler, count: int, workers: int) -> float:
+    """Fill the sampler's corpus-latent cache for hairstyles 0..count-1 in parallel; seconds."""
+    start = time.perf_counter()
+    chunks = [list(range(count))[k::workers] for k in range(workers)]
+    with mp.get_context("fork").Pool(workers) as pool:
+        for part in pool.map(_encode_chunk, chunks):
+            for i, z in part:
+                sampler._latents[i] = torch.as_tensor(z, dtype=torch.float64)
+    return time.perf_counter() - start
+
+
+def _time_steps(trainer, warmup: int, timed: int, device) -> float:
+    for _ in range(warmup):
+        trainer.train_step()
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+    start = time.perf_counter()
+    for _ in range(timed):
+        trainer.train_step()
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+    return (time.perf_counter() - start) / timed
+
+
+def _loop(trainer, budget_s: float, start: float, device) -> None:
+    from tqdm.auto import tqdm
+
+    bar = tqdm(total=trainer.total_steps, desc=f"train {trainer.kind}", mininterval=10)
+    every = max(1, trainer.total_steps // 20)
+    while trainer.step < trainer.total_steps and time.perf_counter() - start < budget_s:
+        record = trainer.train_step()
+        bar.update(1)
+        if trainer.step % every == 0:
+            print(json.dumps({k: record[k] for k in ("step", "loss", "phase", "bp") if k in record}), flush=True)
+    bar.close()
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+
+
+def _finish(trainer, args, kind: str, info: dict, start: float) -> None:
+    from hairwarp.models.checkpoint import parameter_count, save_checkpoint
+
+    trainer.save()
+    trainer.close()
+    ship = os.path.join(args.out, f"hairformer_{kind}.pt")
+    save_checkpoint(ship, trainer.model, step=trainer.step, extra={"training": kind,
+                    "training_config": trainer.config.to_dict()}, dtype=torch.float16)
+    history = trainer.history
+    head = [r["loss"] for r in history[:20]]
+    tail = [r["loss"] for r in history[-20:]]
+    info.update({
+        "steps_done": trainer.step, "wall_s": time.perf_counter() - start,
+        "loss_first20_mean": float(np.mean(head)) if head else None,
+        "loss_last20_mean": float(np.mean(tail)) if tail else None,
+        "last_terms": history[-1]["terms"] if history else None,
+        "parameters": parameter_count(trainer.model),
+        "shipped_bytes": os.path.getsize(ship),
+        "device": torch.cuda.get_device_name() if torch.cuda.is_available() else "cpu",
+    })
+    with open(os.path.join(args.out, f"train_{kind}.json"), "w") as f:
+        json.dump(info, f, indent=1)
+    print(json.dumps(info, indent=1))
+
+
+def train_static(args) -> None:
+    from hairwarp.training.config import StaticTrainingConfig
+    from hairwarp.training.data import TrainingSampler
+    from hairwarp.training.static import StaticTrainer
+
+    start = time.perf_counter()
+    device = torch.device(args.device)
+    sampler = TrainingSampler(data_config(), seed=args.seed, device=device)
+    enc_s = precompute_latents(sampler, PHASE3_HAIRSTYLES, args.workers)
+    print(f"encoded {PHASE3_HAIRSTYLES} corpus latents in {enc_s:.1f} s", flush=True)
+
+    def config(steps):
+        return StaticTrainingConfig(model_preset="shipped", phase_steps=steps, phase2_hairstyles=PHASE2_HAIRSTYLES,
+                                    phase3_hairstyles=PHASE3_HAIRSTYLES, batch_size=args.batch,
+                                    checkpoint_every=0, data=data_config())
+
+    if args.steps:  # the probe overestimates: its hairstyles are all decoded for the first time
+        s_step, total = float("nan"), args.steps
+    else:
+        probe = StaticTrainer(config((0, 0, 0, 1000)), device=device, seed=args.seed, sampler=sampler)
+        s_step = _time_steps(probe, 2, 5, device)
+        del probe
+        remaining = args.minutes * 60 - (time.perf_counter() - start) - 30
+        total = max(20, int(remaining / s_step))
+    steps = tuple(int(round(total * share)) for share in PHASE_SHARES)
+    print(f"probe: {s_step * 1e3:.0f} ms/step at batch {args.batch}; training {steps} steps", flush=True)
+    run = os.path.join(args.out, "static_run")
+    shutil.rmtree(run, ignore_errors=True)
+    trainer = StaticTrainer(config(steps), out=run, device=device, seed=args.seed, sampler=sampler)
+    _loop(trainer, args.minutes * 60 - 20, start, device)
+    _finish(trainer, args, "static", {"phase_steps": steps, "probe_ms_per_step": s_step * 1e3,
+                                      "batch": args.batch, "strand_stride": STRAND_STRIDE,
+                                      "encode_s": enc_s}, start)
+
+
+def train_dynamic(args) -> None:
+    from hairwarp.training.config import DynamicTrainingConfig
+    from hairwarp.training.data import TrainingSampler
+    from hairwarp.training.dynamic import DynamicTrainer
+
+    start = time.perf_counter()
+    device = torch.device(args.device)
+    sampler = TrainingSampler(data_config(), seed=args.seed, device=device)
+    enc_s = precompute_latents(sampler, PHASE3_HAIRSTYLES, args.workers)
+
+    def config(steps):
+        return DynamicTrainingConfig(static_checkpoint=args.static, model_preset="shipped", steps=steps,
+                                     hairstyles=PHASE3_HAIRSTYLES, batch_size=args.batch, checkpoint_every=0,
+                                     data=data_config())
+
+    if args.steps:
+        s_step, total = float("nan"), args.steps
+    else:
+        probe = DynamicTrainer(config(1000), device=device, seed=args.seed, sampler=sampler)
+        s_step = _time_steps(probe, 2, 4, device)
+        del probe
+        remaining = args.minutes * 60 - (time.perf_counter() - start) - 30
+        total = max(10, int(remaining / s_step))
+    print(f"probe: {s_step * 1e3:.0f} ms/step at batch {args.batch}; training {total} steps", flush=True)
+    run = os.path.join(args.out, "dynamic_run")
+    shutil.rmtree(run, ignore_errors=True)
+    trainer = DynamicTrainer(config(total), out=run, device=device, seed=args.seed, sampler=sampler)
+    _loop(trainer, args.minutes * 60 - 20, start, device)
+    _finish(trainer, args, "dynamic", {"steps": total, "probe_ms_per_step": s_step * 1e3, "batch": args.batch,
+                                       "strand_stride": STRAND_STRIDE, "encode_s": enc_s}, start)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("kind", choices=["static", "dynamic"])
+    parser.add_argument("--device", default="cuda")
+    parser.add_argument("--minutes", type=float, default=6.0, help="wall-clock budget, encoding included")
+    parser.add_argument("--steps", type=int, default=0, help="total steps (0: from a timing probe and --minutes)")
+    parser.add_argument("--batch", type=int, default=32)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--workers", type=int, default=max(1, (os.cpu_count() or 2) - 2))
+    parser.add_argument("--static", default=None, help="dynamic: the trained static checkpoint (float32 run file)")
+    parser.add_argument("--out", default="hairwarp-train")
+    args = parser.parse_args(argv)
+    os.makedirs(args.out, exist_ok=True)
+    if args.kind == "static":
+        train_static(args)
+    else:
+        if not args.static or not os.path.isfile(args.static):
+            raise SystemExit(f"--static: expected the static checkpoint file, got {args.static!r}")
+        train_dynamic(args)
+
+
+if __name__ == "__main__":
+    main()
