@@ -1,7 +1,8 @@
 """Train the shipped HairFormer checkpoints within a wall-clock budget (run on a GPU machine).
 
     python tools/train_shipped.py static  --device cuda --minutes 6 --out OUT
-    python tools/train_shipped.py dynamic --device cuda --minutes 6 --static OUT/hairformer_static_run.pt --out OUT
+    python tools/train_shipped.py dynamic --device cuda --minutes 6 --static OUT/static_run/checkpoint.pt --out OUT
+    python tools/train_shipped.py quaffure --device cuda --steps 1100 --out OUT
 
 The curriculum's length depends on its total step count (phase boundaries, the b_p anneal of
 Section 4.2.1), so the step count is fixed before training: a short probe times a step of the
@@ -127,7 +128,7 @@ def train_static(args) -> None:
     print(f"encoded {PHASE3_HAIRSTYLES} corpus latents in {enc_s:.1f} s", flush=True)
 
     def config(steps):
-        return StaticTrainingConfig(model_preset="shipped", phase_steps=steps, phase2_hairstyles=PHASE2_HAIRSTYLES,
+        return StaticTrainingConfig(model_kind=args.kind, model_preset="shipped", phase_steps=steps, phase2_hairstyles=PHASE2_HAIRSTYLES,
                                     phase3_hairstyles=PHASE3_HAIRSTYLES, batch_size=args.batch,
                                     checkpoint_every=0, data=data_config())
 
@@ -141,11 +142,11 @@ def train_static(args) -> None:
         total = max(20, int(remaining / s_step))
     steps = tuple(int(round(total * share)) for share in PHASE_SHARES)
     print(f"probe: {s_step * 1e3:.0f} ms/step at batch {args.batch}; training {steps} steps", flush=True)
-    run = os.path.join(args.out, "static_run")
+    run = os.path.join(args.out, f"{args.kind}_run")
     shutil.rmtree(run, ignore_errors=True)
     trainer = StaticTrainer(config(steps), out=run, device=device, seed=args.seed, sampler=sampler)
     _loop(trainer, args.minutes * 60 - 20, start, device)
-    _finish(trainer, args, "static", {"phase_steps": steps, "probe_ms_per_step": s_step * 1e3,
+    _finish(trainer, args, args.kind, {"phase_steps": steps, "probe_ms_per_step": s_step * 1e3,
                                       "batch": args.batch, "strand_stride": STRAND_STRIDE,
                                       "encode_s": enc_s}, start)
 
@@ -184,7 +185,7 @@ def train_dynamic(args) -> None:
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("kind", choices=["static", "dynamic"])
+    parser.add_argument("kind", choices=["static", "dynamic", "quaffure"])
     parser.add_argument("--device", default="cuda")
     parser.add_argument("--minutes", type=float, default=6.0, help="wall-clock budget, encoding included")
     parser.add_argument("--steps", type=int, default=0, help="total steps (0: from a timing probe and --minutes)")
@@ -195,7 +196,7 @@ def main(argv=None) -> None:
     parser.add_argument("--out", default="hairwarp-train")
     args = parser.parse_args(argv)
     os.makedirs(args.out, exist_ok=True)
-    if args.kind == "static":
+    if args.kind in ("static", "quaffure"):  # Quaffure (adapted): the static curriculum, Section 4.3.1
         train_static(args)
     else:
         if not args.static or not os.path.isfile(args.static):
