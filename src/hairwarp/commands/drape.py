@@ -103,8 +103,22 @@ def add_parser(subparsers) -> None:
     )
     add_scene_arguments(p, simulate=False)
     add_method_arguments(p, max_iterations=500)
+    add_threads_argument(p)
     add_common_arguments(p)
     p.set_defaults(run=run)
+
+
+def add_threads_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--threads", type=int, default=1,
+                   help="torch CPU threads (default: 1: Warp's CPU kernels run on one thread and torch's "
+                        "small element-wise work here loses more to idle OpenMP threads than it gains; on a "
+                        "busy 2-core CPU one thread ran an L-BFGS drape 5x faster than two)")
+
+
+def set_threads(args) -> None:
+    import torch
+
+    torch.set_num_threads(positive_int("--threads", args.threads))
 
 
 # ------------------------------------------------------------------------------ checks
@@ -327,23 +341,28 @@ class Runner:
     Both return (positions (B or T, M, N, 3) [m], ms per frame or None, label, info dict).
     """
 
-    def __init__(self, name: str, config, method=None, simulator=None):
+    def __init__(self, name: str, config, method=None, simulator=None, network: bool = False):
         self.name, self.config, self.method, self.simulator = name, config, method, simulator
+        self.network = network or simulator is not None
 
     def drape(self, scene, frames):
-        if self.simulator is not None:
-            positions, label, ms = _simulator_run(self.simulator, scene, frames, dynamic=False)
-            return positions, ms, label, {}
-        self.method.prepare(scene)
-        result = self.method.drape(frames)
-        return result.positions, result.time_ms, self.name, dict(result.info)
+        return self._run(scene, frames, dynamic=False)
 
     def simulate(self, scene, frames):
-        if self.simulator is not None:
-            positions, label, ms = _simulator_run(self.simulator, scene, frames, dynamic=True)
-            return positions, ms, label, {}
-        self.method.prepare(scene)
-        result = self.method.simulate(scene, frames=frames)
+        return self._run(scene, frames, dynamic=True)
+
+    def _run(self, scene, frames, *, dynamic: bool):
+        try:
+            if self.simulator is not None:
+                positions, label, ms = _simulator_run(self.simulator, scene, frames, dynamic=dynamic)
+                return positions, ms, label, {}
+            self.method.prepare(scene)
+            result = self.method.simulate(scene, frames=frames) if dynamic else self.method.drape(frames)
+        except (ValueError, FileNotFoundError, OSError) as exc:
+            if not self.network:
+                raise
+            # A network that cannot load its checkpoint: say which method, in one line.
+            raise ValueError(f"--method {self.name}: {_first_line(exc)}") from None
         return result.positions, result.time_ms, self.name, dict(result.info)
 
 
@@ -389,8 +408,6 @@ def _load_simulator(path: str | None, device):
 
 def make_runner(args, device, *, fps: float, simulate: bool) -> Runner:
     """The method of --method (auto: the shipped network when present, else L-BFGS)."""
-    from dataclasses import fields, replace
-
     from hairwarp.config import EnergyConfig
     from hairwarp.evaluation.methods import MethodOptions, make_method
 
@@ -410,13 +427,14 @@ def make_runner(args, device, *, fps: float, simulate: bool) -> Runner:
                             patience=positive_int("--patience", args.patience),
                             reference_max_iterations=max(1, args.max_iterations), progress=not args.no_progress)
     if name in NETWORK_METHODS:
-        registered = name in _registered_methods()
-        takes_checkpoint = any(f.name == "checkpoint" for f in fields(MethodOptions))
-        if registered and (args.checkpoint is None or takes_checkpoint):
-            if args.checkpoint is not None:
-                options = replace(options, checkpoint=args.checkpoint)
+        network_module = None
+        if name in _registered_methods():
+            import hairwarp.evaluation.network_methods as network_module
+        if network_module is not None and (args.checkpoint is None or hasattr(network_module, "set_checkpoint")):
             try:
-                return Runner(name, config, method=make_method(name, options))
+                if hasattr(network_module, "set_checkpoint"):
+                    network_module.set_checkpoint(name, args.checkpoint)
+                return Runner(name, config, method=make_method(name, options), network=True)
             except (ValueError, FileNotFoundError, OSError, RuntimeError) as exc:
                 raise ValueError(f"--method {name}: {_first_line(exc)}") from None
         if name == "quaffure":
@@ -462,6 +480,14 @@ def metrics_rows(frames, positions, rigid_label: str = "rigid placement (Eq. 1)"
     return sd_method, out
 
 
+def picture_distances(sd):
+    """Signed distances for the pictures: vertices 0 and 1 (fixed on the scalp, |d| at float32
+    noise, often a hair below zero) shown as outside, so red marks only what a method moved inside."""
+    sd = sd.detach().clone()
+    sd[..., :2] = sd[..., :2].clamp_min(0.0)
+    return sd
+
+
 def _mean(values) -> float:
     return float(sum(values) / len(values))
 
@@ -496,6 +522,7 @@ def run(args) -> int:
     from hairwarp.render.preview import render_drape
 
     device = resolve_device(args.device)
+    set_threads(args)
     torch.manual_seed(args.seed)
     t0 = time.perf_counter()
     scene = build_scene(args, simulate=False)
@@ -521,9 +548,9 @@ def run(args) -> int:
     write_hair_data(data_path, hair[0])
     written.append(data_path)
     written.append(render_drape(os.path.join(args.out, "drape.png"), hair[0], body_v[0], faces,
-                                signed_distance=sd[0].cpu(), title=f"{label}: red = inside the body"))
+                                signed_distance=picture_distances(sd[0]).cpu(), title=f"{label}: red = inside the body"))
     written.append(render_drape(os.path.join(args.out, "drape_rigid.png"), frames.rigid.positions[0].cpu(),
-                                body_v[0], faces, signed_distance=rigid_sd[0].cpu(),
+                                body_v[0], faces, signed_distance=picture_distances(rigid_sd[0]).cpu(),
                                 title="rigid placement (Eq. 1): red = inside the body"))
     record = {"command": "drape", "scene": scene.name, "method": label, "method_info": _jsonable(info),
               "ms_per_frame": ms, "device": str(device), "strands": scene.hairstyle.num_strands,

@@ -23,7 +23,7 @@ import time
 
 def add_parser(subparsers) -> None:
     from hairwarp.cli import add_common_arguments
-    from hairwarp.commands.drape import add_method_arguments, add_scene_arguments
+    from hairwarp.commands.drape import add_method_arguments, add_scene_arguments, add_threads_argument
 
     p = subparsers.add_parser(
         "simulate", help="simulate a hairstyle over a motion; write USD, .data, pictures, GIF, metrics",
@@ -35,6 +35,7 @@ def add_parser(subparsers) -> None:
     add_method_arguments(p, max_iterations=100)
     p.add_argument("--gif-frames", type=int, default=20,
                    help="frames shown in the GIF, evenly spaced (rendering costs ~0.5 s each) (default: 20)")
+    add_threads_argument(p)
     add_common_arguments(p)
     p.set_defaults(run=run)
 
@@ -50,11 +51,13 @@ def run(args) -> int:
         markdown_table,
         metrics_rows,
         positive_int,
+        set_threads,
         write_metrics,
         _jsonable,
     )
 
     device = resolve_device(args.device)
+    set_threads(args)
     torch.manual_seed(args.seed)
     gif_frames = positive_int("--gif-frames", args.gif_frames)
     t0 = time.perf_counter()
@@ -93,6 +96,7 @@ def write_animation(out: str, stem: str, scene, frames, positions, signed_distan
         label: the method's name, for the titles.
         gif_frames: most frames the GIF shows.
     """
+    from hairwarp.commands.drape import picture_distances
     from hairwarp.io.hair_data import write_hair_data
     from hairwarp.io.usd import write_usd
     from hairwarp.render.preview import render_animation, render_sequence
@@ -100,7 +104,7 @@ def write_animation(out: str, stem: str, scene, frames, positions, signed_distan
     hair = positions.detach().cpu()
     body_v = frames.posed.vertices.detach().cpu()
     faces = scene.body.faces.cpu()
-    sd = signed_distance.detach().cpu()
+    sd = picture_distances(signed_distance).cpu()
     fps = scene.motion.fps
     written = [write_usd(os.path.join(out, f"{stem}.usda"), hair, body_v, faces, fps=fps)]
     data_path = os.path.join(out, f"{stem}.data")
