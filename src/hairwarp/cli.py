@@ -19,6 +19,7 @@ _COMMANDS = {
     "bench": "hairwarp.commands.bench",
     "train": "hairwarp.commands.train",
     "finetune": "hairwarp.commands.finetune",
+    "compare": "hairwarp.commands.compare",
     "export": "hairwarp.commands.export",
 }
 
