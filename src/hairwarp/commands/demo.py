@@ -16,6 +16,7 @@ import time
 
 def add_parser(subparsers) -> None:
     from hairwarp.cli import add_common_arguments
+    from hairwarp.commands.drape import add_threads_argument
 
     p = subparsers.add_parser("demo", help="drape and simulate the embedded default scene; write USD, pictures, metrics",
                               description=__doc__.split("\n\n")[1])
@@ -29,8 +30,6 @@ def add_parser(subparsers) -> None:
     p.add_argument("--strand-stride", type=int, default=2,
                    help="grow on every K-th root of the 32 x 32 scalp only (default: 2, 512 strands; 1: all 1024)")
     p.add_argument("--num-vertices", type=int, default=100, help="vertices per strand (default: 100)")
-    from hairwarp.commands.drape import add_threads_argument
-
     add_threads_argument(p)
     p.set_defaults(run=run)
 
@@ -39,6 +38,7 @@ def run(args) -> int:
     import torch
 
     from hairwarp.cli import resolve_device
+    from hairwarp.commands.drape import picture_distances, set_threads
     from hairwarp.evaluation.metrics import length_change_percent
     from hairwarp.io.usd import write_usd
     from hairwarp.ops import hair_body_signed_distance
@@ -46,8 +46,6 @@ def run(args) -> int:
     from hairwarp.scene.hairstyles import list_hairstyle_presets
     from hairwarp.scene.motion import list_motions
     from hairwarp.scene.scene import default_scene
-
-    from hairwarp.commands.drape import picture_distances, set_threads
 
     device = resolve_device(args.device)
     set_threads(args)
@@ -151,7 +149,7 @@ def _simulate(scene, frames, args):
         if simulator is not None:
             return simulator.simulate_scene(scene, frames)
         if args.method == "network":
-            raise ValueError("--method: no shipped network checkpoint in this installation; use --method lbfgs")
+            raise ValueError("--method network: no shipped network checkpoint in this installation; use --method lbfgs")
 
     # Fallback: L-BFGS drape of frame 0, carried rigidly with the head (M_head) through the motion.
     # Hair-hair contact is left out here: its broad phase costs ~0.5 s per evaluation on a 2-core
