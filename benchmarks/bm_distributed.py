@@ -28,6 +28,7 @@ import platform
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 
 import torch
@@ -141,8 +142,9 @@ def measure(args) -> dict | None:
         timing = _time_steps(trainer, args.steps, args.warmup)
         results["static"] = _summarise("static", timing, ctx, static_cfg.batch_size, args.steps, 1)
     if args.kind in ("dynamic", "both"):
-        os.makedirs(args.out, exist_ok=True)
-        path = os.path.join(args.out, f"static_init_{k}.pt")
+        # Beside the results would send a large file back with them: the host's temp folder
+        # (one host: every rank reads rank 0's file).
+        path = os.path.join(tempfile.gettempdir(), f"hairwarp_bm_static_init_{k}.pt")
         if ctx.is_main:  # an untrained static network: speed does not depend on its weights
             torch.manual_seed(0)
             save_checkpoint(path, StaticNetwork(model_config(static_cfg, trainer.sampler.latent_dim)))
