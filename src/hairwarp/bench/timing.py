@@ -38,6 +38,18 @@ def time_ms(fn: Callable[[], object], device: torch.device, *, warmup: int = 3, 
     return statistics.median(samples)
 
 
+def cpu_model_name() -> str | None:
+    """The CPU's model name from /proc/cpuinfo (None where that file is not readable)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return None
+
+
 def machine_description(device: torch.device) -> str:
     """A one-line name of the machine a figure was measured on."""
     import os
@@ -45,13 +57,5 @@ def machine_description(device: torch.device) -> str:
 
     if device.type == "cuda":
         return f"{torch.cuda.get_device_name(device)} (torch {torch.__version__})"
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
+    cpu = cpu_model_name() or platform.processor() or platform.machine()
     return f"{cpu}, {os.cpu_count()} cores (torch {torch.__version__}, CPU)"

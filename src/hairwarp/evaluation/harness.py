@@ -76,15 +76,9 @@ def machine_description(device: torch.device) -> dict:
         info["load_average_1min"] = os.getloadavg()[0]
     except OSError:
         info["load_average_1min"] = None
-    cpu_name = None
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    cpu_name = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
+    from hairwarp.bench.timing import cpu_model_name
+
+    cpu_name = cpu_model_name()
     info["cpu_name"] = cpu_name
     if device.type == "cuda":
         info["device_name"] = torch.cuda.get_device_name(device)
