@@ -11,7 +11,7 @@ from hairwarp.ops import barrier
 from hairwarp.torch_reference import barrier as torch_barrier
 from references import barrier as ref
 
-VARIANTS = ("paper", "monotone")
+VARIANTS = ("paper", "monotone", "quadratic")
 XIS = (1e-5, 1e-4, 1e-3, 1e-2, 1e-1)  # hard barrier [m], swept over orders of magnitude
 BPS = (0.01, 0.1, 0.5, 0.9)  # join fractions: the paper anneals bp from 0.9 to 0.01
 DHAT_OVER_XI = 1.5  # the paper's soft barrier width
@@ -164,8 +164,8 @@ def test_zero_beyond_support(variant, xi, bp):
     assert inside[0] > 0.0
 
 
-@pytest.mark.parametrize("xi,bp", list(itertools.product(XIS, BPS)))
-def test_monotone_variant_strictly_increasing_with_depth(xi, bp):
+@pytest.mark.parametrize("variant,xi,bp", list(itertools.product(("monotone", "quadratic"), XIS, BPS)))
+def test_extrapolation_strictly_increasing_with_depth(variant, xi, bp):
     dhat = DHAT_OVER_XI * xi
     k = ref.coefficients(xi, dhat, bp)
     # Down to 1 m of penetration, densely near the join and logarithmically beyond.
@@ -173,11 +173,38 @@ def test_monotone_variant_strictly_increasing_with_depth(xi, bp):
     d = d[d < k["db"]]
     d = d[np.concatenate([[True], np.diff(d) > 1e-9 * (xi + dhat)])]  # drop near-duplicates of the union
     for dtype in (torch.float64, torch.float32):
-        energy, grad = _kernel(d, xi, dhat, bp, "monotone", dtype=dtype)
+        energy, grad = _kernel(d, xi, dhat, bp, variant, dtype=dtype)
         assert d.size > 5000
         assert np.all(grad < 0.0), dtype  # the penalty grows as d decreases
         if dtype == torch.float64:
             assert np.all(np.diff(energy) < 0.0)  # d ascending, energy strictly descending
+
+
+@pytest.mark.parametrize("bp", BPS)
+def test_quadratic_force_grows_linearly_quartic_cubically(bp):
+    """The default's push-out force is affine in depth; the quartic's grows with depth cubed
+    (hair-body contact's xi = 1 mm, depths of the Table 1 scene)."""
+    xi = 1e-3
+    dhat = DHAT_OVER_XI * xi
+    k = ref.coefficients(xi, dhat, bp)
+    depths = np.array([0.0025, 0.01, 0.05])  # [m] inside the body
+    _, g_quad = _kernel(-depths, xi, dhat, bp, "quadratic")
+    _, g_quart = _kernel(-depths, xi, dhat, bp, "monotone")
+    np.testing.assert_allclose(g_quad, k["fb1"] + 2.0 * k["df"] * (-depths - k["db"]), rtol=1e-10)
+    # Force ratio between 5 cm and 1 cm deep: ~5 for the default, ~5^3 for the quartic.
+    assert g_quad[2] / g_quad[1] == pytest.approx((0.05 + k["db"]) / (0.01 + k["db"]), rel=0.05)
+    assert g_quart[2] / g_quart[1] > 50.0
+    assert np.all(np.abs(g_quart) >= np.abs(g_quad))
+
+
+def test_default_variant_is_quadratic():
+    from hairwarp.config import EnergyConfig
+    from hairwarp.ops import barrier
+
+    assert EnergyConfig().barrier_variant == "quadratic"
+    d = torch.tensor([-0.02, 0.0005, 0.0012], dtype=torch.float64)
+    np.testing.assert_array_equal(barrier(d, 1e-3, 1.5e-3, 0.01).numpy(),
+                                  barrier(d, 1e-3, 1.5e-3, 0.01, "quadratic").numpy())
 
 
 @pytest.mark.parametrize("xi,bp", list(itertools.product(XIS, BPS)))
@@ -194,9 +221,10 @@ def test_paper_variant_local_minimum_at_minus_xi_plus_dhat(xi, bp):
     e_side, _ = _kernel(side, xi, dhat, bp, "paper")
     assert np.all(e_side > 1e3 * max(abs(e0[0]), 1e-300))
     assert np.all(e_side > 0.0)
-    # The monotone default has no such minimum there.
-    e_m, g_m = _kernel([d0], xi, dhat, bp, "monotone")
-    assert e_m[0] > k["fb"] and g_m[0] < 0.0
+    # The monotone and quadratic extrapolations have no such minimum there.
+    for variant in ("monotone", "quadratic"):
+        e_m, g_m = _kernel([d0], xi, dhat, bp, variant)
+        assert e_m[0] > k["fb"] and g_m[0] < 0.0
 
 
 @pytest.mark.parametrize("variant", VARIANTS)

@@ -14,6 +14,11 @@ from hairwarp.solvers.direct import DirectOptimizationConfig, optimize_drape
 
 # Tiny Table 1 scene: ~20 strands x 12 vertices, every tip inside the body.
 _STRIDE, _NV = 32, 12
+# These tests are about the optimizers, so they use the quartic barrier: on strands this coarse
+# (8 cm segments threading the shoulder) the default quadratic barrier's push-out forces
+# balance along each strand and L-BFGS stays at 72 % penetration (docs/stability.md); the
+# quartic's force at depth frees them.
+_CONFIG = EnergyConfig(barrier_variant="monotone")
 
 
 @pytest.fixture(scope="module")
@@ -24,14 +29,14 @@ def table1():
 
 def _energy(x, frames, config=None):
     with torch.no_grad():
-        return float(total_energy(x, frames.inputs, config or EnergyConfig()).total.sum())
+        return float(total_energy(x, frames.inputs, config or _CONFIG).total.sum())
 
 
 def test_lbfgs_lowers_energy_and_penetration(table1):
     x0 = table1.rigid.positions
     pen0 = float(penetration_percent(x0, table1.body_mesh))
     assert pen0 > 30.0  # the scene starts deep in contact: the test cannot pass on nothing
-    result = optimize_drape(x0, table1.inputs, EnergyConfig(), DirectOptimizationConfig(max_iterations=60))
+    result = optimize_drape(x0, table1.inputs, _CONFIG, DirectOptimizationConfig(max_iterations=60))
     x = result.positions
     assert torch.isfinite(x).all()
     assert torch.equal(x[:, :, :2], x0[:, :, :2])  # vertices 0 and 1 are fixed
@@ -46,7 +51,7 @@ def test_lbfgs_lowers_energy_and_penetration(table1):
 def test_lbfgs_keeps_descending_after_the_first_iterations(table1):
     """Regression: with max_iter=1, torch's default max_eval (1) leaves the strong-Wolfe line
     search one trial; a rejected step then stalls every later iteration (the demo's flat loss)."""
-    result = optimize_drape(table1.rigid.positions, table1.inputs, EnergyConfig(),
+    result = optimize_drape(table1.rigid.positions, table1.inputs, _CONFIG,
                             DirectOptimizationConfig(max_iterations=60, patience=60))
     losses = [h["loss"] for h in result.history]
     assert result.evaluations > result.iterations  # the line search did evaluate more than once
@@ -66,8 +71,9 @@ def test_lbfgs_drapes_the_default_scene_free_of_penetration():
     frames = scene.frames([0])
     pen0 = float(penetration_percent(frames.rigid.positions, frames.body_mesh))
     assert pen0 > 20.0
+    # The default barrier's linear push-out force needs 300 iterations here (1.6 % left at 150).
     result = optimize_drape(frames.rigid.positions, frames.inputs, EnergyConfig(hair_hair_weight=0.0),
-                            DirectOptimizationConfig(max_iterations=150))
+                            DirectOptimizationConfig(max_iterations=300))
     assert float(penetration_percent(result.positions, frames.body_mesh)) < 1.0
     assert float(length_change_percent(result.positions, frames.inputs.rest_lengths)) < 1.0
 
@@ -75,7 +81,7 @@ def test_lbfgs_drapes_the_default_scene_free_of_penetration():
 def test_patience_stops(table1):
     # A step too small to count as a decrease (relative 0.5 required): patience 3 ends it.
     solver = DirectOptimizationConfig(method="adam", adam_lr=1e-9, patience=3, min_decrease=0.5, max_iterations=100)
-    result = optimize_drape(table1.rigid.positions, table1.inputs, EnergyConfig(), solver)
+    result = optimize_drape(table1.rigid.positions, table1.inputs, _CONFIG, solver)
     assert result.stop_reason == "patience"
     assert result.iterations == 4  # the start sets the best, then 3 without decrease
 
@@ -88,7 +94,7 @@ def test_iteration_cap_and_history(table1):
         return {"penetration": float(penetration_percent(x, table1.body_mesh))}
 
     solver = DirectOptimizationConfig(method="adam", max_iterations=7, record_every=3)
-    result = optimize_drape(table1.rigid.positions, table1.inputs, EnergyConfig(), solver, metrics=metric)
+    result = optimize_drape(table1.rigid.positions, table1.inputs, _CONFIG, solver, metrics=metric)
     assert result.stop_reason == "max_iterations" and result.iterations == 7
     assert [h["iteration"] for h in result.history] == list(range(8))
     assert [h["iteration"] for h in result.history if "penetration" in h] == [0, 3, 6]
@@ -98,7 +104,7 @@ def test_iteration_cap_and_history(table1):
 
 def test_absurd_adam_step_is_reported_as_divergence(table1):
     x0 = table1.rigid.positions
-    result = optimize_drape(x0, table1.inputs, EnergyConfig(),
+    result = optimize_drape(x0, table1.inputs, _CONFIG,
                             DirectOptimizationConfig(method="adam", adam_lr=1e6, max_iterations=20))
     assert result.stop_reason.startswith("diverged")
     assert torch.isfinite(result.positions).all()
@@ -119,7 +125,7 @@ def test_nan_energy_never_comes_back_as_a_drape(table1, monkeypatch):
 
     monkeypatch.setattr(direct, "total_energy", flaky)
     x0 = table1.rigid.positions
-    result = optimize_drape(x0, table1.inputs, EnergyConfig(), DirectOptimizationConfig(max_iterations=30))
+    result = optimize_drape(x0, table1.inputs, _CONFIG, DirectOptimizationConfig(max_iterations=30))
     assert result.stop_reason.startswith("diverged")
     assert torch.isfinite(result.positions).all() and math.isfinite(result.loss)
     monkeypatch.setattr(direct, "total_energy", real)

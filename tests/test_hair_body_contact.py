@@ -8,6 +8,7 @@ import pytest
 import torch
 
 import meshes
+from hairwarp.ops.barrier import barrier_variant_id
 from hairwarp.ops.hair_body_contact import (
     BodyMesh,
     _energy_forward,
@@ -179,7 +180,7 @@ def _hair_near_sphere(rng, batch, m, n):
     return x
 
 
-@pytest.mark.parametrize("variant", ["monotone", "paper"])
+@pytest.mark.parametrize("variant", ["quadratic", "monotone", "paper"])
 def test_energy_matches_reference(rng, device, variant):
     v, f, vt, ft = _sphere(device=device)
     x = _hair_near_sphere(rng, 2, 6, 9)
@@ -251,7 +252,7 @@ def test_deep_penetration_is_pushed_out_and_fixed_vertices_ignored():
     assert e.item() > 0 and d[0] < -0.4
     np.testing.assert_allclose(e.detach().numpy(), e_ref, rtol=1e-9)
     assert torch.count_nonzero(xt.grad[0, 0, [0, 1, 3]]) == 0
-    # Descent moves the deep vertex outward (the monotone barrier keeps increasing with depth).
+    # Descent moves the deep vertex outward (the default barrier keeps increasing with depth).
     assert xt.grad[0, 0, 2, 1].item() < 0
 
 
@@ -266,8 +267,9 @@ def test_strand_walk_skips_queries_and_matches_per_vertex_kernel(rng):
     radius = 1.0 - 3e-3 + 0.6 * t[None, :, None] ** 2 + rng.normal(scale=2e-4, size=(m, n, 1))
     hair = roots[:, None] * radius
     x = _t(hair)[None]
-    e_s, g_s, q_s = _energy_forward(x, body, XI, DHAT, BP, 1.0, 1, "strand")
-    e_v, g_v, q_v = _energy_forward(x, body, XI, DHAT, BP, 1.0, 1, "vertex")
+    variant_id = barrier_variant_id("quadratic")  # the reference's default
+    e_s, g_s, q_s = _energy_forward(x, body, XI, DHAT, BP, 1.0, variant_id, "strand")
+    e_v, g_v, q_v = _energy_forward(x, body, XI, DHAT, BP, 1.0, variant_id, "vertex")
     e_ref, g_ref = ref.hair_body_contact_energy(hair[None], v, f, XI, DHAT, BP)
     d_ref = ref.signed_distance(hair[:, 2:].reshape(-1, 3), v, f)[0]
     assert np.count_nonzero(d_ref < REACH) > m and e_ref[0] > 0

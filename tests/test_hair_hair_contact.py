@@ -65,7 +65,7 @@ def test_crossing_strands_at_known_distance(device):
     assert info_far.pair_count == 0 and float(energy_far) == 0.0
 
 
-@pytest.mark.parametrize("variant", ["monotone", "paper"])
+@pytest.mark.parametrize("variant", ["quadratic", "monotone", "paper"])
 def test_random_hair_matches_numpy_reference(rng, variant):
     x_np = ref.random_hair(rng, batch=2, strands=6, vertices=10)
     expected, expected_pairs = ref.energy(x_np, XI, DHAT, BP, WEIGHT, variant)

@@ -8,14 +8,15 @@ mismatch.
               C = 2 xi dhat + dhat^2                                             (Eq. 12)
     B(d)    = B_0(d) for d >= d_b = xi + bp dhat, else an extrapolation in tau = d - d_b:
       "paper":    max(0, f_b + f_b' tau + D_f tau^2 + a_3 tau^3 + a_4 tau^4)  (Eq. 12-14)
-      "monotone": f_b + f_b' tau + D_f tau^2 (1 + (tau / t_0)^2)    (the project's default)
+      "monotone": f_b + f_b' tau + D_f tau^2 (1 + (tau / t_0)^2)
+      "quadratic": f_b + f_b' tau + D_f tau^2                       (the project's default)
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-VARIANTS = ("paper", "monotone")
+VARIANTS = ("paper", "monotone", "quadratic")
 
 
 def _log_barrier_u(u, xi, dhat):
@@ -52,12 +53,12 @@ def coefficients(xi, dhat, bp):
     return {"db": db, "fb": fb, "fb1": fb1, "df": df, "t0": t0, "a3": a3, "a4": a4}
 
 
-def barrier(d, xi, dhat, bp, variant="monotone"):
+def barrier(d, xi, dhat, bp, variant="quadratic"):
     """B(d) of Eq. 12 (float64), element-wise over an array of distances [m]."""
     return barrier_and_gradient(d, xi, dhat, bp, variant)[0]
 
 
-def barrier_and_gradient(d, xi, dhat, bp, variant="monotone"):
+def barrier_and_gradient(d, xi, dhat, bp, variant="quadratic"):
     """(B(d), dB/dd), the gradient being zero wherever a max(0, .) clamp is active."""
     if variant not in VARIANTS:
         raise ValueError(variant)
@@ -79,6 +80,9 @@ def barrier_and_gradient(d, xi, dhat, bp, variant="monotone"):
         p1 = k["fb1"] + 2.0 * k["df"] * tau + 3.0 * k["a3"] * tau**2 + 4.0 * k["a4"] * tau**3
         energy[poly_piece] = np.maximum(0.0, p)
         grad[poly_piece] = np.where(p > 0.0, p1, 0.0)
+    elif variant == "quadratic":
+        energy[poly_piece] = k["fb"] + k["fb1"] * tau + k["df"] * tau**2
+        grad[poly_piece] = k["fb1"] + 2.0 * k["df"] * tau
     else:
         r2 = (tau / k["t0"]) ** 2
         energy[poly_piece] = k["fb"] + k["fb1"] * tau + k["df"] * tau**2 * (1.0 + r2)

@@ -133,7 +133,7 @@ def signed_distance(points, vertices, faces):
     return d, closest, gradient
 
 
-def hair_body_contact_energy(x, vertices, faces, xi, dhat, bp, weight=1.0, variant="monotone"):
+def hair_body_contact_energy(x, vertices, faces, xi, dhat, bp, weight=1.0, variant="quadratic"):
     """Eq. 12 summed over the moving vertices (v >= 2) of each batch item.
 
     Args:

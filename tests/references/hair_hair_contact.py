@@ -42,7 +42,7 @@ def segment_pairs(x, xi, dhat, skip_root_segments=2):
     return ids[order], d[order]
 
 
-def energy(x, xi, dhat, bp, weight=1.0, variant="monotone", skip_root_segments=2):
+def energy(x, xi, dhat, bp, weight=1.0, variant="quadratic", skip_root_segments=2):
     """(B,) energy = weight * sum over close pairs of B(d), and the pairs (P, 2)."""
     x = np.asarray(x, dtype=np.float64)
     b, m, n, _ = x.shape

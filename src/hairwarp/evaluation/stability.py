@@ -30,6 +30,7 @@ from dataclasses import replace
 import torch
 
 from hairwarp.config import EnergyConfig
+from hairwarp.ops.barrier import BARRIER_VARIANTS
 from hairwarp.energy import EnergyInputs, total_energy
 from hairwarp.evaluation import metrics as M
 from hairwarp.evaluation.scenes import comparison_scene
@@ -75,7 +76,7 @@ def barrier_trap_1d(depths: torch.Tensor, variant: str, config: EnergyConfig | N
 
     Args:
         depths: (K,) start signed distances [m] (negative inside), float64.
-        variant: "paper" or "monotone".
+        variant: "paper", "monotone" or "quadratic".
         config: xi, dhat, join fraction of hair-body contact.
         iterations: descent steps.
 
@@ -106,7 +107,7 @@ def barrier_trap_study(config: EnergyConfig | None = None) -> list[dict]:
     config = config or EnergyConfig()
     depths = -torch.linspace(0.0, 0.02, 201, dtype=torch.float64)[1:]  # 0.1 mm .. 20 mm inside
     rows = []
-    for variant in ("paper", "monotone"):
+    for variant in BARRIER_VARIANTS:
         final = barrier_trap_1d(depths, variant, config)
         trapped = final < 0
         shallowest = float(-depths[trapped].abs().min()) if bool(trapped.any()) else None
@@ -131,7 +132,7 @@ def barrier_trap_scene(iterations: int = STUDY_ITERATIONS, stride: int = STUDY_S
 
     rows = []
     solver = DirectOptimizationConfig(max_iterations=iterations, patience=iterations)
-    for variant in ("paper", "monotone"):
+    for variant in BARRIER_VARIANTS:
         config = EnergyConfig(barrier_variant=variant)
         row = _drape_row("barrier_trap_scene", f"table1 {variant}", frames.rigid.positions, frames.inputs, config,
                          solver, frames.body_mesh, frames.inputs.rest_lengths)

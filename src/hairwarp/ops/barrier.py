@@ -10,7 +10,7 @@ from hairwarp import _warp
 from hairwarp._validate import check_positive, check_tensor
 from hairwarp.kernels import barrier as barrier_kernels
 
-BARRIER_VARIANTS = {"paper": 0, "monotone": 1}
+BARRIER_VARIANTS = {"paper": 0, "monotone": 1, "quadratic": 2}
 
 
 def barrier_variant_id(variant: str) -> int:
@@ -60,7 +60,7 @@ class _Barrier(torch.autograd.Function):
         return grad_energy * gradient, None, None, None, None
 
 
-def barrier(d: torch.Tensor, xi: float, dhat: float, bp: float, variant: str = "monotone") -> torch.Tensor:
+def barrier(d: torch.Tensor, xi: float, dhat: float, bp: float, variant: str = "quadratic") -> torch.Tensor:
     """Contact barrier B(d) of Eq. 12, element-wise, differentiable w.r.t. `d`.
 
     B is the C-IPC log barrier for d >= d_b = xi + bp * dhat, zero for d >= xi + dhat, and a
@@ -71,7 +71,10 @@ def barrier(d: torch.Tensor, xi: float, dhat: float, bp: float, variant: str = "
         xi: hard barrier [m] (1 mm for hair-body, the hair diameter for hair-hair).
         dhat: soft barrier width [m] (the paper uses 1.5 * xi).
         bp: join fraction in (0, 1); the paper anneals it from 0.9 to 0.01 during training.
-        variant: "monotone" (default; C2 at d_b, strictly increasing penalty with depth) or
+        variant: "quadratic" (default; the Taylor polynomial of B_0 at d_b: C2 there, the
+            penalty strictly increasing with depth, the push-out force growing linearly),
+            "monotone" (C2, strictly increasing, quartic beyond |t0|: the force grows with
+            depth cubed and overwhelms the stretch term for hair centimetres inside) or
             "paper" (Eq. 12-14 literally, whose penalty falls back to zero at
             d = -(xi + dhat): kept for comparison).
 

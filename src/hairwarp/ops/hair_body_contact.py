@@ -572,7 +572,7 @@ def hair_body_contact_energy(
     dhat: float,
     bp: float,
     weight: float = 1.0,
-    variant: str = "monotone",
+    variant: str = "quadratic",
 ) -> torch.Tensor:
     """Hair-body contact energy, HairFormer Eq. 12 with d = signed distance to the body.
 
@@ -591,7 +591,7 @@ def hair_body_contact_energy(
         dhat: soft barrier width [m] (1.5 mm in the paper).
         bp: join fraction in (0, 1) (annealed 0.9 -> 0.01 in the paper).
         weight: lambda_hb, the weight per vertex [J].
-        variant: "monotone" (default) or "paper" (Eq. 12-14 literally), see `barrier`.
+        variant: "quadratic" (default), "monotone" or "paper" (Eq. 12-14 literally), see `barrier`.
 
     Returns:
         (B,) energies [J] for batched `x`, a 0-dim tensor for unbatched `x`, in the dtype of

@@ -336,7 +336,7 @@ def hair_hair_contact_energy(
     dhat: float,
     bp: float,
     weight: float = 1.0,
-    variant: str = "monotone",
+    variant: str = "quadratic",
     capacity: int | None = None,
     *,
     skip_root_segments: int = DEFAULT_SKIP_ROOT_SEGMENTS,
@@ -355,7 +355,7 @@ def hair_hair_contact_energy(
         dhat: soft barrier width [m] (`EnergyConfig.hair_hair_dhat`, 1.5 xi in the paper).
         bp: join fraction of the barrier in (0, 1) (`EnergyConfig.barrier_join_fraction`).
         weight: lambda_hh [J per pair at B = 1], >= 0 (`EnergyConfig.hair_hair_weight`).
-        variant: barrier extrapolation, "monotone" (default) or "paper" (see `ops.barrier`).
+        variant: barrier extrapolation, "quadratic" (default), "monotone" or "paper" (see `ops.barrier`).
         capacity: pair-buffer size; None = `EnergyConfig.hair_hair_capacity_per_segment` times
             the number of segments B * M * (N - 1), or 1.25 times the largest count an earlier
             call with as many segments had to grow to, if larger (`default_capacity`).

@@ -2,12 +2,14 @@
 
 The same function as `hairwarp.ops.barrier` (Warp kernel `hairwarp.kernels.barrier`), written
 with torch operations only, so the plain-torch reference energies of the contact terms can be
-built from it and checked against the fused kernels. Both variants:
+built from it and checked against the fused kernels. The three variants:
 
     "paper"     Eq. 12-14 literally: B_Q = max(0, f_b + f_b' tau + D_f tau^2 + a_3 tau^3 + a_4 tau^4)
                 for d < d_b, whose penalty falls back to zero at d = -(xi + dhat).
     "monotone"  P(tau) = f_b + f_b' tau + D_f tau^2 (1 + (tau / t_0)^2): C2 at d_b and strictly
-                increasing with penetration depth (the project's default).
+                increasing with penetration depth, the force growing with depth cubed.
+    "quadratic" P(tau) = f_b + f_b' tau + D_f tau^2: C2 at d_b, strictly increasing, the force
+                growing linearly with depth (the project's default).
 
 The join coefficients (Eq. 13-14) depend only on (xi, dhat, bp), so they are computed once in
 Python float64 and enter the graph as constants. Each branch is evaluated on an input clamped
@@ -21,7 +23,7 @@ import math
 
 import torch
 
-BARRIER_VARIANTS = ("paper", "monotone")
+BARRIER_VARIANTS = ("paper", "monotone", "quadratic")
 
 
 def _log_barrier_derivatives(d: float, xi: float, dhat: float) -> tuple[float, float, float]:
@@ -60,7 +62,7 @@ def barrier_coefficients(xi: float, dhat: float, bp: float) -> dict[str, float]:
     return {"db": db, "fb": fb, "fb1": fb1, "df": df, "t0": t0, "a3": a3, "a4": a4}
 
 
-def barrier(d: torch.Tensor, xi: float, dhat: float, bp: float, variant: str = "monotone") -> torch.Tensor:
+def barrier(d: torch.Tensor, xi: float, dhat: float, bp: float, variant: str = "quadratic") -> torch.Tensor:
     """Contact barrier B(d) of Eq. 12 in plain torch, element-wise, differentiable w.r.t. `d`.
 
     Args:
@@ -68,7 +70,7 @@ def barrier(d: torch.Tensor, xi: float, dhat: float, bp: float, variant: str = "
         xi: hard barrier [m], > 0.
         dhat: soft barrier width [m], > 0.
         bp: join fraction in (0, 1): d_b = xi + bp * dhat.
-        variant: "monotone" or "paper".
+        variant: "quadratic", "monotone" or "paper".
 
     Returns:
         Tensor like `d` (dimensionless barrier value; zero for d >= xi + dhat).
@@ -91,6 +93,8 @@ def barrier(d: torch.Tensor, xi: float, dhat: float, bp: float, variant: str = "
     if variant == "paper":
         poly = k["fb"] + tau * (k["fb1"] + tau * (k["df"] + tau * (k["a3"] + tau * k["a4"])))
         e_poly = torch.clamp(poly, min=0.0)
+    elif variant == "quadratic":
+        e_poly = k["fb"] + k["fb1"] * tau + k["df"] * tau * tau
     else:
         r = tau / k["t0"]
         e_poly = k["fb"] + k["fb1"] * tau + k["df"] * tau * tau * (1.0 + r * r)

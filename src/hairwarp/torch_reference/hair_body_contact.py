@@ -174,7 +174,7 @@ def hair_body_contact_energy(
     dhat: float,
     bp: float,
     weight: float = 1.0,
-    variant: str = "monotone",
+    variant: str = "quadratic",
 ) -> torch.Tensor:
     """Eq. 12 contact energy: weight * sum over moving vertices (v >= 2) of B(d), per batch item.
 

@@ -163,7 +163,7 @@ def hair_hair_contact_energy(
     dhat: float,
     bp: float,
     weight: float = 1.0,
-    variant: str = "monotone",
+    variant: str = "quadratic",
     *,
     skip_root_segments: int = 2,
     method: str = "auto",
@@ -176,7 +176,7 @@ def hair_hair_contact_energy(
         dhat: soft barrier width [m].
         bp: barrier join fraction in (0, 1).
         weight: lambda_hh (energy = weight * sum over pairs of B(d)).
-        variant: "monotone" or "paper".
+        variant: "quadratic", "monotone" or "paper".
         skip_root_segments: segments with index below this along each strand take no part.
         method: "bruteforce", "grid", or "auto" (brute force up to `BRUTEFORCE_MAX_SEGMENTS`
             segments per batch item).
