@@ -130,6 +130,7 @@ def train_static(args) -> None:
     def config(steps):
         return StaticTrainingConfig(model_kind=args.kind, model_preset="shipped", phase_steps=steps, phase2_hairstyles=PHASE2_HAIRSTYLES,
                                     phase3_hairstyles=PHASE3_HAIRSTYLES, batch_size=args.batch,
+                                    bp_schedule=args.bp_schedule,
                                     checkpoint_every=0, data=data_config())
 
     if args.steps:  # the probe overestimates: its hairstyles are all decoded for the first time
@@ -190,6 +191,9 @@ def main(argv=None) -> None:
     parser.add_argument("--minutes", type=float, default=6.0, help="wall-clock budget, encoding included")
     parser.add_argument("--steps", type=int, default=0, help="total steps (0: from a timing probe and --minutes)")
     parser.add_argument("--batch", type=int, default=32)
+    parser.add_argument("--bp-schedule", default="linear", choices=["linear", "geometric"],
+                        help="static/quaffure: how b_p falls from 0.9 to 0.01 (geometric spends more steps "
+                             "where the quadratic barrier's push-out force is strong)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--workers", type=int, default=max(1, (os.cpu_count() or 2) - 2))
     parser.add_argument("--static", default=None, help="dynamic: the trained static checkpoint (float32 run file)")
