@@ -447,11 +447,11 @@ def test_toml_config_and_set_overrides(tmp_path):
     )
     cfg = load_config(path, "quaffure", ["batch_size=4", "data.num_vertices=16", "clip_steps=none",
                                          "energy.bending_weight=2e-6", "model.channels=[16, 8, 8, 4]",
-                                         "learning_rate=3e-4", "bp_schedule=geometric"])
+                                         "learning_rate=3e-4", "bp_schedule=linear"])
     assert cfg.model_kind == "quaffure" and cfg.phase_steps == (1, 2, 3, 4) and cfg.batch_size == 4
     assert cfg.data.num_vertices == 16 and cfg.data.strand_stride == 4 and cfg.data.motions == ["nod"]
     assert cfg.energy == {"hair_hair_weight": 5, "bending_weight": 2e-6} and cfg.clip_steps is None
-    assert cfg.learning_rate == 3e-4 and cfg.bp_schedule == "geometric"
+    assert cfg.learning_rate == 3e-4 and cfg.bp_schedule == "linear"
     assert cfg.model == {"channels": [16, 8, 8, 4]}
     again = tmp_path / "again.toml"
     again.write_text(to_toml(cfg))

@@ -191,7 +191,7 @@ def main(argv=None) -> None:
     parser.add_argument("--minutes", type=float, default=6.0, help="wall-clock budget, encoding included")
     parser.add_argument("--steps", type=int, default=0, help="total steps (0: from a timing probe and --minutes)")
     parser.add_argument("--batch", type=int, default=32)
-    parser.add_argument("--bp-schedule", default="linear", choices=["linear", "geometric"],
+    parser.add_argument("--bp-schedule", default="geometric", choices=["linear", "geometric"],
                         help="static/quaffure: how b_p falls from 0.9 to 0.01 (geometric spends more steps "
                              "where the quadratic barrier's push-out force is strong)")
     parser.add_argument("--seed", type=int, default=0)

@@ -8,7 +8,7 @@ tests/test_stability.py pin the behaviour found here.
 Studies:
     barrier_trap_1d / barrier_trap_scene: the paper's quartic extrapolation (Eq. 12-14) has
         P(t0) = P'(t0) = 0 at d = -(xi + dhat): vertices started deeper stay inside; the
-        monotone default pushes every depth out.
+        monotone and quadratic (default) extrapolations push every depth out.
     barrier_precision: float32 against float64 barrier energy and gradient for d just above xi.
     stiffness: weights of stretch and hair-body contact scaled by 1e-4 .. 1e4.
     units: the same scene in metres and in centimetres, weights rescaled so that
