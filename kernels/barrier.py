@@ -20,8 +20,8 @@ Three extrapolations, chosen by an integer `variant`:
     BARRIER_QUADRATIC the default: P(tau) = f_b + f_b' tau + D_f tau^2, the second-order
                       Taylor polynomial of B_0 at d_b: C2 there and strictly increasing with
                       depth, with a push-out force that grows linearly. The quartic's force
-                      grows with depth cubed: a vertex 5 cm inside feels ~1e4 times the force
-                      of one 2.5 mm inside, far more than the stretch term (Eq. 7) resists, so
+                      grows with depth cubed: a vertex 5 cm inside feels ~2e3 times the force
+                      of one 2.5 mm inside (b_p = 0.01), far more than the stretch term (Eq. 7) resists, so
                       drapes of deeply penetrating hair trade strand length for contact (33 %
                       length change on the Table 1 scene; docs/stability.md).
 

@@ -191,7 +191,9 @@ def main(argv=None) -> None:
     parser.add_argument("--minutes", type=float, default=6.0, help="wall-clock budget, encoding included")
     parser.add_argument("--steps", type=int, default=0, help="total steps (0: from a timing probe and --minutes)")
     parser.add_argument("--batch", type=int, default=32)
-    parser.add_argument("--bp-schedule", default="geometric", choices=["linear", "geometric"],
+    from hairwarp.training.config import BP_SCHEDULES, StaticTrainingConfig
+
+    parser.add_argument("--bp-schedule", default=StaticTrainingConfig.bp_schedule, choices=BP_SCHEDULES,
                         help="static/quaffure: how b_p falls from 0.9 to 0.01 (geometric spends more steps "
                              "where the quadratic barrier's push-out force is strong)")
     parser.add_argument("--seed", type=int, default=0)

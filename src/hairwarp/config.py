@@ -28,6 +28,9 @@ CONTACT_TERMS = (
     "hair_hair_contact",  # Eq. 12 with d = segment-segment distance
 )
 ALL_TERMS = STRAND_TERMS + CONTACT_TERMS
+# Extrapolations of the contact barrier below its join point (`hairwarp.ops.barrier`), in the
+# order of the kernels' integer ids.
+BARRIER_VARIANTS = ("paper", "monotone", "quadratic")
 
 
 @dataclass
@@ -41,8 +44,8 @@ class EnergyConfig:
     tip centimetres inside) and from 2.7-7.0 % to 0 % at 0.03 % ("medium_poses"); with the
     quartic "monotone" barrier the first stalls at 48.4 % / 35.5 % (60 iterations): its
     force at depth stretches the strands instead of moving them. Mind the normalisations of
-    the paper, which we keep: Eq. 7, 9, 10, 15, 16 are means over vertices or segments (so their weights are
-    large: k_s = 1e8 over 1e5 segments is a per-segment stiffness of ~1e3 J/m^2), while
+    the paper, which we keep: Eq. 7, 9, 10, 15, 16 are means over vertices or segments (so
+    their weights are large: k_s = 1e8 over 1e5 segments is a per-segment stiffness of ~1e3 J/m^2), while
     Eq. 8, 11 and the contact terms are sums.
 
     Attributes:
@@ -116,8 +119,9 @@ class EnergyConfig:
                 raise ValueError(f"{name}: expected a positive length/time, got {getattr(self, name)}")
         if not 0.0 < self.barrier_join_fraction < 1.0:
             raise ValueError(f"barrier_join_fraction: expected a value in (0, 1), got {self.barrier_join_fraction}")
-        if self.barrier_variant not in ("paper", "monotone", "quadratic"):
-            raise ValueError(f"barrier_variant: expected 'quadratic', 'monotone' or 'paper', got {self.barrier_variant!r}")
+        if self.barrier_variant not in BARRIER_VARIANTS:
+            raise ValueError(f"barrier_variant: expected one of {list(BARRIER_VARIANTS)}, "
+                             f"got {self.barrier_variant!r}")
         if self.root_alignment_segments < 0:
             raise ValueError(f"root_alignment_segments: expected >= 0, got {self.root_alignment_segments}")
         if len(self.gravity) != 3:

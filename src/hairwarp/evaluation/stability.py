@@ -29,8 +29,7 @@ from dataclasses import replace
 
 import torch
 
-from hairwarp.config import EnergyConfig
-from hairwarp.ops.barrier import BARRIER_VARIANTS
+from hairwarp.config import BARRIER_VARIANTS, EnergyConfig
 from hairwarp.energy import EnergyInputs, total_energy
 from hairwarp.evaluation import metrics as M
 from hairwarp.evaluation.scenes import comparison_scene

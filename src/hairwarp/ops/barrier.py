@@ -8,16 +8,18 @@ import warp as wp
 
 from hairwarp import _warp
 from hairwarp._validate import check_positive, check_tensor
+from hairwarp.config import BARRIER_VARIANTS
 from hairwarp.kernels import barrier as barrier_kernels
 
-BARRIER_VARIANTS = {"paper": 0, "monotone": 1, "quadratic": 2}
+# Name -> the integer `variant` of the kernels (BARRIER_PAPER, BARRIER_MONOTONE, BARRIER_QUADRATIC).
+_VARIANT_IDS = {name: i for i, name in enumerate(BARRIER_VARIANTS)}
 
 
 def barrier_variant_id(variant: str) -> int:
     """Integer id of a barrier variant name, as the kernels take it."""
-    if variant not in BARRIER_VARIANTS:
-        raise ValueError(f"variant: expected one of {sorted(BARRIER_VARIANTS)}, got {variant!r}")
-    return BARRIER_VARIANTS[variant]
+    if variant not in _VARIANT_IDS:
+        raise ValueError(f"variant: expected one of {list(BARRIER_VARIANTS)}, got {variant!r}")
+    return _VARIANT_IDS[variant]
 
 
 def check_barrier_parameters(xi: float, dhat: float, bp: float) -> tuple[float, float, float]:

@@ -23,7 +23,7 @@ import math
 
 import torch
 
-BARRIER_VARIANTS = ("paper", "monotone", "quadratic")
+from hairwarp.config import BARRIER_VARIANTS
 
 
 def _log_barrier_derivatives(d: float, xi: float, dhat: float) -> tuple[float, float, float]:
