@@ -14,7 +14,8 @@ import smpl_synthetic as synthetic
 from hairwarp.scene import body as body_module
 from hairwarp.scene.body import AnimatedMeshBody, PosedBody, SMPLBody, default_body, default_body_path
 from hairwarp.scene.rotations import axis_angle_to_matrix, matrix_to_axis_angle, transform_points
-from hairwarp.scene.smpl import SMPL_JOINT_NAMES, load_smpl_model, smpl_model_from_arrays
+from hairwarp.scene.skeleton import SMPL_JOINT_NAMES
+from hairwarp.scene.smpl import load_smpl_model, smpl_model_from_arrays
 from references.body import rodrigues, smpl_forward
 
 # float64 LBS against the loop-by-loop reference: a few chained 4x4 products of O(1) numbers.

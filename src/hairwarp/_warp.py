@@ -7,11 +7,17 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
+import sys
+import tempfile
 
 import torch
 import warp as wp
 
 _initialised = False
+# Printed by Warp's native library on every machine without an NVIDIA driver (every CPU-only
+# run, CI included): expected there, so not shown; any other line Warp prints still is.
+_NO_DRIVER_WARNING = "Could not find or load the NVIDIA CUDA driver"
 
 
 def init() -> None:
@@ -19,8 +25,38 @@ def init() -> None:
     global _initialised
     if not _initialised:
         wp.config.log_level = logging.WARNING
-        wp.init()
+        with _without_no_driver_warning():
+            wp.init()
         _initialised = True
+
+
+@contextlib.contextmanager
+def _without_no_driver_warning():
+    """Capture what native code writes to stdout/stderr; re-emit all but the no-driver line."""
+    try:
+        fds = (sys.stdout.fileno(), sys.stderr.fileno())
+    except (AttributeError, OSError, ValueError):  # no real file descriptors (some notebooks)
+        yield
+        return
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(fd) for fd in fds]
+    with tempfile.TemporaryFile(mode="w+b") as capture:
+        try:
+            for fd in fds:
+                os.dup2(capture.fileno(), fd)
+            yield
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            for fd, old in zip(fds, saved):
+                os.dup2(old, fd)
+                os.close(old)
+            capture.seek(0)
+            text = capture.read().decode(errors="replace")
+            kept = [line for line in text.splitlines(keepends=True) if _NO_DRIVER_WARNING not in line]
+            if kept:
+                sys.stderr.write("".join(kept))
 
 
 def warp_device(device: torch.device) -> str:

@@ -37,7 +37,9 @@ import torch
 
 from hairwarp.config import EnergyConfig
 from hairwarp.scene.hairstyles import Hairstyle, generate_hairstyle, hairstyle_preset, resample_polylines
-from hairwarp.scene.motion import JOINT, POSE_DIM, Motion, procedural_motion
+from hairwarp.scene.motion import Motion, procedural_motion
+from hairwarp.scene.rotations import euler_to_axis_angle
+from hairwarp.scene.skeleton import JOINT, POSE_DIM
 from hairwarp.scene.scene import Scene, SceneFrames
 
 # Bump on any change to what the scenes hold.
@@ -159,17 +161,6 @@ class ComparisonScene:
                 "size": dict(self.size), "reduced": self.reduced, "scenes_version": self.version}
 
 
-def _rotation_vector(pitch: float, yaw: float, roll: float) -> np.ndarray:
-    """Axis-angle vector of R = Rz(roll) Ry(yaw) Rx(pitch) (angles in degrees)."""
-    from hairwarp.scene.rotations import matrix_to_axis_angle
-
-    a, b, c = (math.radians(v) for v in (pitch, yaw, roll))
-    rx = np.array([[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]])
-    ry = np.array([[math.cos(b), 0, math.sin(b)], [0, 1, 0], [-math.sin(b), 0, math.cos(b)]])
-    rz = np.array([[math.cos(c), -math.sin(c), 0], [math.sin(c), math.cos(c), 0], [0, 0, 1]])
-    return matrix_to_axis_angle(torch.as_tensor(rz @ ry @ rx)).numpy()
-
-
 def head_pose(pitch: float = 0.0, yaw: float = 0.0, roll: float = 0.0) -> torch.Tensor:
     """(66,) SMPL pose: arms lowered to the sides, the head rotated by (pitch, yaw, roll) [deg].
 
@@ -178,11 +169,11 @@ def head_pose(pitch: float = 0.0, yaw: float = 0.0, roll: float = 0.0) -> torch.
     """
     pose = torch.zeros(POSE_DIM // 3, 3, dtype=torch.float64)
     down = math.radians(_ARMS_DOWN_DEG)
-    pose[JOINT["l_shoulder"], 2] = -down
-    pose[JOINT["r_shoulder"], 2] = down
+    pose[JOINT["left_shoulder"], 2] = -down
+    pose[JOINT["right_shoulder"], 2] = down
     share = {"neck": _NECK_SHARE, "head": 1.0 - _NECK_SHARE}
     for joint, s in share.items():
-        pose[JOINT[joint]] = torch.as_tensor(_rotation_vector(s * pitch, s * yaw, s * roll))
+        pose[JOINT[joint]] = torch.as_tensor(euler_to_axis_angle(s * pitch, s * yaw, s * roll))
     return pose.reshape(POSE_DIM).to(torch.float32)
 
 

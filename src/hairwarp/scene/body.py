@@ -66,9 +66,8 @@ import torch
 
 from hairwarp._validate import FLOAT_DTYPES, check_tensor
 from hairwarp.scene.rotations import transform_points
+from hairwarp.scene.skeleton import HEAD_JOINT, NUM_JOINTS
 from hairwarp.scene.smpl import (
-    HEAD_JOINT,
-    NUM_POSE_JOINTS,
     SMPLModel,
     linear_blend_skinning,
     load_smpl_model,
@@ -210,9 +209,9 @@ class SMPLBody(Body):
         dtype = given[0].dtype if given and given[0].dtype in FLOAT_DTYPES else torch.float32
         if poses is not None:
             check_tensor("poses", poses, dtypes=(dtype,), device=device)
-            if poses.dim() == 3 and tuple(poses.shape[1:]) == (NUM_POSE_JOINTS, 3):
+            if poses.dim() == 3 and tuple(poses.shape[1:]) == (NUM_JOINTS, 3):
                 poses = poses.reshape(poses.shape[0], -1)
-            check_tensor("poses", poses, shape=(None, 3 * NUM_POSE_JOINTS), dtypes=(dtype,), device=device)
+            check_tensor("poses", poses, shape=(None, 3 * NUM_JOINTS), dtypes=(dtype,), device=device)
         if betas is not None:
             check_tensor("betas", betas, shape=(None, None), dtypes=(dtype,), device=device)
             if betas.shape[1] > self.num_betas:
@@ -225,7 +224,7 @@ class SMPLBody(Body):
         if batch == 0:
             raise ValueError("poses: empty batch")
         if poses is None:
-            poses = torch.zeros(batch, 3 * NUM_POSE_JOINTS, dtype=dtype, device=device)
+            poses = torch.zeros(batch, 3 * NUM_JOINTS, dtype=dtype, device=device)
         poses = poses.expand(batch, -1)
         if betas is None:
             betas = torch.zeros(batch, 0, dtype=dtype, device=device)
@@ -247,7 +246,7 @@ class SMPLBody(Body):
         )
         return PosedBody(
             vertices=out.vertices,
-            joints=out.joint_transforms[:, :NUM_POSE_JOINTS],
+            joints=out.joint_transforms[:, :NUM_JOINTS],
             head_transform=out.skinning_transforms[:, HEAD_JOINT],
         )
 

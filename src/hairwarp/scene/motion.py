@@ -24,19 +24,17 @@ import numpy as np
 import torch
 
 from hairwarp._validate import check_positive, check_tensor
-
-NUM_JOINTS = 22
-POSE_DIM = 3 * NUM_JOINTS
-NUM_BETAS = 16
-DEFAULT_FPS = 60.0
-
-SMPL_JOINT_NAMES = (
-    "pelvis", "l_hip", "r_hip", "spine1", "l_knee", "r_knee", "spine2", "l_ankle", "r_ankle",
-    "spine3", "l_foot", "r_foot", "neck", "l_collar", "r_collar", "head", "l_shoulder",
-    "r_shoulder", "l_elbow", "r_elbow", "l_wrist", "r_wrist",
+from hairwarp.scene.rotations import (
+    axis_angle_to_matrix,
+    compose_axis_angles,
+    matrix_to_axis_angle,
+    np_axis_angle_to_matrix,
+    np_matrix_to_axis_angle,
+    slerp_axis_angles,
 )
-SMPL_PARENTS = (-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19)
-JOINT = {name: i for i, name in enumerate(SMPL_JOINT_NAMES)}
+from hairwarp.scene.skeleton import JOINT, NUM_BETAS, NUM_JOINTS, POSE_DIM, SMPL_PARENTS
+
+DEFAULT_FPS = 60.0
 
 # Rest (T-pose) joint positions [m] of an average adult, SMPL-like, y up, face +z, pelvis at
 # the origin. Hand-entered approximations (a few cm); they only set the lever arms of the
@@ -131,105 +129,12 @@ def _motion(poses: np.ndarray, trans: np.ndarray, betas=None, fps=DEFAULT_FPS, n
     )
 
 
-# ----------------------------------------------------------------------------------------------
-# Rotations (numpy float64; axis-angle <-> matrix <-> quaternion w, x, y, z)
-
-
-def _aa_to_matrix(aa: np.ndarray) -> np.ndarray:
-    theta = np.linalg.norm(aa, axis=-1, keepdims=True)
-    small = theta < 1e-8
-    axis = aa / np.where(small, 1.0, theta)
-    x, y, z = axis[..., 0], axis[..., 1], axis[..., 2]
-    zero = np.zeros_like(x)
-    k = np.stack([zero, -z, y, z, zero, -x, -y, x, zero], axis=-1).reshape(aa.shape[:-1] + (3, 3))
-    s = np.sin(theta)[..., None]
-    c = np.cos(theta)[..., None]
-    out = np.eye(3) + s * k + (1 - c) * (k @ k)
-    # First order for tiny angles keeps the map smooth through zero.
-    tiny = np.eye(3) + np.stack(
-        [zero, -aa[..., 2], aa[..., 1], aa[..., 2], zero, -aa[..., 0], -aa[..., 1], aa[..., 0], zero], axis=-1
-    ).reshape(aa.shape[:-1] + (3, 3))
-    return np.where(small[..., None], tiny, out)
-
-
-def _aa_to_quat(aa: np.ndarray) -> np.ndarray:
-    theta = np.linalg.norm(aa, axis=-1, keepdims=True)
-    half = 0.5 * theta
-    # sin(x/2)/x -> 1/2 as x -> 0
-    k = np.where(theta < 1e-8, 0.5 - theta**2 / 48.0, np.sin(half) / np.where(theta < 1e-8, 1.0, theta))
-    return np.concatenate([np.cos(half), aa * k], axis=-1)
-
-
-def _quat_to_aa(q: np.ndarray) -> np.ndarray:
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    q = np.where(q[..., :1] < 0, -q, q)  # shortest rotation: angle in [0, pi]
-    v = q[..., 1:]
-    s = np.linalg.norm(v, axis=-1, keepdims=True)
-    theta = 2 * np.arctan2(s, q[..., :1])
-    k = np.where(s < 1e-12, 2.0, theta / np.where(s < 1e-12, 1.0, s))
-    return v * k
-
-
-def _matrix_to_quat(m: np.ndarray) -> np.ndarray:
-    """Rotation matrices (..., 3, 3) -> unit quaternions (..., 4), branch by the largest term."""
-    m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
-    tr = m00 + m11 + m22
-    cand = np.stack([tr, m00, m11, m22], axis=-1)
-    which = cand.argmax(axis=-1)
-    q = np.empty(m.shape[:-2] + (4,))
-    r = m
-    # w largest
-    s = np.sqrt(np.maximum(1 + tr, 1e-12)) * 2
-    qw = np.stack([0.25 * s, (r[..., 2, 1] - r[..., 1, 2]) / s, (r[..., 0, 2] - r[..., 2, 0]) / s,
-                   (r[..., 1, 0] - r[..., 0, 1]) / s], axis=-1)
-    s = np.sqrt(np.maximum(1 + m00 - m11 - m22, 1e-12)) * 2
-    qx = np.stack([(r[..., 2, 1] - r[..., 1, 2]) / s, 0.25 * s, (r[..., 0, 1] + r[..., 1, 0]) / s,
-                   (r[..., 0, 2] + r[..., 2, 0]) / s], axis=-1)
-    s = np.sqrt(np.maximum(1 + m11 - m00 - m22, 1e-12)) * 2
-    qy = np.stack([(r[..., 0, 2] - r[..., 2, 0]) / s, (r[..., 0, 1] + r[..., 1, 0]) / s, 0.25 * s,
-                   (r[..., 1, 2] + r[..., 2, 1]) / s], axis=-1)
-    s = np.sqrt(np.maximum(1 + m22 - m00 - m11, 1e-12)) * 2
-    qz = np.stack([(r[..., 1, 0] - r[..., 0, 1]) / s, (r[..., 0, 2] + r[..., 2, 0]) / s,
-                   (r[..., 1, 2] + r[..., 2, 1]) / s, 0.25 * s], axis=-1)
-    for i, cq in enumerate((qw, qx, qy, qz)):
-        q[which == i] = cq[which == i]
-    return q / np.linalg.norm(q, axis=-1, keepdims=True)
-
-
-def _matrix_to_aa(m: np.ndarray) -> np.ndarray:
-    return _quat_to_aa(_matrix_to_quat(m))
-
-
-def _slerp(q0: np.ndarray, q1: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """Spherical interpolation of unit quaternions (..., 4) with weights w (...,) in [0, 1]."""
-    dot = np.sum(q0 * q1, axis=-1, keepdims=True)
-    q1 = np.where(dot < 0, -q1, q1)  # same hemisphere: the short way round
-    dot = np.abs(dot)
-    w = w[..., None]
-    theta = np.arccos(np.clip(dot, -1.0, 1.0))
-    sin = np.sin(theta)
-    linear = sin < 1e-6
-    safe = np.where(linear, 1.0, sin)
-    a = np.where(linear, 1 - w, np.sin((1 - w) * theta) / safe)
-    b = np.where(linear, w, np.sin(w * theta) / safe)
-    q = a * q0 + b * q1
-    return q / np.linalg.norm(q, axis=-1, keepdims=True)
-
-
 def _rot(axis: str, angle) -> np.ndarray:
     """Axis-angle vectors (..., 3) for rotations by `angle` about a world axis."""
     angle = np.asarray(angle, dtype=np.float64)
     out = np.zeros(angle.shape + (3,))
     out[..., "xyz".index(axis)] = angle
     return out
-
-
-def _compose(*aas: np.ndarray) -> np.ndarray:
-    """Axis-angle of R(a_0) R(a_1) ... (the last one applied first)."""
-    m = _aa_to_matrix(aas[0])
-    for a in aas[1:]:
-        m = m @ _aa_to_matrix(a)
-    return _matrix_to_aa(m)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -248,8 +153,8 @@ _ARMS_DOWN = math.radians(65.0)
 def _rest_pose(t: np.ndarray) -> np.ndarray:
     """(T, 22, 3) rest pose: standing, arms lowered to the sides."""
     pose = np.zeros((len(t), NUM_JOINTS, 3))
-    pose[:, JOINT["l_shoulder"]] = _rot("z", -_ARMS_DOWN)
-    pose[:, JOINT["r_shoulder"]] = _rot("z", _ARMS_DOWN)
+    pose[:, JOINT["left_shoulder"]] = _rot("z", -_ARMS_DOWN)
+    pose[:, JOINT["right_shoulder"]] = _rot("z", _ARMS_DOWN)
     return pose
 
 
@@ -299,8 +204,8 @@ def _torso_bend(t, rng):
     for joint, share in (("pelvis", 0.25), ("spine1", 0.3), ("spine2", 0.25), ("spine3", 0.2)):
         pose[:, JOINT[joint]] = _rot("x", share * b)
     # Hips counter-rotate the pelvis share so the legs stay vertical.
-    pose[:, JOINT["l_hip"]] = _rot("x", -0.25 * b)
-    pose[:, JOINT["r_hip"]] = _rot("x", -0.25 * b)
+    pose[:, JOINT["left_hip"]] = _rot("x", -0.25 * b)
+    pose[:, JOINT["right_hip"]] = _rot("x", -0.25 * b)
     return pose, np.zeros((len(t), 3))
 
 
@@ -310,10 +215,10 @@ def _arm_raise(t, rng):
     u = _bend_profile(t, down=1.2, hold=0.8)
     angle = -_ARMS_DOWN + (up + _ARMS_DOWN) * u
     pose = _rest_pose(t)
-    pose[:, JOINT["l_shoulder"]] = _rot("z", angle)
-    pose[:, JOINT["r_shoulder"]] = _rot("z", -angle)
-    pose[:, JOINT["l_elbow"]] = _rot("y", 0.5 * u)
-    pose[:, JOINT["r_elbow"]] = _rot("y", -0.5 * u)
+    pose[:, JOINT["left_shoulder"]] = _rot("z", angle)
+    pose[:, JOINT["right_shoulder"]] = _rot("z", -angle)
+    pose[:, JOINT["left_elbow"]] = _rot("y", 0.5 * u)
+    pose[:, JOINT["right_elbow"]] = _rot("y", -0.5 * u)
     return pose, np.zeros((len(t), 3))
 
 
@@ -326,19 +231,19 @@ def _sway_walk(t, rng):
     swing = math.radians(25.0) * np.sin(ph) * ease
     pose = _rest_pose(t)
     # Hip flexion forward is a -x rotation (a leg pointing down swings toward +z).
-    pose[:, JOINT["l_hip"]] = _rot("x", -swing)
-    pose[:, JOINT["r_hip"]] = _rot("x", swing)
+    pose[:, JOINT["left_hip"]] = _rot("x", -swing)
+    pose[:, JOINT["right_hip"]] = _rot("x", swing)
     knee = math.radians(30.0) * ease
-    pose[:, JOINT["l_knee"]] = _rot("x", knee * np.clip(np.sin(ph + 1.2), 0, None))
-    pose[:, JOINT["r_knee"]] = _rot("x", knee * np.clip(-np.sin(ph + 1.2), 0, None))
+    pose[:, JOINT["left_knee"]] = _rot("x", knee * np.clip(np.sin(ph + 1.2), 0, None))
+    pose[:, JOINT["right_knee"]] = _rot("x", knee * np.clip(-np.sin(ph + 1.2), 0, None))
     sway = math.radians(6.0) * np.sin(ph) * ease
-    pose[:, JOINT["pelvis"]] = _compose(_rot("y", sway), _rot("z", 0.6 * sway))
+    pose[:, JOINT["pelvis"]] = compose_axis_angles(_rot("y", sway), _rot("z", 0.6 * sway))
     pose[:, JOINT["spine2"]] = _rot("y", -0.8 * sway)
     pose[:, JOINT["head"]] = _rot("y", -0.2 * sway)
     arm = math.radians(20.0) * np.sin(ph) * ease
     # Arm swing about x in the parent frame, applied after lowering the arm.
-    pose[:, JOINT["l_shoulder"]] = _compose(_rot("x", arm), _rot("z", -_ARMS_DOWN * np.ones_like(t)))
-    pose[:, JOINT["r_shoulder"]] = _compose(_rot("x", -arm), _rot("z", _ARMS_DOWN * np.ones_like(t)))
+    pose[:, JOINT["left_shoulder"]] = compose_axis_angles(_rot("x", arm), _rot("z", -_ARMS_DOWN * np.ones_like(t)))
+    pose[:, JOINT["right_shoulder"]] = compose_axis_angles(_rot("x", -arm), _rot("z", _ARMS_DOWN * np.ones_like(t)))
     trans = np.zeros((len(t), 3))
     # Forward progress eased in, the body's centre shifts over the stance leg, and bobs twice
     # per stride.
@@ -494,7 +399,7 @@ def load_amass(
     if z_up:
         rc = Z_UP_TO_Y_UP
         poses = poses.copy()
-        poses[:, :3] = _matrix_to_aa(rc @ _aa_to_matrix(poses[:, :3]))
+        poses[:, :3] = np_matrix_to_axis_angle(rc @ np_axis_angle_to_matrix(poses[:, :3]))
         j0 = np.zeros(3) if root_joint is None else np.asarray(root_joint, dtype=np.float64).reshape(3)
         trans = (trans + j0) @ rc.T - j0
     motion = _motion(poses, trans, betas, fps=fps, name=os.path.splitext(os.path.basename(name))[0])
@@ -520,9 +425,7 @@ def resample_motion(motion: Motion, target_fps: float = DEFAULT_FPS) -> Motion:
     i0 = np.clip(np.floor(x).astype(int), 0, max(t_src - 1, 0))
     i1 = np.minimum(i0 + 1, t_src)
     w = np.clip(x - i0, 0.0, 1.0)
-    q = _aa_to_quat(poses)
-    q_new = _slerp(q[i0], q[i1], np.repeat(w[:, None], NUM_JOINTS, axis=1))
-    new_poses = _quat_to_aa(q_new).reshape(n, POSE_DIM)
+    new_poses = slerp_axis_angles(poses[i0], poses[i1], np.repeat(w[:, None], NUM_JOINTS, axis=1)).reshape(n, POSE_DIM)
     new_trans = trans[i0] * (1 - w[:, None]) + trans[i1] * w[:, None]
     return Motion(
         poses=torch.tensor(new_poses, dtype=motion.poses.dtype),
@@ -568,9 +471,9 @@ def dynamic_score(motion: Motion) -> float:
     """
     if motion.num_frames < 2:
         return 0.0
-    r = _aa_to_matrix(motion.poses.detach().cpu().double().numpy().reshape(-1, NUM_JOINTS, 3))
+    r = np_axis_angle_to_matrix(motion.poses.detach().cpu().double().numpy().reshape(-1, NUM_JOINTS, 3))
     rel = np.swapaxes(r[:-1], -1, -2) @ r[1:]
-    angle = np.linalg.norm(_matrix_to_aa(rel), axis=-1)
+    angle = np.linalg.norm(np_matrix_to_axis_angle(rel), axis=-1)
     return float(angle.mean() * motion.fps)
 
 
@@ -590,33 +493,6 @@ def filter_dynamic(motions: list[Motion], quantile: float = 0.5) -> list[Motion]
 
 # ----------------------------------------------------------------------------------------------
 # Motion descriptors (Section 3.3.1), torch so they run where the network runs
-
-
-def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
-    """Rodrigues' formula: axis-angle (..., 3) [rad] -> rotation matrices (..., 3, 3)."""
-    theta2 = (aa * aa).sum(-1, keepdim=True)
-    theta = torch.sqrt(theta2.clamp_min(1e-30))
-    small = theta2 < 1e-12
-    # sin(t)/t and (1 - cos t)/t^2 with their Taylor series near zero.
-    a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
-    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / theta2.clamp_min(1e-30))
-    x, y, z = aa.unbind(-1)
-    zero = torch.zeros_like(x)
-    k = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], dim=-1).reshape(aa.shape[:-1] + (3, 3))
-    eye = torch.eye(3, dtype=aa.dtype, device=aa.device)
-    return eye + a[..., None] * k + b[..., None] * (k @ k)
-
-
-def _log_small(r: torch.Tensor) -> torch.Tensor:
-    """Rotation vector of rotations away from pi (frame-to-frame steps)."""
-    v = torch.stack(
-        [r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0], r[..., 1, 0] - r[..., 0, 1]], -1
-    ) / 2
-    s = torch.linalg.vector_norm(v, dim=-1, keepdim=True)
-    c = (r[..., 0, 0] + r[..., 1, 1] + r[..., 2, 2] - 1)[..., None] / 2
-    theta = torch.atan2(s, c)
-    k = torch.where(s < 1e-12, torch.ones_like(s), theta / s.clamp_min(1e-30))
-    return v * k
 
 
 def _check_descriptor_inputs(poses, betas, dt, window, joints):
@@ -668,7 +544,7 @@ def frame_descriptors(
     t = poses.shape[-2]
     rot = axis_angle_to_matrix(poses.reshape(lead + (t, NUM_JOINTS, 3)))  # (..., T, 22, 3, 3)
     prev = torch.cat([rot[..., :1, :, :, :], rot[..., :-1, :, :, :]], dim=-4)
-    omega = _log_small(prev.transpose(-1, -2) @ rot) / dt  # (..., T, 22, 3)
+    omega = matrix_to_axis_angle(prev.transpose(-1, -2) @ rot) / dt  # (..., T, 22, 3)
 
     down = torch.tensor([0.0, -1.0, 0.0], dtype=dtype, device=device)
     g = (rot[..., 0, :, :].transpose(-1, -2) @ down)  # (..., T, 3)

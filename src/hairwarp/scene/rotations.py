@@ -1,8 +1,16 @@
-"""Axis-angle rotations in plain torch (SMPL's pose convention), batched and differentiable."""
+"""Rotations, in one module: axis-angle (SMPL's pose convention), matrices, interpolation.
+
+The torch side (`axis_angle_to_matrix`, `matrix_to_axis_angle`, `rigid_transform`, ...) is
+batched and differentiable and runs where the body and the networks run. The numpy side
+(`np_*`, `compose_axis_angles`, `slerp_axis_angles`, `euler_to_axis_angle`) is float64 on the
+CPU for building motions and poses, and is scipy's `Rotation` underneath.
+"""
 
 from __future__ import annotations
 
+import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 
 # Below this angle [rad] the Rodrigues coefficients switch to their Taylor series: sin(t)/t
 # and (1 - cos t)/t^2 lose digits to cancellation near 0 and their autograd gives NaN at 0.
@@ -54,7 +62,6 @@ def matrix_to_axis_angle(matrix: torch.Tensor) -> torch.Tensor:
     """
     trace = matrix[..., 0, 0] + matrix[..., 1, 1] + matrix[..., 2, 2]
     cos = ((trace - 1.0) / 2.0).clamp(-1.0, 1.0)
-    angle = torch.acos(cos)
     vee = torch.stack(
         [
             matrix[..., 2, 1] - matrix[..., 1, 2],
@@ -63,10 +70,12 @@ def matrix_to_axis_angle(matrix: torch.Tensor) -> torch.Tensor:
         ],
         -1,
     )
-    sin = torch.sin(angle)
-    out = torch.where(
-        (sin > 1e-6)[..., None], vee * (angle / (2.0 * sin.clamp_min(1e-12)))[..., None], 0.5 * vee
-    )
+    # atan2(sin, cos) rather than acos(cos): acos loses half the digits at small angles (the
+    # frame-to-frame steps of the motion descriptors are such angles).
+    sin = 0.5 * torch.linalg.vector_norm(vee, dim=-1)
+    angle = torch.atan2(sin, cos)
+    scale = torch.where(sin > 1e-12, angle / (2.0 * sin.clamp_min(1e-12)), torch.full_like(sin, 0.5))
+    out = vee * scale[..., None]
     # Near pi the antisymmetric part vanishes: the axis a comes from the symmetric part,
     # (R + R^T) / 2 - cos(t) I = (1 - cos t) a a^T, as its column of largest norm.
     near_pi = (sin < 1e-4) & (cos < 0)
@@ -93,3 +102,52 @@ def rigid_transform(rotation: torch.Tensor, translation: torch.Tensor) -> torch.
 def transform_points(transform: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     """Apply (..., 4, 4) transforms to points (..., P, 3): R p + t, broadcasting the leading dims."""
     return points @ transform[..., :3, :3].transpose(-1, -2) + transform[..., None, :3, 3]
+
+
+# ----------------------------------------------------------------------------- numpy side
+
+
+def np_axis_angle_to_matrix(axis_angle: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) of axis-angle vectors (..., 3) [rad], float64."""
+    aa = np.asarray(axis_angle, dtype=np.float64)
+    return Rotation.from_rotvec(aa.reshape(-1, 3)).as_matrix().reshape(aa.shape[:-1] + (3, 3))
+
+
+def np_matrix_to_axis_angle(matrix: np.ndarray) -> np.ndarray:
+    """Axis-angle vectors (..., 3) [rad], angles in [0, pi], of rotation matrices (..., 3, 3)."""
+    m = np.asarray(matrix, dtype=np.float64)
+    return Rotation.from_matrix(m.reshape(-1, 3, 3)).as_rotvec().reshape(m.shape[:-2] + (3,))
+
+
+def compose_axis_angles(*axis_angles: np.ndarray) -> np.ndarray:
+    """Axis-angle of R(a_0) R(a_1) ... (the last one applied first), broadcast over (..., 3)."""
+    arrays = np.broadcast_arrays(*[np.asarray(a, dtype=np.float64) for a in axis_angles])
+    shape = arrays[0].shape
+    r = Rotation.from_rotvec(arrays[0].reshape(-1, 3))
+    for a in arrays[1:]:
+        r = r * Rotation.from_rotvec(a.reshape(-1, 3))
+    return r.as_rotvec().reshape(shape)
+
+
+def slerp_axis_angles(a0: np.ndarray, a1: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """Spherical interpolation, the short way round, between rotations a0 and a1 (..., 3).
+
+    Args:
+        a0, a1: axis-angle vectors (..., 3) [rad] of the same shape.
+        weight: (...) interpolation weights in [0, 1] (0: a0, 1: a1).
+
+    Returns:
+        (..., 3) axis-angle vectors of R(a0) exp(w log(R(a0)^T R(a1))).
+    """
+    a0 = np.asarray(a0, dtype=np.float64)
+    shape = a0.shape
+    r0 = Rotation.from_rotvec(a0.reshape(-1, 3))
+    r1 = Rotation.from_rotvec(np.asarray(a1, dtype=np.float64).reshape(-1, 3))
+    w = np.broadcast_to(np.asarray(weight, dtype=np.float64), shape[:-1]).reshape(-1, 1)
+    step = (r0.inv() * r1).as_rotvec()  # in [0, pi]: the shorter arc
+    return (r0 * Rotation.from_rotvec(step * w)).as_rotvec().reshape(shape)
+
+
+def euler_to_axis_angle(pitch: float, yaw: float, roll: float) -> np.ndarray:
+    """Axis-angle vector (3,) of R = Rz(roll) Ry(yaw) Rx(pitch), angles in degrees."""
+    return Rotation.from_euler("ZYX", [roll, yaw, pitch], degrees=True).as_rotvec()

@@ -31,17 +31,8 @@ import numpy as np
 import torch
 
 from hairwarp.scene.rotations import axis_angle_to_matrix, rigid_transform
+from hairwarp.scene.skeleton import NUM_BETAS, NUM_JOINTS, SMPL_JOINT_NAMES, SMPL_PARENTS
 
-NUM_POSE_JOINTS = 22
-MAX_BETAS = 16
-HEAD_JOINT = 15
-SMPL_JOINT_NAMES = (
-    "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2",
-    "left_ankle", "right_ankle", "spine3", "left_foot", "right_foot", "neck", "left_collar",
-    "right_collar", "head", "left_shoulder", "right_shoulder", "left_elbow", "right_elbow",
-    "left_wrist", "right_wrist",
-)
-SMPL_PARENTS = (-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19)
 _ROOT_PARENTS = (-1, 2**32 - 1)
 # Skin weight rows must sum to one within this (float32 storage gives ~1e-7).
 _WEIGHT_SUM_TOL = 1e-4
@@ -250,9 +241,9 @@ def smpl_model_from_arrays(data: dict, source: str = "<arrays>") -> SMPLModel:
     if kintree.shape[0] != 2:
         raise ValueError(f"{path}: key 'kintree_table': expected shape (2, J), got {kintree.shape}")
     num_joints = kintree.shape[1]
-    if num_joints < NUM_POSE_JOINTS:
+    if num_joints < NUM_JOINTS:
         raise ValueError(
-            f"{path}: key 'kintree_table': expected at least {NUM_POSE_JOINTS} joints, got {num_joints}"
+            f"{path}: key 'kintree_table': expected at least {NUM_JOINTS} joints, got {num_joints}"
         )
     raw_parents = [int(p) for p in kintree[0].astype(np.int64)]
     if raw_parents[0] not in _ROOT_PARENTS:
@@ -266,7 +257,7 @@ def smpl_model_from_arrays(data: dict, source: str = "<arrays>") -> SMPLModel:
                 f"{path}: key 'kintree_table': joint {j} has parent {parents[j]}; "
                 "parents must precede children"
             )
-    if parents[:NUM_POSE_JOINTS] != SMPL_PARENTS:
+    if parents[:NUM_JOINTS] != SMPL_PARENTS:
         raise ValueError(
             f"{path}: key 'kintree_table': the first 22 joints do not follow SMPL's tree {SMPL_PARENTS}"
         )
@@ -295,7 +286,7 @@ def smpl_model_from_arrays(data: dict, source: str = "<arrays>") -> SMPLModel:
         raise ValueError(
             f"{path}: key 'shapedirs': expected shape ({num_vertices}, 3, K), got {shapedirs.shape}"
         )
-    shapedirs = shapedirs[:, :, :MAX_BETAS]
+    shapedirs = shapedirs[:, :, :NUM_BETAS]
 
     posedirs = None
     if "posedirs" in data and data["posedirs"] is not None:
@@ -308,9 +299,9 @@ def smpl_model_from_arrays(data: dict, source: str = "<arrays>") -> SMPLModel:
 
     joint_names = SMPL_JOINT_NAMES
     if "joint_names" in data:
-        names = tuple(str(n) for n in np.asarray(data["joint_names"]).ravel()[:NUM_POSE_JOINTS])
-        if len(names) != NUM_POSE_JOINTS:
-            raise ValueError(f"{path}: key 'joint_names': expected at least {NUM_POSE_JOINTS} names")
+        names = tuple(str(n) for n in np.asarray(data["joint_names"]).ravel()[:NUM_JOINTS])
+        if len(names) != NUM_JOINTS:
+            raise ValueError(f"{path}: key 'joint_names': expected at least {NUM_JOINTS} names")
         joint_names = names
 
     head = None
@@ -462,9 +453,9 @@ def linear_blend_skinning(
 
 def pose_rotations(poses: torch.Tensor, num_joints: int) -> torch.Tensor:
     """(B, J, 3, 3) joint rotations from (B, 66) axis-angle poses; joints past 22 identity."""
-    rot = axis_angle_to_matrix(poses.reshape(poses.shape[0], NUM_POSE_JOINTS, 3))
-    if num_joints > NUM_POSE_JOINTS:
+    rot = axis_angle_to_matrix(poses.reshape(poses.shape[0], NUM_JOINTS, 3))
+    if num_joints > NUM_JOINTS:
         eye = torch.eye(3, dtype=poses.dtype, device=poses.device)
-        extra = eye.expand(poses.shape[0], num_joints - NUM_POSE_JOINTS, 3, 3)
+        extra = eye.expand(poses.shape[0], num_joints - NUM_JOINTS, 3, 3)
         rot = torch.cat([rot, extra], 1)
     return rot

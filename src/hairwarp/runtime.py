@@ -1,0 +1,162 @@
+"""The ground floor: devices, synchronisation, timing and machine descriptions.
+
+Every layer above (ops, scenes, methods, evaluation, commands, benchmarks) takes its device
+and its timings from here, so a figure is always measured the same way: warm-up calls first,
+the device synchronised inside the timed region, the median of repeats.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import platform
+import statistics
+import time
+from collections.abc import Callable
+
+import torch
+
+
+def resolve_device(name: str | torch.device, *, argument: str = "device") -> torch.device:
+    """A torch device that exists on this machine, or a clear error naming `argument`.
+
+    Args:
+        name: "cpu", "cuda" or "cuda:N" (or a `torch.device`).
+        argument: the name the error message gives (the command line passes "--device").
+
+    Returns:
+        torch.device: "cpu" or "cuda:N"/"cuda".
+
+    Raises:
+        ValueError: an unknown device type, "cpu:N" (there is one CPU device), no CUDA on
+            this machine, or a CUDA index the machine does not have.
+    """
+    if isinstance(name, torch.device):
+        name = str(name)
+    try:
+        device = torch.device(name)
+    except (RuntimeError, TypeError) as exc:
+        raise ValueError(f"{argument}: expected cpu or cuda[:N], got {name!r} ({exc})") from None
+    if device.type == "cpu":
+        if device.index not in (None, 0):  # torch accepts cpu:7 and ignores the index
+            raise ValueError(f"{argument}: there is one CPU device ('cpu'), got {name!r}")
+        return torch.device("cpu")
+    if device.type != "cuda":
+        raise ValueError(f"{argument}: expected cpu or cuda[:N], got {name!r}")
+    if not torch.cuda.is_available():
+        raise ValueError(f"{argument}: {name} was asked for but this machine has no CUDA device")
+    count = torch.cuda.device_count()
+    if device.index is not None and device.index >= count:
+        raise ValueError(f"{argument}: {name} was asked for but this machine has {count} CUDA device(s) "
+                         f"(cuda:0..cuda:{count - 1})")
+    return device
+
+
+def synchronize(device: torch.device) -> None:
+    """Wait for the device's queued work (a no-op on CPU)."""
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def timed(fn: Callable[[], object], device: torch.device, *, warmup: int = 1) -> tuple[object, float]:
+    """(result, seconds) of one call of `fn()` after `warmup` untimed calls, device synchronised.
+
+    For work too long to repeat (a network's drape of a batch, a whole optimization): one
+    timed call after the warm-up compiled the kernels and filled the caches.
+    """
+    for _ in range(warmup):
+        fn()
+    synchronize(device)
+    start = time.perf_counter()
+    out = fn()
+    synchronize(device)
+    return out, time.perf_counter() - start
+
+
+def time_ms(fn: Callable[[], object], device: torch.device, *, warmup: int = 3, repeats: int = 10,
+            min_time_s: float = 0.2) -> float:
+    """Median wall time of `fn()` in milliseconds, synchronising the device around each call.
+
+    Runs `warmup` untimed calls (kernel compilation, caches), then at least `repeats` timed
+    calls and until `min_time_s` has passed (at most 10 x `repeats`).
+    """
+    for _ in range(warmup):
+        fn()
+    synchronize(device)
+    samples = []
+    start_all = time.perf_counter()
+    while len(samples) < repeats or (time.perf_counter() - start_all) < min_time_s:
+        t0 = time.perf_counter()
+        fn()
+        synchronize(device)
+        samples.append((time.perf_counter() - t0) * 1e3)
+        if len(samples) >= 10 * repeats:
+            break
+    return statistics.median(samples)
+
+
+def cpu_model_name() -> str | None:
+    """The CPU's model name from /proc/cpuinfo (None where that file is not readable)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return None
+
+
+def machine_name(device: torch.device) -> str:
+    """A one-line name of the machine a figure was measured on."""
+    device = torch.device(device)
+    if device.type == "cuda":
+        return f"{torch.cuda.get_device_name(device)} (torch {torch.__version__})"
+    cpu = cpu_model_name() or platform.processor() or platform.machine()
+    return f"{cpu}, {os.cpu_count()} cores (torch {torch.__version__}, CPU)"
+
+
+def machine_description(device: torch.device) -> dict:
+    """What a set of figures was measured on: device name, CPU, cores, load, library versions."""
+    import sys
+
+    import warp as wp
+
+    device = torch.device(device)
+    cpu_name = cpu_model_name()
+    info = {
+        "device": str(device),
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "cpu_name": cpu_name,
+        "python": sys.version.split()[0],
+        "torch": torch.__version__,
+        "warp": wp.__version__,
+    }
+    try:  # other work on the machine slows every timing: say how busy it was
+        info["load_average_1min"] = os.getloadavg()[0]
+    except OSError:
+        info["load_average_1min"] = None
+    if device.type == "cuda":
+        info["device_name"] = torch.cuda.get_device_name(device)
+    else:
+        info["device_name"] = f"CPU ({cpu_name or info['processor']}, {os.cpu_count()} cores)"
+    return info
+
+
+def jsonable(value):
+    """`value` with tensors, tuples and non-finite floats made JSON-safe (NaN/Inf as strings)."""
+    if isinstance(value, dict):
+        return {str(k): jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [jsonable(v) for v in value]
+    if isinstance(value, torch.Tensor):
+        return jsonable(value.detach().cpu().tolist()) if value.numel() != 1 else jsonable(value.item())
+    if isinstance(value, float):
+        return value if math.isfinite(value) else str(value)
+    if isinstance(value, (int, str, bool)) or value is None:
+        return value
+    if hasattr(value, "item"):  # numpy scalars
+        return jsonable(value.item())
+    return str(value)
