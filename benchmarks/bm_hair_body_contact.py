@@ -24,7 +24,7 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "tests"))
 import meshes  # noqa: E402
 
 from hairwarp._validate import set_finite_checks  # noqa: E402
-from hairwarp.bench.timing import machine_description, time_ms  # noqa: E402
+from hairwarp.runtime import machine_name, time_ms  # noqa: E402
 from hairwarp.config import EnergyConfig  # noqa: E402
 from hairwarp.ops import hair_body_contact as ops  # noqa: E402
 from hairwarp.torch_reference import hair_body_contact as torch_ref  # noqa: E402
@@ -66,7 +66,7 @@ def main(argv=None):
     params = (cfg.hair_body_xi, cfg.hair_body_dhat, cfg.barrier_join_fraction, cfg.hair_body_weight)
 
     results = {
-        "machine": machine_description(device),
+        "machine": machine_name(device),
         "strands": args.strands,
         "vertices": args.vertices,
         "batch": args.batch,

@@ -15,7 +15,7 @@ import os
 
 import torch
 
-from hairwarp.bench.timing import machine_description, time_ms
+from hairwarp.runtime import machine_name, time_ms
 from hairwarp.models import (DynamicConfig, DynamicNetwork, QuaffureConfig, QuaffureNetwork, StaticConfig,
                              StaticNetwork)
 from hairwarp.models.deformation import apply_deformation
@@ -74,7 +74,7 @@ def main(argv=None):
                                  "ms_per_call": ms, "ms_per_drape": ms / batch})
                     print(f"{name:9s} {size:8s} B={batch:<3d} {precision}: {ms:8.3f} ms/call  "
                           f"{ms / batch:8.4f} ms/drape", flush=True)
-    record = {"device": str(device), "machine": machine_description(device), "strands": m, "vertices": n,
+    record = {"device": str(device), "machine": machine_name(device), "strands": m, "vertices": n,
               "results": rows}
     with open(os.path.join(args.out, "bench_models.json"), "w") as f:
         json.dump(record, f, indent=1)

@@ -7,7 +7,7 @@ import torch
 
 from hairwarp.config import EnergyConfig
 from hairwarp.energy import total_energy
-from hairwarp.evaluation.metrics import length_change_percent, penetration_percent
+from hairwarp.metrics import length_change_percent, penetration_percent
 from hairwarp.evaluation.scenes import comparison_scene
 from hairwarp.solvers import direct
 from hairwarp.solvers.direct import DirectOptimizationConfig, optimize_drape
@@ -62,12 +62,11 @@ def test_lbfgs_keeps_descending_after_the_first_iterations(table1):
 def test_lbfgs_drapes_the_default_scene_free_of_penetration():
     """EnergyConfig's claim (default long_straight hair on the rest body, 40 % penetrating at
     the rigid placement) at a small size: L-BFGS removes the penetration."""
-    from hairwarp.evaluation.scenes import _subset
     from hairwarp.scene.scene import Scene, default_scene
 
     base = default_scene("long_straight")
     keep = torch.arange(0, base.hairstyle.num_strands, 32)
-    scene = Scene(body=base.body, scalp=base.scalp, hairstyle=_subset(base.hairstyle, keep, 40), motion=base.motion)
+    scene = Scene(body=base.body, scalp=base.scalp, hairstyle=base.hairstyle.subset(keep, 40), motion=base.motion)
     frames = scene.frames([0])
     pen0 = float(penetration_percent(frames.rigid.positions, frames.body_mesh))
     assert pen0 > 20.0

@@ -6,9 +6,10 @@ import pytest
 import torch
 
 from hairwarp.config import EnergyConfig
-from hairwarp.evaluation import harness, methods
+from hairwarp import methods
+from hairwarp.evaluation import harness
 from hairwarp.evaluation.charts import speed_accuracy_chart
-from hairwarp.evaluation.methods import Method, MethodOptions, SimulationResult, DrapeResult
+from hairwarp.methods import Method, MethodOptions, MethodResult
 from hairwarp.evaluation.scenes import comparison_scene
 
 _SIZE = {"strand_stride": 32, "num_vertices": 10}
@@ -72,13 +73,13 @@ class _Spy(Method):
 
     def drape(self, frames, *, metrics=None):
         _Spy.seen.append((self.name, id(frames), frames.rigid.positions.clone()))
-        return DrapeResult(positions=frames.rigid.positions.clone(), time_ms=1.0)
+        return MethodResult(positions=frames.rigid.positions.clone(), time_ms=1.0)
 
 
 class _Mutator(Method):
     def drape(self, frames, *, metrics=None):
         frames.rigid.positions.add_(1e-3)
-        return DrapeResult(positions=frames.rigid.positions.clone(), time_ms=1.0)
+        return MethodResult(positions=frames.rigid.positions.clone(), time_ms=1.0)
 
 
 @pytest.fixture
@@ -90,13 +91,13 @@ def spies():
             return m
         return factory
 
-    methods.register_method("spy_a", make("spy_a", _Spy), overwrite=True)
-    methods.register_method("spy_b", make("spy_b", _Spy), overwrite=True)
-    methods.register_method("mutator", make("mutator", _Mutator), overwrite=True)
+    methods.register("spy_a", make("spy_a", _Spy), overwrite=True)
+    methods.register("spy_b", make("spy_b", _Spy), overwrite=True)
+    methods.register("mutator", make("mutator", _Mutator), overwrite=True)
     _Spy.seen.clear()
     yield
     for name in ("spy_a", "spy_b", "mutator"):
-        methods._REGISTRY.pop(name, None)
+        methods.unregister(name)
 
 
 def test_methods_see_identical_inputs(spies):
@@ -118,10 +119,10 @@ class _Offset(Method):
         super().__init__(options)
         self.offset = offset
 
-    def simulate(self, scene, *, frames=None, device="cpu", dtype=torch.float32):
+    def simulate(self, frames):
         x = frames.rigid.positions.clone()
         x[..., 0] += self.offset
-        return SimulationResult(positions=x, time_ms=2.0)
+        return MethodResult(positions=x, time_ms=2.0)
 
 
 def test_motion_metrics_against_the_reference():

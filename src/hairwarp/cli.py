@@ -39,6 +39,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="hairwarp",
         description="Differentiable hair physics (NVIDIA Warp + PyTorch) and the HairFormer neural hair simulator.",
+        epilog="Every command takes --help, --device, --seed and --out. Methods: `hairwarp drape --help`.",
     )
     parser.add_argument("--debug", action="store_true", help="show full tracebacks on errors")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -47,26 +48,12 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def add_common_arguments(parser: argparse.ArgumentParser, *, out_default: str = "hairwarp-out") -> None:
-    """The flags every command shares: --device, --seed, --out."""
-    parser.add_argument("--device", default="cpu", help="torch device: cpu or cuda[:N] (default: cpu)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
-    parser.add_argument("--out", default=out_default, help=f"output folder (default: ./{out_default}/)")
-
-
-def resolve_device(name: str):
-    """A torch device from a --device string, with a clear error when it is unavailable."""
-    import torch
-
-    try:
-        device = torch.device(name)
-    except RuntimeError as exc:
-        raise ValueError(f"--device: {exc}") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError("--device: cuda was asked for but this machine has no CUDA device")
-    if device.type not in ("cpu", "cuda"):
-        raise ValueError(f"--device: expected cpu or cuda, got {name}")
-    return device
+def _as_flag(message: str, args) -> str:
+    """A library error that names an argument ("strand_stride: ...") named as its flag ("--strand-stride: ...")."""
+    name, sep, rest = message.partition(":")
+    if sep and name.isidentifier() and hasattr(args, name):
+        return f"--{name.replace('_', '-')}:{rest}"
+    return message
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -80,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, FileNotFoundError, OSError) as exc:
         if args.debug:
             raise
-        print(f"hairwarp {args.command}: error: {exc}", file=sys.stderr)
+        print(f"hairwarp {args.command}: error: {_as_flag(str(exc), args)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)

@@ -28,6 +28,9 @@ CONTACT_TERMS = (
     "hair_hair_contact",  # Eq. 12 with d = segment-segment distance
 )
 ALL_TERMS = STRAND_TERMS + CONTACT_TERMS
+# Vertices 0 and 1 of every strand are fixed to the scalp (the paper): no method, deformation
+# or optimizer moves them, and the metrics of Table 1 count only the others.
+NUM_FIXED_VERTICES = 2
 # Extrapolations of the contact barrier below its join point (`hairwarp.ops.barrier`), in the
 # order of the kernels' integer ids.
 BARRIER_VARIANTS = ("paper", "monotone", "quadratic")

@@ -14,7 +14,7 @@ from dataclasses import replace
 
 import torch
 
-from hairwarp.bench.timing import machine_description, time_ms
+from hairwarp.runtime import machine_name, time_ms
 from hairwarp.config import EnergyConfig
 
 STRAND_TERM_NAMES = ("stretch", "bending", "auxiliary", "smoothness", "gravity", "root_alignment", "inertia")
@@ -146,7 +146,7 @@ def run_energy_benchmark(device: torch.device, batches=(1, 32), *, config: Energ
                           f"x{row['speedup']:.1f}", flush=True)
     finally:
         set_finite_checks(previous_checks)
-    return {"device": str(device), "machine": machine_description(device), "sizes": sizes,
+    return {"device": str(device), "machine": machine_name(device), "sizes": sizes,
             "config": {k: v for k, v in vars(config).items()}, "results": results}
 
 

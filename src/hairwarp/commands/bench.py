@@ -6,7 +6,7 @@ import os
 
 
 def add_parser(subparsers) -> None:
-    from hairwarp.cli import add_common_arguments
+    from hairwarp.commands.common import add_common_arguments
 
     p = subparsers.add_parser("bench", help="benchmarks: `hairwarp bench energy`",
                               description="Benchmarks that print and save figures.")
@@ -25,9 +25,9 @@ def run_energy(args) -> int:
     import torch
 
     from hairwarp.bench.energy import markdown_table, run_energy_benchmark, write_json
-    from hairwarp.cli import resolve_device
+    from hairwarp.runtime import resolve_device
 
-    device = resolve_device(args.device)
+    device = resolve_device(args.device, argument="--device")
     torch.manual_seed(args.seed)
     try:
         batches = tuple(int(b) for b in args.batch.split(","))

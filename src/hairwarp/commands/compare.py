@@ -17,7 +17,7 @@ _DEFAULT_METHODS = "rigid,adam,lbfgs,reference"
 
 
 def add_parser(subparsers) -> None:
-    from hairwarp.cli import add_common_arguments
+    from hairwarp.commands.common import add_common_arguments
     from hairwarp.evaluation.scenes import STATIC_SCENES
 
     p = subparsers.add_parser("compare", help="speed versus accuracy of the methods on the comparison scenes",
@@ -37,6 +37,11 @@ def add_parser(subparsers) -> None:
                    help="iteration cap of the converged reference drape (default: 5000)")
     p.add_argument("--patience", type=int, default=200,
                    help="optimizers stop after this many iterations without decrease (default: 200)")
+    p.add_argument("--refine", type=int, default=0, metavar="K",
+                   help="also run every network method finished by K L-BFGS iterations (NAME+refine), "
+                        "drawn as a curve over the iterations (default: 0: no such rows)")
+    p.add_argument("--checkpoint", default=None,
+                   help="network methods: a checkpoint written by `hairwarp train` (default: the shipped one)")
     p.add_argument("--record-every", type=int, default=10,
                    help="record penetration every this many optimizer iterations, for the chart (default: 10)")
     p.add_argument("--stability", action="store_true", help="run the stability study instead of the comparison")
@@ -52,12 +57,12 @@ def _check_int(value, flag: str, minimum: int) -> None:
 def run(args) -> int:
     import torch
 
-    from hairwarp.cli import resolve_device
+    from hairwarp.runtime import resolve_device
     from hairwarp.evaluation.charts import speed_accuracy_chart
     from hairwarp.evaluation.harness import markdown_tables, run_comparison, write_results
-    from hairwarp.evaluation.methods import REFERENCE_MAX_ITERATIONS, MethodOptions
+    from hairwarp.methods import REFERENCE_MAX_ITERATIONS, MethodOptions
 
-    device = resolve_device(args.device)
+    device = resolve_device(args.device, argument="--device")
     torch.manual_seed(args.seed)
     _check_int(args.strand_stride, "--strand-stride", 1)
     _check_int(args.num_vertices, "--num-vertices", 3)
@@ -65,6 +70,7 @@ def run(args) -> int:
     _check_int(args.reference_max_iterations, "--reference-max-iterations", 0)
     _check_int(args.patience, "--patience", 1)
     _check_int(args.record_every, "--record-every", 0)
+    _check_int(args.refine, "--refine", 0)
     command_line = "hairwarp " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if sys.argv else None
     os.makedirs(args.out, exist_ok=True)
 
@@ -85,6 +91,8 @@ def run(args) -> int:
         max_iterations=args.max_iterations,
         patience=args.patience,
         record_every=args.record_every,
+        refine=args.refine,
+        checkpoint=args.checkpoint,
         reference_max_iterations=(REFERENCE_MAX_ITERATIONS if args.reference_max_iterations is None
                                   else args.reference_max_iterations),
     )

@@ -1,32 +1,35 @@
 """`hairwarp demo`: the embedded default, end to end, offline.
 
-Default body, a procedural hairstyle grown around the rest body (it falls over the shoulders and
-back), a short head-turn motion: drape and simulate with the best available method (the shipped
-HairFormer checkpoint when the package has one, else direct L-BFGS optimization of the first
-frame, carried rigidly with the head through the motion), then write the animation as USD,
-preview pictures, a GIF, and print the metrics table. About a minute on a 2-core CPU.
+Default body, a procedural hairstyle grown around the rest body (it falls over the shoulders
+and back), a one-second head turn, simulated by one method of the registry (default auto: the
+shipped dynamic network, finished by a few L-BFGS iterations a frame and never leaving more
+vertices inside the body than the rigid placement); writes the animation as USD, preview
+pictures, a GIF, and prints the metrics table. About a minute on a 2-core CPU.
 """
 
 from __future__ import annotations
 
-import json
 import os
 import time
 
+from hairwarp.commands.common import add_common_arguments, add_threads_argument, method_name
+
 
 def add_parser(subparsers) -> None:
-    from hairwarp.cli import add_common_arguments
-    from hairwarp.commands.drape import add_threads_argument
+    from hairwarp.methods import AUTO_REFINE
 
-    p = subparsers.add_parser("demo", help="drape and simulate the embedded default scene; write USD, pictures, metrics",
+    p = subparsers.add_parser("demo", help="simulate the embedded default scene with one method; write USD, "
+                                           "pictures, a GIF, metrics",
                               description=__doc__.split("\n\n")[1])
     add_common_arguments(p)
     p.add_argument("--hairstyle", default="long_straight", help="procedural hairstyle preset (default: long_straight)")
     p.add_argument("--motion", default="head_turn", help="procedural motion (default: head_turn)")
     p.add_argument("--duration", type=float, default=1.0, help="motion length [s] (default: 1.0)")
-    p.add_argument("--method", default="auto", choices=["auto", "network", "lbfgs"],
-                   help="auto: the shipped network if present, else L-BFGS (default: auto)")
-    p.add_argument("--max-iterations", type=int, default=40, help="L-BFGS iteration cap (default: 40)")
+    p.add_argument("--method", default="auto", type=method_name,
+                   help="a method of `hairwarp.methods.available()` or NAME+refine (default: auto)")
+    p.add_argument("--refine", type=int, default=0, metavar="K",
+                   help=f"L-BFGS iterations after a network (default: 0; auto: {AUTO_REFINE})")
+    p.add_argument("--max-iterations", type=int, default=40, help="adam/lbfgs iteration cap (default: 40)")
     p.add_argument("--strand-stride", type=int, default=2,
                    help="grow on every K-th root of the 32 x 32 scalp only (default: 2, 512 strands; 1: all 1024)")
     p.add_argument("--num-vertices", type=int, default=100, help="vertices per strand (default: 100)")
@@ -37,17 +40,18 @@ def add_parser(subparsers) -> None:
 def run(args) -> int:
     import torch
 
-    from hairwarp.cli import resolve_device
-    from hairwarp.commands.drape import picture_distances, set_threads
-    from hairwarp.evaluation.metrics import length_change_percent
+    from hairwarp.builder import positive_int
+    from hairwarp.commands.common import markdown_table, picture_distances, run_and_score, set_threads, write_metrics
+    from hairwarp.config import EnergyConfig
     from hairwarp.io.usd import write_usd
-    from hairwarp.ops import hair_body_signed_distance
+    from hairwarp.methods import MethodOptions, make
     from hairwarp.render.preview import render_animation, render_drape
+    from hairwarp.runtime import resolve_device
     from hairwarp.scene.hairstyles import list_hairstyle_presets
     from hairwarp.scene.motion import list_motions
     from hairwarp.scene.scene import default_scene
 
-    device = resolve_device(args.device)
+    device = resolve_device(args.device, argument="--device")
     set_threads(args)
     torch.manual_seed(args.seed)
     if args.hairstyle not in list_hairstyle_presets():
@@ -56,117 +60,57 @@ def run(args) -> int:
         raise ValueError(f"--motion: expected one of {list_motions()}, got {args.motion!r}")
     if not args.duration > 0:
         raise ValueError(f"--duration: expected a positive number of seconds, got {args.duration}")
-    if args.max_iterations < 0:
-        raise ValueError(f"--max-iterations: expected an integer >= 0, got {args.max_iterations}")
-    if args.strand_stride < 1:
-        raise ValueError(f"--strand-stride: expected an integer >= 1, got {args.strand_stride}")
-    if args.num_vertices < 3:
-        raise ValueError(f"--num-vertices: expected an integer >= 3, got {args.num_vertices}")
+    options = MethodOptions(energy_config=EnergyConfig(),
+                            max_iterations=positive_int("--max-iterations", args.max_iterations, minimum=0),
+                            patience=20, refine=positive_int("--refine", args.refine, minimum=0), progress=True)
+    method = make(args.method, options)
+    stride = positive_int("--strand-stride", args.strand_stride)
+    num_vertices = positive_int("--num-vertices", args.num_vertices, minimum=3)
     os.makedirs(args.out, exist_ok=True)
 
     t0 = time.perf_counter()
     clock = {"start": t0}
 
-    def lap(name):
+    def phase(name, next_step: str | None = None):
         now = time.perf_counter()
         clock[name] = now - clock["start"]
         clock["start"] = now
+        if next_step:
+            print(f"[{now - t0:5.1f} s] {next_step}", flush=True)
 
+    print(f"[  0.0 s] building the scene: {args.hairstyle} grown around the default body, {args.motion} "
+          f"{args.duration:g} s", flush=True)
     # Grown around the rest body, so the rest drape starts nearly free of penetration (grown
     # around the head alone, long hair hangs straight through the torso: ~37 % inside).
     scene = default_scene(args.hairstyle, args.motion, seed=args.seed, duration=args.duration,
-                          grow_around_body=True, strand_stride=args.strand_stride, num_vertices=args.num_vertices)
+                          grow_around_body=True, strand_stride=stride, num_vertices=num_vertices)
     frames = scene.frames(device=device)
-    print(f"scene {scene.name}: {scene.hairstyle.num_strands} strands x {scene.hairstyle.strands.shape[1]} "
-          f"vertices, {scene.num_frames} frames at {scene.motion.fps:g} fps, body {scene.body.num_vertices} vertices "
-          f"({frames.body_mesh.num_faces} of {scene.body.num_faces} triangles within the hair's reach)")
-    lap("scene")
-
-    positions, method, timing_ms = _simulate(scene, frames, args)
-    lap("method")
-    rigid = frames.rigid.positions
-    rest = frames.inputs.rest_lengths
-    # Signed distances of every frame, once: the metrics and the red in the pictures.
-    sd_rigid = hair_body_signed_distance(rigid, frames.body_mesh)
-    sd = hair_body_signed_distance(positions, frames.body_mesh)
-    pen_rigid = (sd_rigid[:, :, 2:] < 0).float().mean(dim=(1, 2)) * 100.0  # moving vertices, as Table 1
-    pen = (sd[:, :, 2:] < 0).float().mean(dim=(1, 2)) * 100.0
-    lengths = length_change_percent(positions, rest)
-    table = [
-        "| method | ms/frame | penetration % (mean over frames) | length change % (mean) |",
-        "|---|---:|---:|---:|",
-        f"| rigid placement (Eq. 1) | - | {float(pen_rigid.mean()):.3f} | "
-        f"{float(length_change_percent(rigid, rest).mean()):.3f} |",
-        f"| {method} | {timing_ms:.1f} | {float(pen.mean()):.3f} | {float(lengths.mean()):.3f} |",
-    ]
-    print("\n".join(table))
-    lap("metrics")
-
+    phase("scene", f"simulating {scene.hairstyle.num_strands} strands x {num_vertices} vertices over "
+                   f"{scene.num_frames} frames with {method.name}")
+    result, metrics, sd, sd_rigid = run_and_score(method, frames, options.config(), simulate=True)
+    phase("method", "writing USD and drawing the pictures")
+    ms_text = "-" if result.time_ms is None else f"{result.time_ms:.1f}"
+    table = markdown_table([("rigid placement (Eq. 1)", "-", metrics["rigid"]), (method.name, ms_text, metrics["method"])])
     body_v = frames.posed.vertices.detach().cpu()
     faces = scene.body.faces.cpu()
-    hair = positions.detach().cpu()
+    hair = result.positions.detach().cpu()
     usd_path = write_usd(os.path.join(args.out, "demo.usda"), hair, body_v, faces, fps=scene.motion.fps)
-    render_drape(os.path.join(args.out, "demo_rigid.png"), rigid[0].cpu(), body_v[0], faces,
-                 signed_distance=picture_distances(sd_rigid[0]).cpu(), title="rigid placement (Eq. 1), frame 0: red = inside the body")
+    render_drape(os.path.join(args.out, "demo_rigid.png"), frames.rigid.positions[0].cpu(), body_v[0], faces,
+                 signed_distance=picture_distances(sd_rigid[0]).cpu(),
+                 title="rigid placement (Eq. 1), frame 0: red = inside the body")
     render_drape(os.path.join(args.out, "demo_drape.png"), hair[0], body_v[0], faces,
-                 signed_distance=picture_distances(sd[0]).cpu(), title=f"{_short(method)}, frame 0: red = inside the body")
-    stride = max(1, -(-scene.num_frames // 20))
+                 signed_distance=picture_distances(sd[0]).cpu(), title=f"{method.name}, frame 0: red = inside the body")
+    stride_gif = max(1, -(-scene.num_frames // 20))
     render_animation(os.path.join(args.out, "demo.gif"), hair, body_v, faces, signed_distance=picture_distances(sd).cpu(),
-                     fps=scene.motion.fps, stride=stride, title=_short(method))
-    lap("outputs")
-    with open(os.path.join(args.out, "demo_metrics.json"), "w") as f:
-        json.dump({"scene": scene.name, "method": method, "ms_per_frame": timing_ms,
-                   "strands": scene.hairstyle.num_strands, "vertices": int(scene.hairstyle.strands.shape[1]),
-                   "frames": scene.num_frames, "fps": scene.motion.fps,
-                   "penetration_percent": pen.tolist(), "length_change_percent": lengths.tolist(),
-                   "rigid_penetration_percent": pen_rigid.tolist(), "device": str(device),
-                   "wall_s": {k: round(v, 2) for k, v in clock.items() if k != "start"}}, f, indent=1)
-    with open(os.path.join(args.out, "demo_metrics.md"), "w") as f:
-        f.write("\n".join(table) + "\n")
+                     fps=scene.motion.fps, stride=stride_gif, title=method.name)
+    phase("outputs")
+    record = {"scene": scene.name, "method": method.name, "method_info": result.info, "ms_per_frame": result.time_ms,
+              "strands": scene.hairstyle.num_strands, "vertices": num_vertices, "frames": scene.num_frames,
+              "fps": scene.motion.fps, "device": str(device), "rigid": metrics["rigid"], "result": metrics["method"],
+              "wall_s": {k: round(v, 2) for k, v in clock.items() if k != "start"}}
+    write_metrics(args.out, "demo", record, table)
+    print(table)
     phases = ", ".join(f"{k} {v:.0f} s" for k, v in clock.items() if k != "start")
     print(f"wrote {usd_path}, demo_rigid.png, demo_drape.png, demo.gif, demo_metrics.json/.md into {args.out} "
           f"({time.perf_counter() - t0:.0f} s: {phases})")
     return 0
-
-
-def _short(label: str) -> str:
-    """A method label cut before its parenthesis, for picture titles."""
-    return label.split(" (")[0] + (" carried with the head" if "carried" in label else "")
-
-
-def _simulate(scene, frames, args):
-    """(positions (T, M, N, 3), method label, ms per frame)."""
-    import torch
-
-    from hairwarp.solvers.direct import DirectOptimizationConfig, optimize_drape
-
-    if args.method in ("auto", "network"):
-        try:
-            from hairwarp.inference import load_default_simulator
-        except ImportError:
-            load_default_simulator = None
-        simulator = load_default_simulator(frames.rigid.positions.device) if load_default_simulator else None
-        if simulator is not None:
-            return simulator.simulate_scene(scene, frames)
-        if args.method == "network":
-            raise ValueError("--method network: no shipped network checkpoint in this installation; use --method lbfgs")
-
-    # Fallback: L-BFGS drape of frame 0, carried rigidly with the head (M_head) through the motion.
-    # Hair-hair contact is left out here: its broad phase costs ~0.5 s per evaluation on a 2-core
-    # CPU at 1024 x 100, which would take the demo past its two minutes (the benchmarks and the
-    # harness keep it).
-    from hairwarp.config import EnergyConfig
-
-    config = EnergyConfig(hair_hair_weight=0.0)
-    first = frames.inputs
-    one = type(first)(rest_lengths=first.rest_lengths, rigid=first.rigid[:1], scalp_normals=first.scalp_normals[:1],
-                      body=scene.frames([0], device=frames.rigid.positions.device).body_mesh)
-    result = optimize_drape(frames.rigid.positions[:1], one, config,
-                            solver=DirectOptimizationConfig(method="lbfgs", max_iterations=args.max_iterations,
-                                                            patience=20), progress=True)
-    offset = result.positions[0] - frames.rigid.positions[0]  # (M, N, 3) drape offset at frame 0
-    rot = frames.posed.head_transform[:, :3, :3] @ frames.posed.head_transform[0, :3, :3].T
-    positions = frames.rigid.positions + torch.einsum("tij,mnj->tmni", rot, offset)
-    label = (f"L-BFGS drape of frame 0 ({result.iterations} it., {result.stop_reason}, no hair-hair), "
-             "carried with the head")
-    return positions, label, result.time_s * 1e3

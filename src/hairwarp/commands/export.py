@@ -52,9 +52,9 @@ def _read(path: str, units: str):
     """(hair (T, M, N, 3) float32 tensor [m] or a list of (n_i, 3) arrays, body vertices, faces, fps)."""
     import numpy as np
 
-    from hairwarp.commands.drape import data_units
+    from hairwarp.builder import data_units
     from hairwarp.io.export import read_hair_obj, read_hair_ply
-    from hairwarp.io.hair_data import _UNITS, read_hair_data
+    from hairwarp.io.hair_data import LENGTH_UNITS, read_hair_data
     from hairwarp.io.usd import read_usd
 
     suffix = os.path.splitext(path)[1].lower()
@@ -64,7 +64,7 @@ def _read(path: str, units: str):
         raise ValueError(f"input: no such file {path!r}")
     try:
         if suffix == ".data":
-            scale = _UNITS[data_units(path, units)]
+            scale = LENGTH_UNITS[data_units(path, units)]
             strands = [(a.astype(np.float64) * scale).astype(np.float32) for a in read_hair_data(path)]
             strands = [a for a in strands if len(a) >= 2]
             if not strands:
@@ -112,7 +112,7 @@ def _equal_counts(hair, num_vertices: int | None):
     import numpy as np
     import torch
 
-    from hairwarp.io.hair_data import resample_strands
+    from hairwarp.scene.hairstyles import resample_strands
 
     if isinstance(hair, list):
         counts = {len(a) for a in hair}

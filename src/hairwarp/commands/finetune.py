@@ -16,7 +16,7 @@ import os
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
     """Register `hairwarp finetune`."""
-    from hairwarp.cli import add_common_arguments
+    from hairwarp.commands.common import add_common_arguments
     from hairwarp.commands.train import add_training_arguments
 
     parser = subparsers.add_parser(
@@ -38,11 +38,11 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 def run(args) -> int:
     """Fine-tune as asked; print one summary line."""
-    from hairwarp.cli import resolve_device
+    from hairwarp.runtime import resolve_device
     from hairwarp.training.config import load_config
     from hairwarp.training.finetune import finetune
 
-    device = resolve_device(args.device)
+    device = resolve_device(args.device, argument="--device")
     if args.iterations < 1:
         raise ValueError(f"--iterations: expected a positive int, got {args.iterations}")
     overrides = list(args.overrides)

@@ -23,7 +23,7 @@ _KINDS = ("static", "dynamic", "quaffure")
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
     """Register `hairwarp train`."""
-    from hairwarp.cli import add_common_arguments
+    from hairwarp.commands.common import add_common_arguments
 
     parser = subparsers.add_parser(
         "train",
@@ -63,14 +63,14 @@ def _summary(trainer, out: str) -> str:
 
 def run(args) -> int:
     """Train as asked; print one summary line."""
-    from hairwarp.cli import resolve_device
+    from hairwarp.runtime import resolve_device
     from hairwarp.training._common import checkpoint_config
     from hairwarp.training.config import apply_overrides, load_config
     from hairwarp.training.distributed import init_distributed
     from hairwarp.training.dynamic import DynamicTrainer
     from hairwarp.training.static import StaticTrainer
 
-    device = resolve_device(args.device)
+    device = resolve_device(args.device, argument="--device")
     if args.steps is not None and args.steps < 1:
         raise ValueError(f"--steps: expected a positive int, got {args.steps}")
     if args.config is not None and not os.path.isfile(args.config):

@@ -5,7 +5,9 @@ One row of panels per static scene: time per drape [ms] on a log x axis against 
 (Adam, L-BFGS, the converged reference) are curves over their iterations, drawn from their
 history (penetration where it was recorded, every `record_every` iterations; the energy gap at
 every iteration); one-shot methods (the networks) are points; the rigid placement, which
-costs nothing, is a dashed horizontal line. The device is named in the title.
+costs nothing, is a dashed horizontal line; a network finished by L-BFGS ("static+refine")
+is a curve in its network's colour that starts at the network's time. The device is named in
+the title.
 """
 
 from __future__ import annotations
@@ -23,6 +25,9 @@ _STYLE = {"rigid": ("0.4", "--"), "adam": ("tab:orange", "-"), "lbfgs": ("tab:bl
 def _color(name: str, index: int) -> str:
     if name in _STYLE:
         return _STYLE[name][0]
+    base = name.split("+")[0]
+    if base in _STYLE:  # a composed method ("static+refine") in its network's colour
+        return _STYLE[base][0]
     return f"C{index % 10}"
 
 
@@ -40,10 +45,9 @@ def speed_accuracy_chart(record: dict, path: str, *, scenes: list[str] | None = 
     Raises:
         ValueError: `path` not ending in .png, or `scenes` naming no static scene of the record.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    # An Agg canvas of our own: the caller's pyplot state and backend stay as they are.
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
 
     if not str(path).lower().endswith(".png"):
         raise ValueError(f"path: expected a .png file, got {path!r}")
@@ -52,7 +56,9 @@ def speed_accuracy_chart(record: dict, path: str, *, scenes: list[str] | None = 
         static = [e for e in static if e["name"] in scenes]
     if not static:
         raise ValueError("scenes: the record holds no static scene to chart")
-    fig, axes = plt.subplots(len(static), 2, figsize=(12, 3.6 * len(static)), squeeze=False)
+    fig = Figure(figsize=(12, 3.6 * len(static)))
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(len(static), 2, squeeze=False)
     for row, entry in enumerate(static):
         ax_pen, ax_gap = axes[row]
         size = entry["size"]
@@ -102,5 +108,4 @@ def speed_accuracy_chart(record: dict, path: str, *, scenes: list[str] | None = 
     fig.tight_layout()
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return path

@@ -2,7 +2,7 @@
 
 For each comparison scene (`hairwarp.evaluation.scenes`) the harness builds the frames once,
 hands that very object to every method (and checks afterwards that no method changed it), and
-scores what comes back with the metrics of Table 1 and beyond (`hairwarp.evaluation.metrics`):
+scores what comes back with the metrics of Table 1 and beyond (`hairwarp.metrics`):
 
 Static scenes (a batch of B independent drapes):
     - ms per drape, measured by the method after its warm-up (None for the rigid placement);
@@ -27,6 +27,7 @@ it, `markdown_tables` renders the Table-1-style tables.
 
 from __future__ import annotations
 
+import dataclasses
 import datetime
 import json
 import math
@@ -37,54 +38,12 @@ from collections.abc import Sequence
 
 import torch
 
-from hairwarp.evaluation import metrics as M
-from hairwarp.evaluation.methods import MethodOptions, list_methods, make_method
+from hairwarp import metrics as M
+from hairwarp.methods import NETWORK_METHODS, REFINE_SUFFIX, MethodOptions, available, make
 from hairwarp.evaluation.scenes import SCENE_NAMES, SCENES_VERSION, comparison_scene
+from hairwarp.runtime import jsonable, machine_description, resolve_device
 
 RESULTS_SCHEMA = "hairwarp.compare/1"
-# Methods registered by another module (the networks); imported lazily when present.
-_EXTRA_METHOD_MODULES = ("hairwarp.evaluation.network_methods",)
-
-
-def ensure_methods_registered() -> list[str]:
-    """Import the optional method modules (they register themselves); return every method name."""
-    import importlib
-
-    for module in _EXTRA_METHOD_MODULES:
-        try:
-            importlib.import_module(module)
-        except ModuleNotFoundError as exc:
-            if exc.name != module:  # the module exists but one of its imports is missing
-                raise
-    return list_methods()
-
-
-def machine_description(device: torch.device) -> dict:
-    """What the figures were measured on: device name, CPU, core count, library versions."""
-    import warp as wp
-
-    info = {
-        "device": str(device),
-        "platform": platform.platform(),
-        "processor": platform.processor() or platform.machine(),
-        "cpu_count": os.cpu_count(),
-        "python": sys.version.split()[0],
-        "torch": torch.__version__,
-        "warp": wp.__version__,
-    }
-    try:  # other work on the machine slows every timing: say how busy it was
-        info["load_average_1min"] = os.getloadavg()[0]
-    except OSError:
-        info["load_average_1min"] = None
-    from hairwarp.bench.timing import cpu_model_name
-
-    cpu_name = cpu_model_name()
-    info["cpu_name"] = cpu_name
-    if device.type == "cuda":
-        info["device_name"] = torch.cuda.get_device_name(device)
-    else:
-        info["device_name"] = f"CPU ({cpu_name or info['processor']}, {os.cpu_count()} cores)"
-    return info
 
 
 def _fingerprint(frames) -> list[float]:
@@ -126,7 +85,6 @@ def _run_static(scene, frames, methods: dict, config, record_every: int, progres
     before = _fingerprint(frames)
     for name, method in methods.items():
         progress(f"{scene.name}: {name}")
-        method.prepare(scene)
         result = method.drape(frames, metrics=pen_metric if record_every else None)
         if _fingerprint(frames) != before:
             raise RuntimeError(f"method {name!r} modified the scene's inputs; every method must see the same inputs")
@@ -142,8 +100,8 @@ def _run_static(scene, frames, methods: dict, config, record_every: int, progres
             "penetration_percent_per_drape": M.penetration_percent(positions, body).tolist() if finite else None,
             "length_change_percent": float(M.length_change_percent(positions, rest).mean()) if finite else None,
             "energy": _static_energy(positions, frames, config) if finite else None,
-            "info": _jsonable(result.info),
-            "history": [_jsonable(h) for h in result.history],
+            "info": jsonable(result.info),
+            "history": [jsonable(h) for h in result.history],
             "batch": batch,
         }
         rows.append(row)
@@ -167,8 +125,7 @@ def _run_motion(scene, frames, methods: dict, progress) -> list[dict]:
     before = _fingerprint(frames)
     for name, method in methods.items():
         progress(f"{scene.name}: {name}")
-        method.prepare(scene)
-        sim = method.simulate(scene, frames=frames)
+        sim = method.simulate(frames)
         if _fingerprint(frames) != before:
             raise RuntimeError(f"method {name!r} modified the scene's inputs; every method must see the same inputs")
         positions = sim.positions.detach()
@@ -185,7 +142,7 @@ def _run_motion(scene, frames, methods: dict, progress) -> list[dict]:
             "penetration_percent": float(pen.mean()) if finite else None,
             "penetration_percent_max_frame": float(pen.max()) if finite else None,
             "length_change_percent": float(lc.mean()) if finite else None,
-            "info": _jsonable(sim.info),
+            "info": jsonable(sim.info),
         })
     reference = sims.get("reference")
     for row in rows:
@@ -202,20 +159,6 @@ def _run_motion(scene, frames, methods: dict, progress) -> list[dict]:
         if x.shape[0] >= 3:
             row["jitter_m"] = float(M.jitter(x, reference))
     return rows
-
-
-def _jsonable(value):
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, torch.Tensor):
-        return value.detach().cpu().tolist()
-    if isinstance(value, float) and not math.isfinite(value):
-        return str(value)
-    if isinstance(value, (bool, int, float, str)) or value is None:
-        return value
-    return str(value)
 
 
 def parse_names(text: str | Sequence[str], known: Sequence[str], flag: str) -> list[str]:
@@ -268,15 +211,17 @@ def run_comparison(
     Raises:
         ValueError: unknown method or scene names (naming `methods` / `scenes`).
     """
-    from hairwarp.cli import resolve_device
-
-    device = resolve_device(str(device))
-    registered = ensure_methods_registered()
-    method_names = parse_names(methods, registered, "methods")
-    scene_names = parse_names(scenes, SCENE_NAMES, "scenes")
+    device = resolve_device(device)
+    known = available() + [name + REFINE_SUFFIX for name in available()]
+    method_names = parse_names(methods, known, "methods")
     options = options or MethodOptions()
+    if options.refine > 0:  # every network also finished by `refine` L-BFGS iterations: a curve over K
+        for name in list(method_names):
+            if name in NETWORK_METHODS and name + REFINE_SUFFIX not in method_names:
+                method_names.insert(method_names.index(name) + 1, name + REFINE_SUFFIX)
+    scene_names = parse_names(scenes, SCENE_NAMES, "scenes")
     if progress:
-        options.progress = True
+        options = dataclasses.replace(options, progress=True)
     config = options.config()
     say = print if progress else (lambda *_: None)
     record = {
@@ -291,7 +236,7 @@ def run_comparison(
         "options": {"max_iterations": options.max_iterations, "patience": options.patience,
                     "record_every": options.record_every,
                     "reference_max_iterations": options.reference_max_iterations,
-                    "energy_config": _jsonable(config.__dict__)},
+                    "energy_config": jsonable(config.__dict__)},
         "scenes": [],
     }
     for scene_name in scene_names:
@@ -299,7 +244,7 @@ def run_comparison(
         frames = scene.frames(device=device)
         instances = {}
         for name in method_names:
-            instances[name] = make_method(name, options)
+            instances[name] = make(name, options)
         torch.manual_seed(seed)
         if scene.is_motion:
             # The motion's frame spacing is the implicit-Euler time step of the reference.
@@ -316,7 +261,7 @@ def write_results(record: dict, path: str) -> str:
     """Write the results JSON (non-finite floats as strings) and return the path."""
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     with open(path, "w") as f:
-        json.dump(_jsonable(record), f, indent=1, allow_nan=False)
+        json.dump(jsonable(record), f, indent=1, allow_nan=False)
     return path
 
 

@@ -189,15 +189,6 @@ def _grown_hairstyle(preset: str) -> tuple[Scene, Hairstyle]:
     return base, style
 
 
-def _subset(style: Hairstyle, keep: torch.Tensor, num_vertices: int) -> Hairstyle:
-    strands = style.strands[keep]
-    if num_vertices != strands.shape[1]:
-        strands = torch.as_tensor(resample_polylines(strands.double().numpy(), num_vertices), dtype=torch.float32)
-    return Hairstyle(strands=strands.contiguous(), root_uv=style.root_uv[keep], root_normals=style.root_normals[keep],
-                     root_index=style.root_index[keep], filtered=style.filtered, name=style.name,
-                     info=dict(style.info))
-
-
 def _motion_for(spec: SceneSpec) -> Motion:
     if spec.kind == "static":
         poses = torch.stack([head_pose(*p) for p in spec.head_poses])
@@ -252,7 +243,7 @@ def comparison_scene(name: str, reduced: bool = False, *, strand_stride: int | N
         keep = keep[inside[keep]]
         if keep.numel() == 0:
             raise ValueError(f"strand_stride: {stride} keeps no strand whose tip starts inside the body")
-    hair = _subset(style, keep, n)
+    hair = style.subset(keep, n)
     scene = Scene(body=base.body, scalp=base.scalp, hairstyle=hair, motion=motion, name=name)
     size = {"strands": hair.num_strands, "vertices": n, "frames": motion.num_frames, "strand_stride": stride}
     return ComparisonScene(name=name, spec=spec, scene=scene, reduced=bool(reduced), size=size)

@@ -31,7 +31,7 @@ import torch
 
 from hairwarp.config import BARRIER_VARIANTS, EnergyConfig
 from hairwarp.energy import EnergyInputs, total_energy
-from hairwarp.evaluation import metrics as M
+from hairwarp import metrics as M
 from hairwarp.evaluation.scenes import comparison_scene
 from hairwarp.solvers.direct import DirectOptimizationConfig, optimize_drape
 
@@ -466,13 +466,12 @@ def sign_consistency_study(stride: int = 16, min_depth: float = 0.02) -> list[di
     placement passes through the torso by up to 8 cm. Points with |d| >= `min_depth` are
     checked against the winding number.
     """
-    from hairwarp.evaluation.scenes import _subset
     from hairwarp.ops import hair_body_signed_distance
     from hairwarp.scene.scene import Scene, default_scene
 
     base = default_scene("long_straight", "head_turn", seed=0, duration=1.0)
     keep = torch.arange(0, base.hairstyle.num_strands, stride)
-    scene = Scene(body=base.body, scalp=base.scalp, hairstyle=_subset(base.hairstyle, keep, 100),
+    scene = Scene(body=base.body, scalp=base.scalp, hairstyle=base.hairstyle.subset(keep, 100),
                   motion=base.motion, name="unfitted")
     frames = scene.frames([0], crop=False)
     x = frames.rigid.positions[0, :, 2:].reshape(-1, 3)

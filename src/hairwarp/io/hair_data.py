@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from hairwarp._validate import check_positive
-from hairwarp.scene.hairstyles import Hairstyle, _scalp_arrays, resample_polylines
+from hairwarp.scene.hairstyles import Hairstyle, as_strand_list, resample_polylines, resample_strands, scalp_arrays
 from hairwarp.scene.scalp import Scalp
 
 _INT = struct.Struct("<i")
@@ -91,7 +91,7 @@ def write_hair_data(path: str | os.PathLike, strands) -> None:
         ValueError: if a strand is not (n, 3) or holds NaN/Inf.
     """
     name = os.fspath(path)
-    items = _as_strand_list("strands", strands)
+    items = as_strand_list("strands", strands)
     if len(items) > 2**31 - 1:
         raise ValueError(f"strands: too many strands for an int32 count: {len(items)}")
     parts = [_INT.pack(len(items))]
@@ -102,71 +102,12 @@ def write_hair_data(path: str | os.PathLike, strands) -> None:
         f.write(b"".join(parts))
 
 
-def _as_strand_list(arg: str, strands) -> list[np.ndarray]:
-    if isinstance(strands, (torch.Tensor, np.ndarray)):
-        if strands.ndim != 3 or strands.shape[-1] != 3:
-            raise ValueError(
-                f"{arg}: expected (S, N, 3) or a list of (n_i, 3), got shape {tuple(strands.shape)}"
-            )
-        strands = list(strands)
-    if not isinstance(strands, (list, tuple)):
-        raise ValueError(f"{arg}: expected a list of (n_i, 3) arrays, got {type(strands).__name__}")
-    out = []
-    for i, s in enumerate(strands):
-        if isinstance(s, torch.Tensor):
-            s = s.detach().cpu().numpy()
-        a = np.asarray(s)
-        if a.ndim != 2 or a.shape[1] != 3:
-            raise ValueError(f"{arg}[{i}]: expected shape (n, 3), got {a.shape}")
-        if not np.issubdtype(a.dtype, np.floating) and not np.issubdtype(a.dtype, np.integer):
-            raise ValueError(f"{arg}[{i}]: expected a numeric array, got dtype {a.dtype}")
-        if not np.isfinite(a).all():
-            raise ValueError(f"{arg}[{i}]: contains NaN or Inf")
-        out.append(a)
-    return out
-
-
 def strand_lengths(strands) -> np.ndarray:
     """Arc length of each strand [file units], (S,) float64."""
-    items = _as_strand_list("strands", strands)
+    items = as_strand_list("strands", strands)
     return np.array([
         float(np.linalg.norm(np.diff(np.asarray(a, dtype=np.float64), axis=0), axis=1).sum()) for a in items
     ])
-
-
-def resample_strands(strands, n: int = 100, dtype: torch.dtype = torch.float32) -> torch.Tensor:
-    """Resample each strand to `n` vertices evenly spaced in arc length.
-
-    Vertex 0 (the root) and the tip are kept exactly; in between, points are linearly
-    interpolated along the polyline.
-
-    Args:
-        strands: a sequence of (n_i, 3) arrays/tensors (n_i >= 2, non-zero length), or one
-            (S, N, 3) array/tensor.
-        n: vertices per output strand (>= 2; 100 in the paper).
-        dtype: torch float dtype of the result.
-
-    Returns:
-        (S, n, 3) tensor (CPU for array input, the input's device for tensor input).
-    """
-    if int(n) < 2:
-        raise ValueError(f"n: expected an int >= 2, got {n}")
-    device = strands.device if isinstance(strands, torch.Tensor) else torch.device("cpu")
-    items = _as_strand_list("strands", strands)
-    out = np.empty((len(items), int(n), 3))
-    # Group strands by vertex count so the vectorised resampler runs once per group.
-    groups: dict[int, list[int]] = {}
-    for i, a in enumerate(items):
-        if a.shape[0] < 2:
-            raise ValueError(f"strands[{i}]: needs at least 2 vertices to resample, got {a.shape[0]}")
-        groups.setdefault(a.shape[0], []).append(i)
-    for count, idx in groups.items():
-        pts = np.stack([np.asarray(items[i], dtype=np.float64) for i in idx])
-        lengths = np.linalg.norm(np.diff(pts, axis=1), axis=-1).sum(axis=1)
-        if np.any(lengths <= 0):
-            raise ValueError(f"strands[{idx[int(np.argmin(lengths))]}]: has zero length, cannot resample")
-        out[idx] = resample_polylines(pts, int(n))
-    return torch.tensor(out, dtype=dtype, device=device)
 
 
 _UP_AXES = {
@@ -174,7 +115,8 @@ _UP_AXES = {
     # z up -> y up: a rotation of -90 degrees about x, (x, y, z) -> (x, z, -y).
     "z": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]),
 }
-_UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}
+# Metres per file unit.
+LENGTH_UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}
 
 
 def load_hairstyle(
@@ -214,8 +156,8 @@ def load_hairstyle(
         ValueError: for a malformed file (naming it), bad arguments, or when no strand
             survives the filtering.
     """
-    if units not in _UNITS:
-        raise ValueError(f"units: expected one of {sorted(_UNITS)}, got {units!r}")
+    if units not in LENGTH_UNITS:
+        raise ValueError(f"units: expected one of {sorted(LENGTH_UNITS)}, got {units!r}")
     if up not in _UP_AXES:
         raise ValueError(f"up: expected one of {sorted(_UP_AXES)}, got {up!r}")
     if align not in ("none", "roots"):
@@ -223,10 +165,10 @@ def load_hairstyle(
     check_positive("min_length", min_length, allow_zero=True)
     if int(num_vertices) < 2:
         raise ValueError(f"num_vertices: expected an int >= 2, got {num_vertices}")
-    scalp_pos, scalp_nrm, scalp_uv = _scalp_arrays(scalp)
+    scalp_pos, scalp_nrm, scalp_uv = scalp_arrays(scalp)
     name = os.fspath(path)
     raw = read_hair_data(name)
-    rot = _UP_AXES[up] * _UNITS[units]
+    rot = _UP_AXES[up] * LENGTH_UNITS[units]
     strands = [a.astype(np.float64) @ rot.T for a in raw]
     translation = np.zeros(3)
     if align == "roots":

@@ -23,8 +23,7 @@ from __future__ import annotations
 import torch
 
 from hairwarp._validate import FLOAT_DTYPES, check_tensor
-
-NUM_FIXED_VERTICES = 2  # vertices 0 and 1 of each strand never move (the paper)
+from hairwarp.config import NUM_FIXED_VERTICES
 
 
 def taper_weights(

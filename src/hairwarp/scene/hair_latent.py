@@ -249,7 +249,7 @@ class HairLatentBasis:
                 "pass root_uv to map them onto the grid"
             )
         if s.shape[2] != self.num_vertices:
-            from hairwarp.io.hair_data import resample_strands
+            from hairwarp.scene.hairstyles import resample_strands
 
             flat = s.reshape(-1, s.shape[2], 3)
             s = resample_strands(flat, self.num_vertices, dtype=s.dtype).reshape(

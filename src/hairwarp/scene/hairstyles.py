@@ -240,7 +240,7 @@ def fit_head_ellipsoid(scalp: Scalp) -> HeadEllipsoid:
     Returns:
         The fitted `HeadEllipsoid`.
     """
-    p = _scalp_arrays(scalp)[0]
+    p = scalp_arrays(scalp)[0]
     if p.shape[0] < 6:
         raise ValueError(f"scalp: need at least 6 roots to fit a head proxy, got {p.shape[0]}")
     mean = p.mean(axis=0)
@@ -295,6 +295,24 @@ class Hairstyle:
     def num_strands(self) -> int:
         return int(self.strands.shape[0])
 
+    def subset(self, keep: torch.Tensor | None = None, num_vertices: int | None = None) -> Hairstyle:
+        """The strands `keep` (indices; None: all), resampled by arc length to `num_vertices`.
+
+        Args:
+            keep: (K,) int64 strand indices, or None for every strand.
+            num_vertices: vertices per strand of the result (None: unchanged), >= 3.
+
+        Returns:
+            A new Hairstyle (same name, filtered and info).
+        """
+        strands = self.strands if keep is None else self.strands[keep]
+        if num_vertices is not None and num_vertices != strands.shape[1]:
+            strands = torch.as_tensor(resample_polylines(strands.double().numpy(), num_vertices), dtype=torch.float32)
+        pick = (lambda t: t) if keep is None else (lambda t: t[keep])
+        return Hairstyle(strands=strands.contiguous(), root_uv=pick(self.root_uv),
+                         root_normals=pick(self.root_normals), root_index=pick(self.root_index),
+                         filtered=self.filtered, name=self.name, info=dict(self.info))
+
 
 def sphere_cap_scalp(
     resolution: int = 32,
@@ -348,7 +366,8 @@ def sphere_cap_scalp(
     )
 
 
-def _scalp_arrays(scalp: Scalp) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def scalp_arrays(scalp: Scalp) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(positions, unit normals, uv) of a checked scalp as float64 numpy arrays."""
     if not isinstance(scalp, Scalp):
         raise ValueError(f"scalp: expected a hairwarp.scene.scalp.Scalp, got {type(scalp).__name__}")
     check_tensor("scalp.positions", scalp.positions, shape=(None, 3), allow_empty=False)
@@ -365,6 +384,66 @@ def _scalp_arrays(scalp: Scalp) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def _normalize(v: np.ndarray) -> np.ndarray:
     return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
+
+
+def as_strand_list(arg: str, strands) -> list[np.ndarray]:
+    """Strands as a list of (n_i, 3) numpy arrays, checked (shape, numeric, finite), errors naming `arg`."""
+    if isinstance(strands, (torch.Tensor, np.ndarray)):
+        if strands.ndim != 3 or strands.shape[-1] != 3:
+            raise ValueError(
+                f"{arg}: expected (S, N, 3) or a list of (n_i, 3), got shape {tuple(strands.shape)}"
+            )
+        strands = list(strands)
+    if not isinstance(strands, (list, tuple)):
+        raise ValueError(f"{arg}: expected a list of (n_i, 3) arrays, got {type(strands).__name__}")
+    out = []
+    for i, s in enumerate(strands):
+        if isinstance(s, torch.Tensor):
+            s = s.detach().cpu().numpy()
+        a = np.asarray(s)
+        if a.ndim != 2 or a.shape[1] != 3:
+            raise ValueError(f"{arg}[{i}]: expected shape (n, 3), got {a.shape}")
+        if not np.issubdtype(a.dtype, np.floating) and not np.issubdtype(a.dtype, np.integer):
+            raise ValueError(f"{arg}[{i}]: expected a numeric array, got dtype {a.dtype}")
+        if not np.isfinite(a).all():
+            raise ValueError(f"{arg}[{i}]: contains NaN or Inf")
+        out.append(a)
+    return out
+
+
+def resample_strands(strands, n: int = 100, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """Resample each strand to `n` vertices evenly spaced in arc length.
+
+    Vertex 0 (the root) and the tip are kept exactly; in between, points are linearly
+    interpolated along the polyline.
+
+    Args:
+        strands: a sequence of (n_i, 3) arrays/tensors (n_i >= 2, non-zero length), or one
+            (S, N, 3) array/tensor.
+        n: vertices per output strand (>= 2; 100 in the paper).
+        dtype: torch float dtype of the result.
+
+    Returns:
+        (S, n, 3) tensor (CPU for array input, the input's device for tensor input).
+    """
+    if int(n) < 2:
+        raise ValueError(f"n: expected an int >= 2, got {n}")
+    device = strands.device if isinstance(strands, torch.Tensor) else torch.device("cpu")
+    items = as_strand_list("strands", strands)
+    out = np.empty((len(items), int(n), 3))
+    # Group strands by vertex count so the vectorised resampler runs once per group.
+    groups: dict[int, list[int]] = {}
+    for i, a in enumerate(items):
+        if a.shape[0] < 2:
+            raise ValueError(f"strands[{i}]: needs at least 2 vertices to resample, got {a.shape[0]}")
+        groups.setdefault(a.shape[0], []).append(i)
+    for count, idx in groups.items():
+        pts = np.stack([np.asarray(items[i], dtype=np.float64) for i in idx])
+        lengths = np.linalg.norm(np.diff(pts, axis=1), axis=-1).sum(axis=1)
+        if np.any(lengths <= 0):
+            raise ValueError(f"strands[{idx[int(np.argmin(lengths))]}]: has zero length, cannot resample")
+        out[idx] = resample_polylines(pts, int(n))
+    return torch.tensor(out, dtype=dtype, device=device)
 
 
 def resample_polylines(points: np.ndarray, num_vertices: int) -> np.ndarray:
@@ -424,7 +503,7 @@ def generate_hairstyle(
     params.validate()
     if int(num_vertices) < 3:
         raise ValueError(f"num_vertices: expected an int >= 3, got {num_vertices}")
-    roots, normals, uv = _scalp_arrays(scalp)
+    roots, normals, uv = scalp_arrays(scalp)
     head = fit_head_ellipsoid(scalp)
     rng = np.random.default_rng(int(params.seed))
     m = roots.shape[0]

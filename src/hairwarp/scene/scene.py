@@ -31,6 +31,7 @@ class SceneFrames:
         body_mesh: `hairwarp.ops.BodyMesh` of the B posed bodies, cropped to the hair's reach.
         inputs: the `EnergyInputs` of these frames (no previous states).
         betas: (B, 16) body shapes; poses: (B, 66) body poses (the networks' inputs).
+        scene: the `Scene` these frames come from (methods read its hairstyle and motion).
     """
 
     frame_indices: torch.Tensor
@@ -40,6 +41,7 @@ class SceneFrames:
     inputs: EnergyInputs
     betas: torch.Tensor
     poses: torch.Tensor
+    scene: Scene | None = None
 
 
 @dataclass(eq=False)
@@ -137,7 +139,7 @@ class Scene:
             scalp_normals=rigid.normals,
             body=body_mesh,
         )
-        return SceneFrames(indices, posed, rigid, body_mesh, inputs, betas, poses)
+        return SceneFrames(indices, posed, rigid, body_mesh, inputs, betas, poses, scene=self)
 
 
 def static_motion(poses: torch.Tensor | None = None, betas: torch.Tensor | None = None, name: str = "rest") -> Motion:
@@ -145,6 +147,35 @@ def static_motion(poses: torch.Tensor | None = None, betas: torch.Tensor | None 
     poses = torch.zeros(1, 66) if poses is None else torch.as_tensor(poses, dtype=torch.float32).reshape(1, 66)
     betas = torch.zeros(16) if betas is None else torch.as_tensor(betas, dtype=torch.float32).reshape(16)
     return Motion(poses=poses, trans=torch.zeros(1, 3), betas=betas, fps=60.0, name=name)
+
+
+def preset_hairstyle(name: str, body: Body, scalp: Scalp, *, seed: int = 0, grow_around_body: bool = False,
+                     strand_stride: int = 1, num_vertices: int = 100) -> Hairstyle:
+    """A procedural preset grown on a body's scalp (every `strand_stride`-th root).
+
+    Args:
+        name: a preset name (`hairwarp.scene.hairstyles.list_hairstyle_presets()`).
+        body, scalp: the body and its scalp.
+        seed: seed of the hairstyle's randomness.
+        grow_around_body: grow the strands around the rest body, so long hair falls over the
+            shoulders and back instead of through them (about 2-3 s more on the CPU for 1024
+            strands); else around the head proxy alone.
+        strand_stride: grow on every this-many-th root of the scalp grid only (1: all 1024;
+            2: 512; 4: 256). The hairstyle is grown on that sparser scalp, so it is close to,
+            not a subset of, the full one.
+        num_vertices: vertices per strand N (100 in the paper), >= 3.
+    """
+    from hairwarp.scene.hairstyles import hairstyle_preset
+
+    if not isinstance(strand_stride, int) or isinstance(strand_stride, bool) or strand_stride < 1:
+        raise ValueError(f"strand_stride: expected a positive int, got {strand_stride!r}")
+    if not isinstance(num_vertices, int) or isinstance(num_vertices, bool) or num_vertices < 3:
+        raise ValueError(f"num_vertices: expected an int >= 3, got {num_vertices!r}")
+    surface = (body.rest_vertices, body.faces) if grow_around_body else None
+    style = generate_hairstyle(scalp.every(strand_stride), hairstyle_preset(name, seed=seed),
+                               num_vertices=num_vertices, body=surface)
+    style.name = name
+    return style
 
 
 def default_scene(hairstyle: str = "long_straight", motion: str | None = None, *, seed: int = 0,
@@ -158,33 +189,15 @@ def default_scene(hairstyle: str = "long_straight", motion: str | None = None, *
             the rest pose (one frame).
         seed: seed of the hairstyle's randomness.
         duration: motion length [s] (None: the motion's natural length).
-        grow_around_body: grow the strands around the rest body (`generate_hairstyle(...,
-            body=...)`): long hair then falls over the shoulders and back instead of through
-            them, so the rest drape starts nearly free of penetration (about 2-3 s more on the
-            CPU for 1024 strands). Off by default: the head proxy alone, as before.
-        strand_stride: grow on every this-many-th root of the 32 x 32 scalp grid only (1: all
-            1024 roots; 2: 512; 4: 256), for quick runs. The hairstyle is grown on that
-            sparser scalp, so it is close to, not a subset of, the full one.
-        num_vertices: vertices per strand N (100 in the paper), >= 3.
+        grow_around_body, strand_stride, num_vertices: see `preset_hairstyle`.
 
     Returns:
         Scene; nothing is downloaded.
     """
-    from hairwarp.scene.hairstyles import hairstyle_preset
-
-    if not isinstance(strand_stride, int) or isinstance(strand_stride, bool) or strand_stride < 1:
-        raise ValueError(f"strand_stride: expected a positive int, got {strand_stride!r}")
-    if not isinstance(num_vertices, int) or isinstance(num_vertices, bool) or num_vertices < 3:
-        raise ValueError(f"num_vertices: expected an int >= 3, got {num_vertices!r}")
     body = default_body()
     scalp = build_scalp(body)
-    if strand_stride > 1:
-        keep = torch.arange(0, scalp.num_roots, strand_stride)
-        scalp = Scalp(uv=scalp.uv[keep], positions=scalp.positions[keep], normals=scalp.normals[keep],
-                      resolution=scalp.resolution)
-    surface = (body.rest_vertices, body.faces) if grow_around_body else None
-    style = generate_hairstyle(scalp, hairstyle_preset(hairstyle, seed=seed), num_vertices=num_vertices,
-                               body=surface)
+    style = preset_hairstyle(hairstyle, body, scalp, seed=seed, grow_around_body=grow_around_body,
+                             strand_stride=strand_stride, num_vertices=num_vertices)
     mot = static_motion() if motion is None else procedural_motion(motion, duration=duration)
-    return Scene(body=body, scalp=scalp, hairstyle=style, motion=mot,
+    return Scene(body=body, scalp=scalp.every(strand_stride), hairstyle=style, motion=mot,
                  name=f"{hairstyle}/{motion or 'rest'}")

@@ -26,8 +26,9 @@ from dataclasses import dataclass, field
 
 import torch
 
-from hairwarp.config import EnergyConfig
+from hairwarp.config import NUM_FIXED_VERTICES, EnergyConfig
 from hairwarp.energy import EnergyInputs, total_energy
+from hairwarp.runtime import synchronize
 
 
 @dataclass
@@ -116,11 +117,6 @@ class OptimizationResult:
 _CACHE_SIZE = 4
 
 
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
 def optimize_drape(
     x0: torch.Tensor,
     inputs: EnergyInputs,
@@ -159,8 +155,8 @@ def optimize_drape(
         raise ValueError(f"x0: expected shape (B, M, N, 3) or (M, N, 3), got {tuple(x0.shape)}")
     if x0.shape[2] < 3:
         raise ValueError(f"x0: expected N >= 3 vertices per strand (0 and 1 are fixed), got {x0.shape[2]}")
-    fixed = x0[:, :, :2].detach()
-    free = x0[:, :, 2:].detach().clone().requires_grad_(True)
+    fixed = x0[:, :, :NUM_FIXED_VERTICES].detach()
+    free = x0[:, :, NUM_FIXED_VERTICES:].detach().clone().requires_grad_(True)
 
     def assemble(free_part):
         return torch.cat([fixed, free_part], dim=2)
@@ -214,10 +210,10 @@ def optimize_drape(
             return
         t0 = time.perf_counter()
         record.update(metrics(assemble(part)))
-        _sync(x0.device)
+        synchronize(x0.device)
         recording += time.perf_counter() - t0
 
-    _sync(x0.device)
+    synchronize(x0.device)
     start = time.perf_counter()
 
     def clock() -> float:
@@ -283,10 +279,10 @@ def optimize_drape(
             if value < best_loss:
                 best_loss = value
                 best_free = free.detach().clone()
-    _sync(x0.device)
+    synchronize(x0.device)
     elapsed = clock()
     if not math.isfinite(best_loss):  # not even the start was finite: return the start
-        best_free = x0[:, :, 2:].detach().clone()
+        best_free = x0[:, :, NUM_FIXED_VERTICES:].detach().clone()
         with torch.no_grad():
             best_loss = float(total_energy(x0, inputs, energy_config, dynamic=dynamic).total.sum())
     return OptimizationResult(

@@ -21,7 +21,7 @@ from dataclasses import dataclass, replace
 
 import torch
 
-from hairwarp.config import EnergyConfig
+from hairwarp.config import NUM_FIXED_VERTICES, EnergyConfig
 from hairwarp.energy import EnergyInputs
 from hairwarp.solvers.direct import DirectOptimizationConfig, optimize_drape
 
@@ -87,7 +87,8 @@ def simulate_reference(
     prev2 = prev = states[0]
     for t in tqdm(range(1, num_frames), desc="reference", disable=not progress, leave=False):
         inputs = replace(frame_inputs(t), prev=prev, prev2=prev2)
-        guess = torch.cat([inputs.rigid[:, :, :2], (2 * prev - prev2)[:, :, 2:]], dim=2)
+        k = NUM_FIXED_VERTICES
+        guess = torch.cat([inputs.rigid[:, :, :k], (2 * prev - prev2)[:, :, k:]], dim=2)
         result = optimize_drape(guess, inputs, energy_config, solver, dynamic=True)
         states.append(result.positions)
         iterations.append(result.iterations)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import torch
 
 from hairwarp._validate import check_tensor
+from hairwarp.config import NUM_FIXED_VERTICES
 
 
 def _batched(x: torch.Tensor, name: str = "x") -> torch.Tensor:
@@ -32,10 +33,39 @@ def penetration_percent(x: torch.Tensor, body, *, moving_only: bool = True) -> t
     from hairwarp.ops import hair_body_signed_distance
 
     xb = _batched(x)
-    d = hair_body_signed_distance(xb, body)  # (B, M, N)
-    if moving_only:
-        d = d[:, :, 2:]
-    return (d < 0).to(xb.dtype).mean(dim=(1, 2)) * 100.0
+    return penetration_from_signed_distance(hair_body_signed_distance(xb, body), moving_only=moving_only)
+
+
+def penetration_from_signed_distance(signed_distance: torch.Tensor, *, moving_only: bool = True) -> torch.Tensor:
+    """`penetration_percent` from signed distances (B, M, N) [m] already computed: (B,) in [0, 100]."""
+    d = signed_distance[:, :, NUM_FIXED_VERTICES:] if moving_only else signed_distance
+    return (d < 0).to(signed_distance.dtype).mean(dim=(1, 2)) * 100.0
+
+
+def frame_metrics(x: torch.Tensor, frames, energy_config=None) -> tuple[dict, torch.Tensor]:
+    """Table 1's metrics of positions on a scene's frames, per frame, and the signed distances.
+
+    Args:
+        x: (B, M, N, 3) hair positions [m] of the B frames of `frames` (`Scene.frames(...)`).
+        frames: the frames (their body meshes and rest lengths).
+        energy_config: when given, the static total energy (Eq. 5) per frame is added.
+
+    Returns:
+        ({"penetration_percent": [B floats], "length_change_percent": [B floats],
+        "energy": [B floats] when asked}, signed distances (B, M, N) [m]).
+    """
+    from hairwarp.ops import hair_body_signed_distance
+
+    x = _batched(x.detach())
+    sd = hair_body_signed_distance(x, frames.body_mesh)
+    out = {"penetration_percent": penetration_from_signed_distance(sd).tolist(),
+           "length_change_percent": length_change_percent(x, frames.inputs.rest_lengths).tolist()}
+    if energy_config is not None:
+        from hairwarp.energy import total_energy
+
+        with torch.no_grad():
+            out["energy"] = total_energy(x, frames.inputs, energy_config).total.tolist()
+    return out, sd
 
 
 def length_change_percent(x: torch.Tensor, rest_lengths: torch.Tensor) -> torch.Tensor:

@@ -1,0 +1,233 @@
+"""What the commands share: common flags, the scene and method options, outputs and metrics tables.
+
+Commands sit on top of the library: scenes come from `hairwarp.builder`, methods from the
+registry in `hairwarp.methods`, figures from `hairwarp.metrics`; this module only maps flags
+onto them and writes what a command writes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+
+# Most frames an animated GIF shows by default (rendering costs ~0.4-0.8 s a frame on a 2-core CPU).
+DEFAULT_GIF_FRAMES = 20
+
+
+def add_common_arguments(parser: argparse.ArgumentParser, *, out_default: str = "hairwarp-out") -> None:
+    """The flags every command shares: --device, --seed, --out."""
+    parser.add_argument("--device", default="cpu", help="torch device: cpu or cuda[:N] (default: cpu)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    parser.add_argument("--out", default=out_default, help=f"output folder (default: ./{out_default}/)")
+
+
+def add_threads_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--threads", type=int, default=1,
+                   help="torch CPU threads (default: 1: Warp's CPU kernels run on one thread and torch's "
+                        "small element-wise work here loses more to idle OpenMP threads than it gains; on a "
+                        "busy 2-core CPU one thread ran an L-BFGS drape 5x faster than two)")
+
+
+def set_threads(args) -> None:
+    import torch
+
+    from hairwarp.builder import positive_int
+
+    torch.set_num_threads(positive_int("--threads", args.threads))
+
+
+def add_scene_arguments(p: argparse.ArgumentParser, *, simulate: bool) -> None:
+    """Hairstyle, body, pose/motion and size options (`hairwarp.builder.build_scene`)."""
+    from hairwarp.builder import AUTO_CM_EXTENT, REST_POSE
+    from hairwarp.scene.hairstyles import list_hairstyle_presets
+    from hairwarp.scene.motion import list_motions
+
+    g = p.add_argument_group("scene")
+    g.add_argument("--hairstyle", default="long_straight", metavar="HAIR",
+                   help=f"a preset ({', '.join(list_hairstyle_presets())}), a USC-HairSalon .data file, "
+                        "or a hair latent .npy of 512 numbers (default: long_straight)")
+    g.add_argument("--grow", choices=("body", "head"), default="body",
+                   help="presets: grow the strands around the rest body (they fall over the shoulders and "
+                        "back) or around the head proxy only (faster; long hair may pass through the torso) "
+                        "(default: body)")
+    g.add_argument("--data-units", choices=("auto", "m", "cm", "mm"), default="auto",
+                   help=f".data: the file's length unit; auto = cm when the hair spans more than "
+                        f"{AUTO_CM_EXTENT:g} units, else m (default: auto)")
+    g.add_argument("--data-up", choices=("y", "z"), default="y", help=".data: the file's up axis (default: y)")
+    g.add_argument("--align-roots", action="store_true",
+                   help=".data: translate the hair so that its mean root meets the scalp's mean root")
+    g.add_argument("--body", default="default",
+                   help="'default' (the shipped body) or an SMPL-format model file (.npz or .pkl)")
+    default_pose = "head_turn" if simulate else REST_POSE
+    g.add_argument("--pose", default=default_pose, metavar="POSE",
+                   help=f"'{REST_POSE}' (the body's rest pose), a procedural motion ({', '.join(list_motions())}) "
+                        f"or an AMASS .npz (default: {default_pose})")
+    g.add_argument("--duration", type=float, default=1.0 if simulate else None,
+                   help="procedural motions: length [s] (default: " + ("1.0" if simulate else "the motion's own") + ")")
+    if simulate:
+        g.add_argument("--start", type=float, default=0.0, help="first time of the motion simulated [s] (default: 0)")
+        g.add_argument("--frames", type=int, default=None, help="simulate at most this many frames (default: all)")
+    else:
+        when = g.add_mutually_exclusive_group()
+        when.add_argument("--frame", type=int, default=None, help="frame of the motion to drape (default: 0)")
+        when.add_argument("--time", type=float, default=None, help="time of the motion to drape [s]")
+    g.add_argument("--strand-stride", type=int, default=1,
+                   help="keep every K-th strand (presets: grow on every K-th scalp root) (default: 1)")
+    g.add_argument("--num-vertices", type=int, default=100, help="vertices per strand (default: 100)")
+
+
+def build_scene_from_args(args, *, simulate: bool):
+    """The `Scene` of the scene flags (drape: one frame; simulate: a window of the motion)."""
+    from hairwarp.builder import build_scene
+
+    window = dict(start=args.start, num_frames=args.frames) if simulate else \
+        dict(frame=args.frame if args.frame is not None or args.time is not None else 0, time=args.time)
+    return build_scene(args.hairstyle, args.body, args.pose, duration=args.duration, grow=args.grow,
+                       data_units=args.data_units, data_up=args.data_up, align_roots=args.align_roots,
+                       strand_stride=args.strand_stride, num_vertices=args.num_vertices, seed=args.seed, **window)
+
+
+def method_name(text: str) -> str:
+    """argparse type of --method: a registered name or NAME+refine (else a usage error)."""
+    from hairwarp.methods import REFINE_SUFFIX, available
+
+    base = text[: -len(REFINE_SUFFIX)] if text.endswith(REFINE_SUFFIX) else text
+    if base not in available():
+        raise argparse.ArgumentTypeError(f"unknown method {text!r}; expected one of {', '.join(available())}, "
+                                         f"or any of them followed by {REFINE_SUFFIX!r}")
+    return text
+
+
+def add_method_arguments(p: argparse.ArgumentParser, *, max_iterations: int, default: str = "auto") -> None:
+    """--method, --refine, --checkpoint and the optimizers' options."""
+    from hairwarp.methods import AUTO_REFINE, available
+
+    g = p.add_argument_group("method")
+    g.add_argument("--method", default=default, metavar="METHOD", type=method_name,
+                   help=f"one of {', '.join(available())}, or any of them followed by '+refine'; auto: the "
+                        f"shipped network finished by {AUTO_REFINE} L-BFGS iterations, never more vertices "
+                        f"inside than the rigid placement (default: {default})")
+    g.add_argument("--refine", type=int, default=0, metavar="K",
+                   help="finish a network method with K L-BFGS iterations of the same energy (default: 0; "
+                        f"auto: {AUTO_REFINE})")
+    g.add_argument("--checkpoint", default=None,
+                   help="network methods: a checkpoint written by `hairwarp train` (default: the shipped one)")
+    g.add_argument("--max-iterations", type=int, default=max_iterations,
+                   help=f"adam/lbfgs/reference: iteration cap (default: {max_iterations})")
+    g.add_argument("--patience", type=int, default=50,
+                   help="adam/lbfgs: stop after this many iterations without decrease (default: 50)")
+    g.add_argument("--no-hair-hair", action="store_true",
+                   help="leave hair-hair contact out of the energy (3-4x faster evaluations on a CPU)")
+    g.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+
+def method_from_args(args):
+    """The method of --method with the options of the method flags (a `hairwarp.methods.Method`)."""
+    from hairwarp.builder import positive_int
+    from hairwarp.config import EnergyConfig
+    from hairwarp.methods import MethodOptions, make
+
+    config = EnergyConfig()
+    if args.no_hair_hair:
+        config = config.replace(hair_hair_weight=0.0)
+    name = args.method
+    refine = positive_int("--refine", args.refine, minimum=0)
+    if refine > 0 and name not in ("auto",) and not name.endswith("+refine"):
+        name = name + "+refine"
+    options = MethodOptions(energy_config=config,
+                            max_iterations=positive_int("--max-iterations", args.max_iterations, minimum=0),
+                            patience=positive_int("--patience", args.patience),
+                            reference_max_iterations=max(1, args.max_iterations), checkpoint=args.checkpoint,
+                            refine=refine, progress=not args.no_progress)
+    if args.checkpoint is not None and not os.path.isfile(args.checkpoint):
+        raise ValueError(f"--checkpoint: no such file {args.checkpoint!r}")
+    return make(name, options), config
+
+
+def describe(scene, frames) -> str:
+    return (f"scene {scene.name}: {scene.hairstyle.num_strands} strands x {scene.hairstyle.strands.shape[1]} vertices, "
+            f"{scene.num_frames} frame(s) at {scene.motion.fps:g} fps, body {scene.body.num_vertices} vertices "
+            f"({frames.body_mesh.num_faces} of {scene.body.num_faces} triangles within the hair's reach)")
+
+
+def picture_distances(sd):
+    """Signed distances for the pictures: the fixed vertices 0 and 1 (on the scalp, |d| at
+    float32 noise, often a hair below zero) shown as outside, so red marks only what a method
+    moved inside."""
+    from hairwarp.config import NUM_FIXED_VERTICES
+
+    sd = sd.detach().clone()
+    sd[..., :NUM_FIXED_VERTICES] = sd[..., :NUM_FIXED_VERTICES].clamp_min(0.0)
+    return sd
+
+
+def markdown_table(rows: list[tuple[str, str, dict]]) -> str:
+    """| method | ms/frame | penetration % | length change % | from (label, ms text, per-frame metrics)."""
+    def mean(values) -> float:
+        return float(sum(values) / len(values))
+
+    lines = ["| method | ms/frame | penetration % (mean over frames) | length change % (mean) |",
+             "|---|---:|---:|---:|"]
+    for label, ms, m in rows:
+        lines.append(f"| {label} | {ms} | {mean(m['penetration_percent']):.3f} | "
+                     f"{mean(m['length_change_percent']):.3f} |")
+    return "\n".join(lines)
+
+
+def write_metrics(out: str, stem: str, record: dict, table: str) -> list[str]:
+    """OUT/<stem>_metrics.json and OUT/<stem>_metrics.md; returns both paths."""
+    from hairwarp.runtime import jsonable
+
+    json_path = os.path.join(out, f"{stem}_metrics.json")
+    md_path = os.path.join(out, f"{stem}_metrics.md")
+    with open(json_path, "w") as f:
+        json.dump(jsonable(record), f, indent=1)
+    with open(md_path, "w") as f:
+        f.write(table + "\n")
+    return [json_path, md_path]
+
+
+def run_and_score(method, frames, config, *, simulate: bool):
+    """Run `method` on `frames`; (result, metrics {"rigid", "method"} per frame, signed distances)."""
+    from hairwarp.metrics import frame_metrics
+
+    result = method.simulate(frames) if simulate else method.drape(frames)
+    rigid, rigid_sd = frame_metrics(frames.rigid.positions, frames, None if simulate else config)
+    ours, sd = frame_metrics(result.positions, frames, None if simulate else config)
+    return result, {"rigid": rigid, "method": ours}, sd, rigid_sd
+
+
+def write_animation(out: str, stem: str, frames, positions, signed_distance, label: str, gif_frames: int,
+                    *, usd_format: str = "usda") -> list[str]:
+    """USD animation, last frame as `.data`, a 6-frame strip PNG and a GIF; returns the paths.
+
+    Args:
+        out: output folder.
+        stem: file-name stem.
+        frames: the scene's frames (all frames, in order).
+        positions: (T, M, N, 3) hair positions [m].
+        signed_distance: (T, M, N) signed distances of `positions` to the body [m].
+        label: the method's name, for the titles.
+        gif_frames: most frames the GIF shows.
+        usd_format: "usda" (text) or "usdc" (binary).
+    """
+    from hairwarp.io.hair_data import write_hair_data
+    from hairwarp.io.usd import write_usd
+    from hairwarp.render.preview import render_animation, render_sequence
+
+    hair = positions.detach().cpu()
+    body_v = frames.posed.vertices.detach().cpu()
+    faces = frames.scene.body.faces.cpu()
+    sd = picture_distances(signed_distance).cpu()
+    fps = frames.scene.motion.fps
+    written = [write_usd(os.path.join(out, f"{stem}.{usd_format}"), hair, body_v, faces, fps=fps)]
+    data_path = os.path.join(out, f"{stem}.data")
+    write_hair_data(data_path, hair[-1])
+    written.append(data_path)
+    written.append(render_sequence(os.path.join(out, f"{stem}.png"), hair, body_v, faces, signed_distance=sd,
+                                   frames=6, fps=fps, title=f"{label}: red = inside the body"))
+    stride = max(1, -(-hair.shape[0] // gif_frames))
+    written.append(render_animation(os.path.join(out, f"{stem}.gif"), hair, body_v, faces, signed_distance=sd,
+                                    fps=fps, stride=stride, title=label))
+    return written

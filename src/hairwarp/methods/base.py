@@ -1,0 +1,116 @@
+"""The Method protocol: scene frames in; positions, timings and facts out.
+
+A method proposes hair positions for a batch of frames of one scene (`Scene.frames(...)`,
+which carries its scene: the networks read the hairstyle and the motion from it):
+
+- `drape(frames) -> MethodResult`: each frame on its own (a static drape);
+- `simulate(frames) -> MethodResult`: the frames as one motion, in time order (the default
+  drapes every frame on its own; the dynamic network and the physics reference carry state).
+
+Positions are (B, M, N, 3) [m], detached, on the frames' device; `time_ms` is the wall time
+per frame after a warm-up with the device synchronised (None for the rigid placement, which
+costs nothing); `history` holds an iterative method's per-iteration record (its curve on the
+speed/accuracy chart); `info` the method's facts (iterations, stop reason, ...).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import torch
+
+from hairwarp.config import EnergyConfig
+
+# Iteration cap of the converged reference drape (the energy gap's optimum).
+REFERENCE_MAX_ITERATIONS = 5000
+# Iterations of the untimed warm-up run before a timed optimization (compiles the kernels).
+WARMUP_ITERATIONS = 2
+# What a method is, for tables and charts.
+KINDS = ("initial", "network", "optimizer", "reference", "composed")
+
+
+@dataclass
+class MethodOptions:
+    """Settings every method factory receives (each method reads what concerns it).
+
+    Attributes:
+        energy_config: weights and constants of the energy (None: `EnergyConfig()`; the time
+            step is set from the scene's frame rate where a method needs it).
+        max_iterations: iteration cap of the optimizers (None: 2000, the solver's default).
+        patience: optimizers stop after this many iterations without decrease (200, the paper).
+        record_every: optimizers record penetration every this many iterations (0: never).
+        reference_max_iterations: iteration cap of the converged reference drape.
+        checkpoint: network methods: a checkpoint file written by `hairwarp train` (None: the
+            one shipped with the package).
+        refine: composed methods ("<network>+refine", "auto"): L-BFGS iterations of the same
+            energy run from the network's output (0: the network alone).
+        progress: show progress bars.
+    """
+
+    energy_config: EnergyConfig | None = None
+    max_iterations: int | None = None
+    patience: int = 200
+    record_every: int = 0
+    reference_max_iterations: int = REFERENCE_MAX_ITERATIONS
+    checkpoint: str | None = None
+    refine: int = 0
+    progress: bool = False
+
+    def config(self) -> EnergyConfig:
+        return self.energy_config or EnergyConfig()
+
+
+@dataclass
+class MethodResult:
+    """What a method returns for a batch of frames (a drape) or a motion (a simulation).
+
+    Attributes:
+        positions: (B, M, N, 3) hair positions [m], detached, on the frames' device.
+        time_ms: wall time per frame [ms] after a warm-up (device synchronised), None when the
+            method costs nothing to time (the rigid placement).
+        history: iterative methods: one record per iteration (iteration, loss = total energy of
+            the batch, time_s since the start, and "penetration" when recorded); else empty.
+        info: method facts (iterations, evaluations, stop_reason, ...).
+    """
+
+    positions: torch.Tensor
+    time_ms: float | None
+    history: list[dict] = field(default_factory=list)
+    info: dict = field(default_factory=dict)
+
+
+class Method:
+    """Base class of every method (see the module docstring).
+
+    Attributes:
+        name: the registry name.
+        kind: one of `KINDS`.
+        options: the `MethodOptions` it was made with.
+    """
+
+    name = "method"
+    kind = "network"
+
+    def __init__(self, options: MethodOptions | None = None):
+        self.options = options or MethodOptions()
+
+    def drape(self, frames, *, metrics: Callable | None = None) -> MethodResult:
+        """Hair positions for a batch of frames, each on its own.
+
+        Args:
+            frames: `Scene.frames(...)` of B frames.
+            metrics: optional callable positions (B, M, N, 3) -> dict of floats, recorded in
+                the history of iterative methods every `options.record_every` iterations.
+        """
+        raise NotImplementedError
+
+    def simulate(self, frames) -> MethodResult:
+        """Hair positions over a motion: `frames` are consecutive frames in time order.
+
+        The default drapes every frame on its own (static methods have no dynamics).
+        """
+        return self.drape(frames)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.name!r})"

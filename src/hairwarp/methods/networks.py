@@ -1,0 +1,233 @@
+"""The trained networks as methods: "static", "dynamic", "quaffure".
+
+Each loads a checkpoint written by `hairwarp train` (`MethodOptions.checkpoint`) or shipped in
+`hairwarp/assets`, reads the scene's hairstyle as its latent z = encode(strands), and times the
+network forward plus the deformation lookup and taper of Eq. 2 applied to the rigid placement,
+after one warm-up call, device synchronised: the "ms/drape" of Table 1 (the rigid placement,
+Eq. 1, is shared by every method and not counted).
+
+- "static": the static network (Section 3.2), one drape per frame.
+- "dynamic": the dynamic network (Section 3.3). On a motion: the frames in order with the GRU
+  state. On independent poses (a drape): each pose held still for `HOLD_FRAMES` frames from a
+  zero GRU state, the last frame kept; the time is per network call.
+- "quaffure": the adapted Quaffure decoder (Section 4.3.1), one drape per frame.
+
+The shipped dynamic checkpoint holds its frozen static network, so "static" falls back to it.
+The networks need SMPL-convention pose and shape (they read (beta, Theta)).
+"""
+
+from __future__ import annotations
+
+import importlib.resources
+import os
+import weakref
+from collections.abc import Callable
+
+import torch
+
+from hairwarp.methods.base import Method, MethodOptions, MethodResult
+from hairwarp.runtime import timed
+
+STATIC_CHECKPOINT = "hairformer_static.pt"
+DYNAMIC_CHECKPOINT = "hairformer_dynamic.pt"
+QUAFFURE_CHECKPOINT = "hairformer_quaffure.pt"
+# Shipped files each network method looks for, in order.
+SHIPPED = {"static": (STATIC_CHECKPOINT, DYNAMIC_CHECKPOINT), "dynamic": (DYNAMIC_CHECKPOINT,),
+           "quaffure": (QUAFFURE_CHECKPOINT,)}
+NETWORK_METHODS = tuple(SHIPPED)
+# Frames a static pose is held for when the dynamic network drapes it (settles the GRU state).
+HOLD_FRAMES = 10
+
+_LOADED: dict[tuple, HairFormerSimulator] = {}
+
+
+def shipped_checkpoint(name: str) -> str | None:
+    """Path of a checkpoint file shipped in `hairwarp/assets`, or None when this build has none."""
+    path = str(importlib.resources.files("hairwarp") / "assets" / name)
+    return path if os.path.exists(path) else None
+
+
+class HairFormerSimulator:
+    """A trained network (static, dynamic with its static, or Quaffure) with the latent basis.
+
+    Args:
+        static: the one-shot network (`StaticNetwork` or `QuaffureNetwork`), put in eval mode.
+        dynamic: a `DynamicNetwork` (holds its frozen static network) or None.
+        basis: the `HairLatentBasis` the networks were trained with (default: the shipped one).
+    """
+
+    def __init__(self, static, dynamic=None, basis=None):
+        from hairwarp.scene.hair_latent import HairLatentBasis
+
+        self.static = static.eval()
+        self.dynamic = dynamic.eval() if dynamic is not None else None
+        self.basis = basis or HairLatentBasis.load_default()
+        # z of each hairstyle by the identity of its strands tensor (an entry is dropped with the
+        # tensor), then by (device, dtype).
+        self._latents: dict[int, dict] = {}
+
+    @property
+    def num_vertices(self) -> int:
+        return int(self.static.config.num_vertices)
+
+    def latent(self, hairstyle, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+        """z (1, 512) of a hairstyle (least-squares encoding, computed once per hairstyle)."""
+        strands = hairstyle.strands
+        per_style = self._latents.get(id(strands))
+        if per_style is None:
+            per_style = self._latents[id(strands)] = {}
+            weakref.finalize(strands, self._latents.pop, id(strands), None)
+        key = (str(device), dtype)
+        if key not in per_style:
+            z = self.basis.encode(hairstyle.strands.double(), hairstyle.root_uv.double())
+            per_style[key] = z.reshape(1, -1).to(device=device, dtype=dtype)
+        return per_style[key]
+
+    @torch.no_grad()
+    def drape(self, frames) -> torch.Tensor:
+        """One-shot drape of every frame: (B, M, N, 3) [m]."""
+        rigid = frames.rigid.positions
+        style = frames.scene.hairstyle
+        dtype = next(self.static.parameters()).dtype
+        z = self.latent(style, rigid.device, dtype).expand(rigid.shape[0], -1)
+        root_uv = style.root_uv.to(rigid.device)
+        out = self.static.drape(z, frames.betas.to(dtype), frames.poses.to(dtype), rigid.to(dtype), root_uv)
+        return out.to(rigid.dtype)
+
+    @torch.no_grad()
+    def simulate_poses(self, hairstyle, poses: torch.Tensor, betas: torch.Tensor, rigid: torch.Tensor,
+                       fps: float) -> torch.Tensor:
+        """Dynamic simulation of a hairstyle over a pose sequence.
+
+        Args:
+            hairstyle: the scene's `Hairstyle` (its strands give z, its root UVs the lookup).
+            poses: (T, 66) body poses of consecutive frames, axis-angle [rad].
+            betas: (1, 16) or (16,) body shape.
+            rigid: (T, M, N, 3) rigid placement of each frame [m] (Eq. 1).
+            fps: frame rate of the sequence [1/s].
+
+        Returns:
+            (T, M, N, 3) positions [m].
+        """
+        from hairwarp.models.deformation import apply_deformation
+        from hairwarp.scene.motion import motion_descriptor_windows
+
+        if self.dynamic is None:
+            raise ValueError("dynamic: this checkpoint has no dynamic network")
+        dtype = next(self.dynamic.parameters()).dtype
+        t = rigid.shape[0]
+        if poses.shape[0] != t:
+            raise ValueError(f"poses: expected {t} frames (as rigid), got {poses.shape[0]}")
+        z = self.latent(hairstyle, rigid.device, dtype)
+        betas = betas.reshape(1, -1)
+        window = self.dynamic.config.window
+        motion = motion_descriptor_windows(poses.detach().cpu().double(), betas[0].detach().cpu().double(),
+                                           1.0 / fps, window, include_betas=False)
+        motion = motion.to(device=rigid.device, dtype=dtype)[None]
+        out = self.dynamic.simulate(z, betas.to(device=rigid.device, dtype=dtype),
+                                    poses.to(device=rigid.device, dtype=dtype)[None], motion)
+        maps = out.deformation_map.reshape(t, *out.deformation_map.shape[2:])
+        root_uv = hairstyle.root_uv.to(rigid.device)
+        return apply_deformation(rigid.to(dtype), maps, root_uv).to(rigid.dtype)
+
+    def simulate(self, frames) -> torch.Tensor:
+        """Dynamic simulation over consecutive frames of the scene's motion: (T, M, N, 3)."""
+        scene = frames.scene
+        poses = scene.motion.poses[frames.frame_indices.cpu()]
+        return self.simulate_poses(scene.hairstyle, poses, frames.betas[:1], frames.rigid.positions,
+                                   fps=float(scene.motion.fps))
+
+
+def load_simulator(name: str, checkpoint: str | None, device: torch.device) -> HairFormerSimulator:
+    """The network of method `name` from `checkpoint` (None: the shipped file), cached per device.
+
+    Raises:
+        ValueError: no checkpoint shipped, an unreadable file, or one holding another network.
+    """
+    from hairwarp.models.checkpoint import load_checkpoint
+
+    if name not in SHIPPED:
+        raise ValueError(f"name: expected one of {NETWORK_METHODS}, got {name!r}")
+    path = checkpoint
+    if path is None:
+        path = next((p for p in map(shipped_checkpoint, SHIPPED[name]) if p is not None), None)
+        if path is None:
+            raise ValueError(f"checkpoint: no {name} checkpoint is shipped with this build; train one "
+                             f"(`hairwarp train {name}`) and pass it as the checkpoint")
+    elif not os.path.isfile(path):
+        raise ValueError(f"checkpoint: no such file {path!r}")
+    key = (name, os.path.abspath(path), str(device))
+    if key in _LOADED:
+        return _LOADED[key]
+    try:
+        model = load_checkpoint(path, device=device).model
+    except Exception as exc:  # a foreign or truncated file: say which and why, in one line
+        first = (str(exc).strip() or type(exc).__name__).splitlines()[0]
+        raise ValueError(f"checkpoint: cannot load {path!r} ({first})") from None
+    kind = type(model).__name__
+    if name == "dynamic":
+        if kind != "DynamicNetwork":
+            raise ValueError(f"checkpoint: {path} holds a {kind}, not a dynamic network")
+        sim = HairFormerSimulator(model.static, model)
+    elif name == "static":
+        static = model.static if kind == "DynamicNetwork" else model
+        if type(static).__name__ != "StaticNetwork":
+            raise ValueError(f"checkpoint: {path} holds a {kind}, not a static network")
+        sim = HairFormerSimulator(static)
+    else:
+        if kind != "QuaffureNetwork":
+            raise ValueError(f"checkpoint: {path} holds a {kind}, not a Quaffure network")
+        sim = HairFormerSimulator(model)
+    _LOADED[key] = sim
+    return sim
+
+
+class NetworkMethod(Method):
+    """A trained network draping or simulating scene frames (see the module docstring)."""
+
+    kind = "network"
+
+    def __init__(self, name: str, options: MethodOptions | None = None):
+        super().__init__(options)
+        if name not in SHIPPED:
+            raise ValueError(f"name: expected one of {NETWORK_METHODS}, got {name!r}")
+        self.name = name
+
+    def simulator(self, frames) -> HairFormerSimulator:
+        """The loaded network, checked against the frames (SMPL pose and shape, vertex count)."""
+        scene = frames.scene
+        if scene is None or not getattr(scene.body, "has_smpl_pose", True):
+            raise ValueError(f"method: the {self.name} network needs an SMPL-convention body (pose and shape "
+                             "parameters); use adam, lbfgs or reference on this body")
+        sim = load_simulator(self.name, self.options.checkpoint, frames.rigid.positions.device)
+        n = frames.rigid.positions.shape[2]
+        if n != sim.num_vertices:
+            raise ValueError(f"num_vertices: the {self.name} network was trained on {sim.num_vertices} vertices "
+                             f"per strand, the scene has {n}; build the scene with num_vertices={sim.num_vertices}")
+        return sim
+
+    def drape(self, frames, *, metrics: Callable | None = None) -> MethodResult:
+        sim = self.simulator(frames)
+        device = frames.rigid.positions.device
+        if self.name != "dynamic":
+            positions, seconds = timed(lambda: sim.drape(frames), device)
+            return MethodResult(positions=positions, time_ms=seconds * 1e3 / positions.shape[0])
+        # Each pose held still for HOLD_FRAMES frames from a zero state; the last frame kept.
+        out, total = [], 0.0
+        style, fps = frames.scene.hairstyle, float(frames.scene.motion.fps)
+        for b in range(frames.rigid.positions.shape[0]):
+            poses = frames.poses[b].detach().cpu().expand(HOLD_FRAMES, -1)
+            rigid = frames.rigid.positions[b].expand(HOLD_FRAMES, -1, -1, -1)
+            positions, seconds = timed(lambda: sim.simulate_poses(style, poses, frames.betas[b], rigid, fps), device)
+            out.append(positions[-1])
+            total += seconds
+        positions = torch.stack(out)
+        return MethodResult(positions=positions, time_ms=total * 1e3 / (positions.shape[0] * HOLD_FRAMES),
+                            info={"hold_frames": HOLD_FRAMES})
+
+    def simulate(self, frames) -> MethodResult:
+        if self.name != "dynamic":
+            return self.drape(frames)
+        sim = self.simulator(frames)
+        positions, seconds = timed(lambda: sim.simulate(frames), frames.rigid.positions.device)
+        return MethodResult(positions=positions, time_ms=seconds * 1e3 / positions.shape[0])

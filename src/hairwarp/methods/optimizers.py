@@ -1,0 +1,107 @@
+"""The physics methods: the rigid placement, direct optimization (Adam, L-BFGS), the reference.
+
+- "rigid": the rigid placement P_rigid (Eq. 1), the "Initial State" row of Table 1 (no time).
+- "adam", "lbfgs": direct optimization of the static energy (Section 4.3.2,
+  `hairwarp.solvers.direct`), started at the rigid placement; on a motion every frame is
+  draped on its own (the paper's static baselines have no dynamics).
+- "reference": L-BFGS run to convergence (patience 200, up to `reference_max_iterations`): the
+  optimum E* of the energy gap; on a motion, the implicit-Euler physics reference
+  (`hairwarp.solvers.reference.simulate_reference`), its time step the frame spacing.
+
+They run on any body (they need no pose parameters), and take any start: `start` positions
+(the composed methods start them from a network's output).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import replace
+
+import torch
+
+from hairwarp.methods.base import WARMUP_ITERATIONS, Method, MethodOptions, MethodResult
+from hairwarp.solvers.direct import DirectOptimizationConfig, optimize_drape
+
+
+def scene_energy_config(options: MethodOptions, frames):
+    """The options' energy config with the time step set to the frames' scene frame spacing."""
+    config = options.config()
+    scene = getattr(frames, "scene", None)
+    if scene is not None:
+        config = config.replace(time_step=1.0 / float(scene.motion.fps))
+    return config
+
+
+class RigidMethod(Method):
+    """The rigid placement of Eq. 1: Table 1's "Initial State"."""
+
+    name = "rigid"
+    kind = "initial"
+
+    def drape(self, frames, *, metrics: Callable | None = None) -> MethodResult:
+        return MethodResult(positions=frames.rigid.positions.detach(), time_ms=None)
+
+
+class OptimizerMethod(Method):
+    """Direct optimization of the static energy (Section 4.3.2) with Adam or L-BFGS.
+
+    The whole batch is one optimization (the energy is a sum of independent per-frame terms,
+    so its optimum is every frame's optimum); the time per drape is the run's time divided by
+    the batch size, after an untimed warm-up of `WARMUP_ITERATIONS` iterations.
+    """
+
+    kind = "optimizer"
+
+    def __init__(self, method: str, options: MethodOptions | None = None, **solver_changes):
+        super().__init__(options)
+        self.name = method
+        o = self.options
+        solver = DirectOptimizationConfig(method=method, patience=o.patience, record_every=o.record_every)
+        if o.max_iterations is not None:
+            solver = replace(solver, max_iterations=o.max_iterations)
+        self.solver = replace(solver, **solver_changes)
+
+    def drape(self, frames, *, metrics: Callable | None = None, start: torch.Tensor | None = None) -> MethodResult:
+        """Optimize from `start` (B, M, N, 3) [m] (default: the rigid placement)."""
+        x0 = (frames.rigid.positions if start is None else start).detach()
+        config = scene_energy_config(self.options, frames)
+        warm = replace(self.solver, max_iterations=min(WARMUP_ITERATIONS, self.solver.max_iterations), record_every=0)
+        optimize_drape(x0, frames.inputs, config, warm)
+        result = optimize_drape(x0, frames.inputs, config, self.solver, progress=self.options.progress,
+                                metrics=metrics)
+        batch = x0.shape[0]
+        info = {"iterations": result.iterations, "evaluations": result.evaluations,
+                "stop_reason": result.stop_reason, "loss": result.loss}
+        return MethodResult(positions=result.positions, time_ms=result.time_s * 1e3 / batch,
+                            history=result.history, info=info)
+
+
+class ReferenceMethod(OptimizerMethod):
+    """The converged optimum (static) and the implicit-Euler physics reference (motions)."""
+
+    kind = "reference"
+
+    def __init__(self, options: MethodOptions | None = None):
+        options = options or MethodOptions()
+        Method.__init__(self, options)
+        self.name = "reference"
+        self.solver = DirectOptimizationConfig(method="lbfgs", max_iterations=options.reference_max_iterations,
+                                               patience=200, min_decrease=1e-9, lbfgs_history=30,
+                                               record_every=options.record_every)
+
+    def simulate(self, frames) -> MethodResult:
+        from hairwarp.solvers.reference import simulate_reference
+
+        scene = frames.scene
+        device, dtype = frames.rigid.positions.device, frames.rigid.positions.dtype
+        indices = [int(i) for i in frames.frame_indices]
+        # One frame at a time (posing one frame costs ~50 ms on the CPU, little beside a solve).
+        per_frame = [scene.frames([i], device=device, dtype=dtype) for i in indices]
+        config = scene_energy_config(self.options, frames)
+        start = time.perf_counter()
+        result = simulate_reference(lambda t: per_frame[t].inputs, len(per_frame), config,
+                                    progress=self.options.progress)
+        elapsed = time.perf_counter() - start
+        info = {"iterations": result.iterations, "stop_reasons": result.stop_reasons}
+        return MethodResult(positions=result.positions[:, 0], time_ms=elapsed * 1e3 / len(per_frame), info=info)

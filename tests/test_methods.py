@@ -1,0 +1,238 @@
+"""The methods layer: the registry, the network adapters, refine and auto, and the public API.
+
+Tiny untrained networks stand in for trained ones (what is tested is the plumbing: shapes, the
+fixed vertices, the GRU run, checkpoints, errors); one test loads the shipped checkpoint.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+import hairwarp as hw
+from hairwarp.energy import total_energy
+from hairwarp.evaluation.scenes import comparison_scene
+from hairwarp.methods import MethodOptions, available, make
+from hairwarp.methods.networks import HOLD_FRAMES, HairFormerSimulator, load_simulator
+from hairwarp.metrics import penetration_percent
+from hairwarp.models import DynamicConfig, DynamicNetwork, QuaffureConfig, QuaffureNetwork, StaticConfig, StaticNetwork
+from hairwarp.models.checkpoint import save_checkpoint
+
+# Tiny networks read the 512-d hair latent of the shipped basis.
+TINY_N = 12
+# The refined energy may sit above the network's only by float32 rounding of the batch sum.
+_ENERGY_RTOL = 1e-5
+
+
+def _tiny_static() -> StaticNetwork:
+    torch.manual_seed(0)
+    return StaticNetwork(dataclasses.replace(StaticConfig.tiny(), latent_dim=512, num_vertices=TINY_N))
+
+
+@pytest.fixture(scope="module")
+def checkpoints(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("ckpt")
+    static = _tiny_static()
+    # A nonzero head, so the drape differs from the rigid placement.
+    with torch.no_grad():
+        for p in static.parameters():
+            p.add_(0.01 * torch.randn_like(p))
+    dyn_cfg = dataclasses.replace(DynamicConfig.tiny(motion_dim=132), static=static.config)
+    dynamic = DynamicNetwork.from_static(static, dyn_cfg)
+    quaffure = QuaffureNetwork(dataclasses.replace(QuaffureConfig.tiny(), latent_dim=512, num_vertices=TINY_N))
+    paths = {}
+    for name, model in (("static", static), ("dynamic", dynamic), ("quaffure", quaffure)):
+        paths[name] = str(folder / f"{name}.pt")
+        save_checkpoint(paths[name], model)
+    return paths
+
+
+def _make(name, checkpoints, **changes):
+    base = name.split("+")[0]
+    return make(name, MethodOptions(checkpoint=checkpoints.get(base), **changes))
+
+
+@pytest.fixture(scope="module")
+def poses_scene():
+    return comparison_scene("medium_poses", strand_stride=16, num_vertices=TINY_N)
+
+
+# ------------------------------------------------------------------ registry
+
+
+def test_registry_lists_every_method_without_import_side_effects():
+    assert set(available()) >= {"auto", "rigid", "adam", "lbfgs", "reference", "static", "dynamic", "quaffure"}
+    assert make("static+refine", MethodOptions(refine=3)).name == "static+refine"
+    with pytest.raises(ValueError, match="method: unknown method 'nope'"):
+        make("nope")
+    with pytest.raises(ValueError, match="name"):
+        hw.methods.register("bad name", lambda o: None)
+    with pytest.raises(ValueError, match="built in"):
+        hw.methods.unregister("lbfgs")
+
+
+def test_a_user_method_registers_and_composes(poses_scene):
+    class Shift(hw.methods.Method):
+        name = "shift"
+
+        def drape(self, frames, *, metrics=None):
+            x = frames.rigid.positions.clone()
+            x[:, :, 2:, 1] += 1e-3
+            return hw.methods.MethodResult(positions=x, time_ms=1.0)
+
+    hw.methods.register("shift", Shift)
+    try:
+        frames = poses_scene.frames([0])
+        assert make("shift").drape(frames).time_ms == 1.0
+        refined = make("shift+refine", MethodOptions(refine=2)).drape(frames)
+        assert refined.info["refine_iterations"] == 2
+    finally:
+        hw.methods.unregister("shift")
+    assert "shift" not in available()
+
+
+# ------------------------------------------------------------------ networks
+
+
+@pytest.mark.parametrize("name", ["static", "dynamic", "quaffure"])
+def test_drape_shapes_fixed_vertices_and_time(checkpoints, poses_scene, name):
+    frames = poses_scene.frames()
+    result = _make(name, checkpoints).drape(frames)
+    rigid = frames.rigid.positions
+    assert result.positions.shape == rigid.shape
+    assert torch.isfinite(result.positions).all()
+    assert torch.equal(result.positions[:, :, :2], rigid[:, :, :2])  # vertices 0 and 1 fixed
+    assert (result.positions - rigid).abs().max() > 0  # the network moved the hair
+    assert result.time_ms is not None and result.time_ms > 0
+
+
+def test_dynamic_on_a_static_pose_is_the_held_pose_simulation(checkpoints, poses_scene):
+    frames = poses_scene.frames()
+    result = _make("dynamic", checkpoints).drape(frames)
+    sim = load_simulator("dynamic", checkpoints["dynamic"], torch.device("cpu"))
+    b = 1
+    expected = sim.simulate_poses(poses_scene.scene.hairstyle, frames.poses[b].expand(HOLD_FRAMES, -1),
+                                  frames.betas[b], frames.rigid.positions[b].expand(HOLD_FRAMES, -1, -1, -1), 60.0)[-1]
+    torch.testing.assert_close(result.positions[b], expected)
+    assert result.info["hold_frames"] == HOLD_FRAMES
+
+
+def test_dynamic_simulates_a_motion_frame_by_frame(checkpoints):
+    scene = comparison_scene("whiplash", strand_stride=16, num_vertices=TINY_N)
+    method = _make("dynamic", checkpoints)
+    result = method.simulate(scene.frames(list(range(6))))
+    assert result.positions.shape == (6, *scene.frames([0]).rigid.positions.shape[1:])
+    # The GRU carries state: frame t depends on the frames before it, so a sequence started
+    # later gives another answer for the same frame.
+    later = method.simulate(scene.frames(list(range(3, 6))))
+    assert (later.positions[-1] - result.positions[-1]).abs().max() > 0
+
+
+def test_static_falls_back_to_the_static_network_inside_a_dynamic_checkpoint(checkpoints, poses_scene):
+    frames = poses_scene.frames([0])
+    from_dynamic = make("static", MethodOptions(checkpoint=checkpoints["dynamic"])).drape(frames).positions
+    torch.testing.assert_close(from_dynamic, _make("static", checkpoints).drape(frames).positions)
+
+
+def test_network_errors_name_the_problem(checkpoints, poses_scene, tmp_path):
+    frames = poses_scene.frames([0])
+    with pytest.raises(ValueError, match="checkpoint: no such file"):
+        make("static", MethodOptions(checkpoint=str(tmp_path / "missing.pt"))).drape(frames)
+    with pytest.raises(ValueError, match="not a dynamic network"):
+        make("dynamic", MethodOptions(checkpoint=checkpoints["quaffure"])).drape(frames)
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="checkpoint: cannot load"):
+        make("static", MethodOptions(checkpoint=str(tmp_path / "junk.pt"))).drape(frames)
+    wrong_n = comparison_scene("medium_rest", strand_stride=16, num_vertices=TINY_N + 1)
+    with pytest.raises(ValueError, match="num_vertices"):
+        _make("static", checkpoints).drape(wrong_n.frames())
+
+
+def test_simulate_poses_rejects_mismatched_frames(checkpoints, poses_scene):
+    sim = load_simulator("dynamic", checkpoints["dynamic"], torch.device("cpu"))
+    frames = poses_scene.frames()
+    style = poses_scene.scene.hairstyle
+    with pytest.raises(ValueError, match="poses"):
+        sim.simulate_poses(style, frames.poses[:2], frames.betas[0], frames.rigid.positions, 60.0)
+    static_only = HairFormerSimulator(_tiny_static())
+    with pytest.raises(ValueError, match="dynamic"):
+        static_only.simulate_poses(style, frames.poses, frames.betas[0], frames.rigid.positions, 60.0)
+
+
+def test_latent_is_computed_once_per_hairstyle_and_dtype(checkpoints, poses_scene):
+    sim = load_simulator("static", checkpoints["static"], torch.device("cpu"))
+    style = poses_scene.scene.hairstyle
+    z32 = sim.latent(style, torch.device("cpu"), torch.float32)
+    assert sim.latent(style, torch.device("cpu"), torch.float32) is z32
+    z64 = sim.latent(style, torch.device("cpu"), torch.float64)
+    assert z64.dtype == torch.float64 and z32.dtype == torch.float32
+    assert not hasattr(poses_scene.scene, "_hairformer_latent")  # nothing stored on the scene
+
+
+def test_shipped_checkpoint_loads_and_drapes():
+    sim = load_simulator("dynamic", None, torch.device("cpu"))
+    assert sim.dynamic is not None
+    scene = comparison_scene("medium_rest", strand_stride=32, num_vertices=sim.num_vertices)
+    frames = scene.frames()
+    drape = sim.drape(frames)
+    assert drape.shape == frames.rigid.positions.shape
+    assert torch.isfinite(drape).all()
+    assert torch.equal(drape[:, :, :2], frames.rigid.positions[:, :, :2])
+
+
+# ------------------------------------------------------------------ refine and auto
+
+
+def test_refine_zero_is_the_network_alone(checkpoints, poses_scene):
+    frames = poses_scene.frames()
+    alone = _make("static", checkpoints).drape(frames)
+    refined = _make("static+refine", checkpoints, refine=0).drape(frames)
+    assert torch.equal(alone.positions, refined.positions)
+
+
+@pytest.mark.parametrize("name", ["static", "quaffure"])
+def test_refine_never_raises_the_networks_energy(checkpoints, poses_scene, name):
+    frames = poses_scene.frames()
+    config = MethodOptions().config()
+    alone = _make(name, checkpoints).drape(frames)
+    refined = _make(name + "+refine", checkpoints, refine=5).drape(frames)
+    e0 = float(total_energy(alone.positions, frames.inputs, config).total.sum())
+    e1 = float(total_energy(refined.positions, frames.inputs, config).total.sum())
+    assert e1 <= e0 * (1 + _ENERGY_RTOL)
+    assert e1 < e0  # five iterations did something
+    assert refined.info["refine_iterations"] == 5
+    assert refined.time_ms > alone.time_ms
+    assert refined.history and refined.history[0]["time_s"] > 0  # the curve starts after the network
+
+
+def test_auto_is_never_worse_than_the_rigid_placement(checkpoints):
+    # table1 starts deep inside the body: the tiny network leaves it there or worse.
+    scene = comparison_scene("table1", strand_stride=64, num_vertices=TINY_N)
+    frames = scene.frames()
+    result = _make("auto", checkpoints).drape(frames)
+    rigid = penetration_percent(frames.rigid.positions, frames.body_mesh)
+    assert float(rigid.max()) > 0  # there is penetration to remove
+    assert bool((penetration_percent(result.positions, frames.body_mesh) <= rigid).all())
+    assert "chosen" in result.info
+
+
+# ------------------------------------------------------------------ the public face
+
+
+def test_public_drape_and_simulate():
+    scene = hw.default_scene("bob", strand_stride=64, num_vertices=8)
+    r = hw.drape(scene, method="lbfgs", max_iterations=3)
+    m = scene.hairstyle.num_strands
+    assert r.positions.shape == (m, 8, 3)
+    assert set(r.metrics) >= {"penetration_percent", "length_change_percent", "rigid"}
+    assert r.method == "lbfgs" and r.info["iterations"] == 3
+    moving = hw.default_scene("bob", "head_turn", duration=0.05, strand_stride=64, num_vertices=8)
+    s = hw.simulate(moving, method="rigid")
+    assert s.positions.shape == (moving.num_frames, m, 8, 3)
+    assert len(s.metrics["per_frame"]["penetration_percent"]) == moving.num_frames
+    with pytest.raises(ValueError, match="max_iteration: not an option"):
+        hw.drape(scene, method="lbfgs", max_iteration=3)
+    with pytest.raises(ValueError, match="device"):
+        hw.drape(scene, device="cpu:7")
