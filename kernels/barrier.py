@@ -133,6 +133,36 @@ def barrier_gradient(d: Any, xi: Any, dhat: Any, bp: Any, variant: int):
     return fb1 + type(d)(2.0) * df * tau + type(d)(4.0) * df * tau * tau * tau / (t0 * t0)
 
 
+@wp.func
+def barrier_hessian(d: Any, xi: Any, dhat: Any, bp: Any, variant: int):
+    """d^2B/dd^2, consistent with `barrier_gradient` (zero where a max(0, .) clamp is active)."""
+    zero = type(d)(0.0)
+    if d >= xi + dhat:
+        return zero
+    db = xi + bp * dhat
+    if d >= db:
+        if barrier_log_energy(d, xi, dhat) <= zero:
+            return zero
+        return barrier_log_hessian(d, xi, dhat)
+    fb = barrier_log_energy(db, xi, dhat)
+    fb1 = barrier_log_gradient(db, xi, dhat)
+    df = type(d)(0.5) * barrier_log_hessian(db, xi, dhat)
+    tau = d - db
+    t0 = -(xi + dhat) - db
+    if variant == BARRIER_PAPER:
+        e1 = -(fb + fb1 * t0 + df * t0 * t0)
+        e2 = -(fb1 + type(d)(2.0) * df * t0)
+        a3 = type(d)(4.0) * e1 / (t0 * t0 * t0) - e2 / (t0 * t0)
+        a4 = e2 / (t0 * t0 * t0) - type(d)(3.0) * e1 / (t0 * t0 * t0 * t0)
+        value = fb + fb1 * tau + df * tau * tau + a3 * tau * tau * tau + a4 * tau * tau * tau * tau
+        if value <= zero:
+            return zero
+        return type(d)(2.0) * df + type(d)(6.0) * a3 * tau + type(d)(12.0) * a4 * tau * tau
+    if variant == BARRIER_QUADRATIC:
+        return type(d)(2.0) * df
+    return type(d)(2.0) * df + type(d)(12.0) * df * tau * tau / (t0 * t0)
+
+
 @wp.kernel
 def barrier_kernel(
     # In:
@@ -150,3 +180,19 @@ def barrier_kernel(
     d = d_in[i]
     energy_out[i] = barrier_energy(d, xi, dhat, bp, variant)
     gradient_out[i] = barrier_gradient(d, xi, dhat, bp, variant)
+
+
+@wp.kernel
+def barrier_hessian_kernel(
+    # In:
+    d_in: wp.array(dtype=Any),
+    xi: Any,
+    dhat: Any,
+    bp: Any,
+    variant: int,
+    # Out:
+    hessian_out: wp.array(dtype=Any),
+):
+    """Element-wise d^2B/dd^2: the torch double backward (Newton-type solvers, gradgradcheck)."""
+    i = wp.tid()
+    hessian_out[i] = barrier_hessian(d_in[i], xi, dhat, bp, variant)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import torch
 import warp as wp
+from torch.autograd.function import once_differentiable
 
 from hairwarp import _warp
 from hairwarp._validate import check_positive, check_tensor
@@ -32,34 +33,57 @@ def check_barrier_parameters(xi: float, dhat: float, bp: float) -> tuple[float, 
     return xi, dhat, bp
 
 
+def _launch(kernel, d: torch.Tensor, xi: float, dhat: float, bp: float, variant_id: int, outputs) -> None:
+    if d.numel() == 0:
+        return
+    with _warp.launch_scope(d.device):
+        wp.launch(
+            kernel,
+            dim=d.numel(),
+            inputs=[_warp.as_warp(d), _warp.scalar(xi, d.dtype), _warp.scalar(dhat, d.dtype),
+                    _warp.scalar(bp, d.dtype), variant_id],
+            outputs=[_warp.as_warp(o) for o in outputs],
+            device=_warp.warp_device(d.device),
+        )
+
+
 class _Barrier(torch.autograd.Function):
+    """B(d); its backward is itself differentiable (`_BarrierGradient`), so a double backward
+    gives the true second derivative instead of a silent zero."""
+
     @staticmethod
     def forward(ctx, d, xi, dhat, bp, variant_id):
         energy = torch.empty_like(d)
         gradient = torch.empty_like(d)
-        n = d.numel()
-        if n > 0:
-            with _warp.launch_scope(d.device):
-                wp.launch(
-                    barrier_kernels.barrier_kernel,
-                    dim=n,
-                    inputs=[
-                        _warp.as_warp(d),
-                        _warp.scalar(xi, d.dtype),
-                        _warp.scalar(dhat, d.dtype),
-                        _warp.scalar(bp, d.dtype),
-                        variant_id,
-                    ],
-                    outputs=[_warp.as_warp(energy), _warp.as_warp(gradient)],
-                    device=_warp.warp_device(d.device),
-                )
-        ctx.save_for_backward(gradient)
+        _launch(barrier_kernels.barrier_kernel, d, xi, dhat, bp, variant_id, (energy, gradient))
+        ctx.save_for_backward(d, gradient)
+        ctx.parameters = (xi, dhat, bp, variant_id)
         return energy
 
     @staticmethod
     def backward(ctx, grad_energy):
-        (gradient,) = ctx.saved_tensors
+        d, gradient = ctx.saved_tensors
+        if torch.is_grad_enabled():  # create_graph: dB/dd as a differentiable function of d
+            gradient = _BarrierGradient.apply(d, gradient, *ctx.parameters)
         return grad_energy * gradient, None, None, None, None
+
+
+class _BarrierGradient(torch.autograd.Function):
+    """dB/dd (already computed in the forward) with d^2B/dd^2 as its derivative."""
+
+    @staticmethod
+    def forward(ctx, d, gradient, xi, dhat, bp, variant_id):
+        ctx.save_for_backward(d)
+        ctx.parameters = (xi, dhat, bp, variant_id)
+        return gradient.clone()
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_gradient):
+        (d,) = ctx.saved_tensors
+        hessian = torch.empty_like(d)
+        _launch(barrier_kernels.barrier_hessian_kernel, d, *ctx.parameters, (hessian,))
+        return grad_gradient * hessian, None, None, None, None, None
 
 
 def barrier(d: torch.Tensor, xi: float, dhat: float, bp: float, variant: str = "quadratic") -> torch.Tensor:
