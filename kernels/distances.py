@@ -60,7 +60,7 @@ def point_segment_parameter(r: Any, e: Any):
 
 @wp.func
 def _unit_or_zero(v: Any):
-    """v / |v|, or the zero vector when |v| = 0 (the subgradient choice at contact)."""
+    """V / |v|, or the zero vector when |v| = 0 (the subgradient choice at contact)."""
     n2 = wp.dot(v, v)
     if n2 > type(n2)(0.0):
         return v / wp.sqrt(n2)
@@ -155,7 +155,7 @@ def edge_edge_distance(p0: Any, p1: Any, q0: Any, q1: Any):
 
 @wp.func
 def edge_edge_distance_gradient_at(p0: Any, p1: Any, q0: Any, q1: Any, s: Any, t: Any):
-    """d and dd/d(p0, p1, q0, q1) with the closest parameters (s, t) already known.
+    """D and dd/d(p0, p1, q0, q1) with the closest parameters (s, t) already known.
 
     Returns:
         d [m], then the gradients w.r.t. p0, p1, q0, q1 (dimensionless vec3 each).
@@ -182,18 +182,6 @@ def edge_edge_distance_gradient_at(p0: Any, p1: Any, q0: Any, q1: Any, s: Any, t
         # Touching at an endpoint: the subgradient along the common normal (zero if parallel).
         n = normal
     return d, (one - s) * n, s * n, -(one - t) * n, -t * n
-
-
-@wp.func
-def edge_edge_distance_gradient(p0: Any, p1: Any, q0: Any, q1: Any):
-    """Gradient of `edge_edge_distance` w.r.t. the four endpoints.
-
-    Returns:
-        dd/dp0, dd/dp1, dd/dq0, dd/dq1 (unit-free vec3; a subgradient at d = 0).
-    """
-    s, t, dist2 = edge_edge_closest_parameters(p0, p1, q0, q1)
-    d, g_p0, g_p1, g_q0, g_q1 = edge_edge_distance_gradient_at(p0, p1, q0, q1, s, t)
-    return g_p0, g_p1, g_q0, g_q1
 
 
 @wp.func
@@ -279,7 +267,7 @@ def point_triangle_distance(p: Any, a: Any, b: Any, c: Any):
 
 @wp.func
 def point_triangle_distance_gradient_at(p: Any, a: Any, b: Any, c: Any, u: Any, v: Any, w: Any):
-    """d and dd/d(p, a, b, c) with the closest barycentrics (u, v, w) already known."""
+    """D and dd/d(p, a, b, c) with the closest barycentrics (u, v, w) already known."""
     zero = type(u)(0.0)
     x = -(u * (a - p) + v * (b - p) + w * (c - p))  # p - closest point, as u + v + w = 1
     dist2 = wp.dot(x, x)
@@ -298,14 +286,6 @@ def point_triangle_distance_gradient_at(p: Any, a: Any, b: Any, c: Any, u: Any, 
         # On an edge or vertex: the subgradient along the triangle's normal.
         n = normal
     return d, n, -u * n, -v * n, -w * n
-
-
-@wp.func
-def point_triangle_distance_gradient(p: Any, a: Any, b: Any, c: Any):
-    """Gradient of `point_triangle_distance` w.r.t. p, a, b, c (a subgradient at d = 0)."""
-    u, v, w, dist2 = point_triangle_closest_barycentric(p, a, b, c)
-    d, g_p, g_a, g_b, g_c = point_triangle_distance_gradient_at(p, a, b, c, u, v, w)
-    return g_p, g_a, g_b, g_c
 
 
 @wp.kernel

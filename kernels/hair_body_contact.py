@@ -307,7 +307,8 @@ def crop_mark_faces_kernel(
 ):
     """keep[b, f] = 1 if the bounding box of face f of body b meets any ball (conservative:
     a triangle inside its box meets a ball only if the box does). One bounding ball of all the
-    balls rejects far faces before the per-ball loop."""
+    balls rejects far faces before the per-ball loop.
+    """
     i = wp.tid()
     b = i // num_faces
     f = i % num_faces

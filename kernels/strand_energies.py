@@ -50,7 +50,7 @@ FIRST_MOVING_VERTEX = wp.constant(2)
 # ---------------------------------------------------------------- stretch (Eq. 7), edge
 @wp.func
 def stretch_energy(e: Any, length: Any, rest: Any, scale: Any):
-    """scale * (|e| - l0)^2 for edge e = p_{i+1} - p_i of length |e|; scale = k_s / (M (N-1))."""
+    """Scale * (|e| - l0)^2 for edge e = p_{i+1} - p_i of length |e|; scale = k_s / (M (N-1))."""
     r = length - rest
     return scale * r * r
 
@@ -81,7 +81,7 @@ def _asin_small(r: wp.float32):
 
 @wp.func
 def bending_acos(x: wp.float32):
-    """arccos for float32 on [-1, 1], inline (absolute error < 4e-7 rad).
+    """Arccos for float32 on [-1, 1], inline (absolute error < 4e-7 rad).
 
     A call into the C library's acosf in the middle of the fused loop spills every live vector
     register (all are caller-saved) and made the bending term cost twice the others on the CPU.
@@ -99,8 +99,8 @@ def bending_acos(x: wp.float32):
 
 
 @wp.func
-def bending_acos(x: wp.float64):
-    """arccos for float64: the C library's (the float64 path is for checks, not speed)."""
+def bending_acos(x: wp.float64):  # noqa: F811 (a Warp overload, chosen by argument type)
+    """Arccos for float64: the C library's (the float64 path is for checks, not speed)."""
     return wp.acos(x)
 
 
@@ -150,7 +150,7 @@ def bending_joint(
 
 @wp.func
 def bending_energy(e0: Any, l0: Any, e1: Any, l1: Any, eps: Any, scale: Any):
-    """scale * alpha, the turning angle between edges e0 = e_i and e1 = e_{i+1} (scale = k_b).
+    """Scale * alpha, the turning angle between edges e0 = e_i and e1 = e_{i+1} (scale = k_b).
 
     theta = e0 / (|e0| + eps) . e1 / (|e1| + eps), alpha = arccos(clamp(theta, -1 + eps,
     1 - eps)), and alpha = 0 unless both edges are longer than eps (C_valid of Eq. 8).
@@ -159,15 +159,6 @@ def bending_energy(e0: Any, l0: Any, e1: Any, l1: Any, eps: Any, scale: Any):
     u1, inv1, ratio1 = bending_edge_frame(e1, l1, eps)
     energy, g0, g1 = bending_joint(u0, inv0, ratio0, u1, inv1, ratio1, eps, scale, 1)
     return energy
-
-
-@wp.func
-def bending_gradient(e0: Any, l0: Any, e1: Any, l1: Any, eps: Any, scale: Any):
-    """(d/de0, d/de1) of `bending_energy` (no arccos evaluated)."""
-    u0, inv0, ratio0 = bending_edge_frame(e0, l0, eps)
-    u1, inv1, ratio1 = bending_edge_frame(e1, l1, eps)
-    energy, g0, g1 = bending_joint(u0, inv0, ratio0, u1, inv1, ratio1, eps, scale, 0)
-    return g0, g1
 
 
 @wp.func
@@ -181,7 +172,7 @@ def bending_energy_gradient(e0: Any, l0: Any, e1: Any, l1: Any, eps: Any, scale:
 # ---------------------------------------------------------------- smoothness (Eq. 10), joint
 @wp.func
 def smoothness_energy(e0: Any, e1: Any, scale: Any):
-    """scale * |p_{v+1} - 2 p_v + p_{v-1}|^2 = scale * |e1 - e0|^2; scale = lambda_smooth / (M (N-2))."""
+    """Scale * |p_{v+1} - 2 p_v + p_{v-1}|^2 = scale * |e1 - e0|^2; scale = lambda_smooth / (M (N-2))."""
     r = e1 - e0
     return scale * wp.dot(r, r)
 
@@ -228,7 +219,7 @@ def root_alignment_gradient(e: Any, length: Any, normal: Any, eps: Any, scale: A
 # ---------------------------------------------------------------- auxiliary (Eq. 9), vertex
 @wp.func
 def auxiliary_energy(p: Any, rigid: Any, scale: Any):
-    """scale * |p - p_rigid|^2; scale = lambda_aux / (3 M N)."""
+    """Scale * |p - p_rigid|^2; scale = lambda_aux / (3 M N)."""
     d = p - rigid
     return scale * wp.dot(d, d)
 
@@ -255,7 +246,7 @@ def gravity_gradient(p: Any, weight_g: Any, mass: Any):
 # ---------------------------------------------------------------- inertia (Eq. 16), vertex
 @wp.func
 def inertia_energy(p: Any, projected: Any, mass: Any, scale: Any):
-    """scale * mass * |p - p_proj|^2; scale = lambda_inertia / (M N_mov 2 dt^2).
+    """Scale * mass * |p - p_proj|^2; scale = lambda_inertia / (M N_mov 2 dt^2).
 
     p_proj = 2 p(t-1) - p(t-2) is a constant input (stop-gradient, Section 3.4.5).
     """

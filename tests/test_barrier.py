@@ -44,21 +44,21 @@ def _sweep(xi, dhat, n=2001):
     )
 
 
-def _kernel(d, xi, dhat, bp, variant, dtype=torch.float64):
+def _kernel(d, xi, dhat, bp, variant, dtype=torch.float64, device=torch.device("cpu")):
     """(B, dB/dd) from the Warp bridge, the gradient through autograd."""
-    t = torch.tensor(np.asarray(d, dtype=np.float64), dtype=dtype, requires_grad=True)
+    t = torch.tensor(np.asarray(d, dtype=np.float64), dtype=dtype, device=device, requires_grad=True)
     e = barrier(t, xi, dhat, bp, variant)
     (g,) = torch.autograd.grad(e.sum(), t)
-    return e.detach().double().numpy(), g.double().numpy()
+    return e.detach().double().cpu().numpy(), g.double().cpu().numpy()
 
 
 @pytest.mark.parametrize("variant,xi,bp", _cases())
-def test_values_match_reference(variant, xi, bp):
+def test_values_match_reference(variant, xi, bp, device):
     dhat = DHAT_OVER_XI * xi
     d = _sweep(xi, dhat)
     expected, expected_grad = ref.barrier_and_gradient(d, xi, dhat, bp, variant)
     assert np.count_nonzero(expected > 0) > 1000  # the sweep covers the active region
-    energy, grad = _kernel(d, xi, dhat, bp, variant)
+    energy, grad = _kernel(d, xi, dhat, bp, variant, device=device)
     scale = np.abs(expected).max()
     gscale = np.abs(expected_grad).max()
     np.testing.assert_allclose(energy, expected, rtol=0, atol=VALUE_RTOL_F64 * scale)
@@ -72,7 +72,7 @@ def test_values_match_reference(variant, xi, bp):
 
 
 @pytest.mark.parametrize("variant,xi,bp", _cases())
-def test_gradient_matches_central_differences(variant, xi, bp):
+def test_gradient_matches_central_differences(variant, xi, bp, device):
     dhat = DHAT_OVER_XI * xi
     k = ref.coefficients(xi, dhat, bp)
     h = 1e-6 * (xi + dhat)
@@ -80,17 +80,18 @@ def test_gradient_matches_central_differences(variant, xi, bp):
     # Away from the pieces' joins: d_b, the support end, and (paper) the clamp's double root.
     keep = (np.abs(d - k["db"]) > 4 * h) & (np.abs(d - (xi + dhat)) > 4 * h) & (np.abs(d + xi + dhat) > 4 * h)
     d = d[keep]
-    _, grad = _kernel(d, xi, dhat, bp, variant)
-    e_plus, _ = _kernel(d + h, xi, dhat, bp, variant)
-    e_minus, _ = _kernel(d - h, xi, dhat, bp, variant)
+    _, grad = _kernel(d, xi, dhat, bp, variant, device=device)
+    e_plus, _ = _kernel(d + h, xi, dhat, bp, variant, device=device)
+    e_minus, _ = _kernel(d - h, xi, dhat, bp, variant, device=device)
     fd = (e_plus - e_minus) / (2 * h)
     assert np.count_nonzero(grad != 0) > 200
     np.testing.assert_allclose(grad, fd, rtol=0, atol=FD_RTOL * np.abs(grad).max())
 
 
-def test_bridge_gradcheck_float64():
+def test_bridge_gradcheck_float64(device):
     xi, dhat, bp = 2e-3, 3e-3, 0.1
-    d = torch.tensor([-0.01, -4e-3, 0.0, 1e-3, 2.05e-3, 2.5e-3, 3.5e-3, 4.9e-3, 6e-3], dtype=torch.float64)
+    d = torch.tensor([-0.01, -4e-3, 0.0, 1e-3, 2.05e-3, 2.5e-3, 3.5e-3, 4.9e-3, 6e-3], dtype=torch.float64,
+                     device=device)
     for variant in VARIANTS:
         x = d.clone().requires_grad_(True)
         assert torch.autograd.gradcheck(
@@ -98,19 +99,21 @@ def test_bridge_gradcheck_float64():
         )
 
 
-def test_bridge_gradgradcheck_float64():
+def test_bridge_gradgradcheck_float64(device):
     """The double backward is the true second derivative (a Newton step or a Hessian-vector
     product through the barrier gets B'', not a silent zero)."""
     xi, dhat, bp = 2e-3, 3e-3, 0.1
     # Away from the join d_b = 2.3e-3 and the support end 5e-3 (B'' jumps at the paper's clamp).
-    d = torch.tensor([-0.01, -4e-3, 0.0, 1e-3, 2.05e-3, 2.5e-3, 3.5e-3, 4.9e-3, 6e-3], dtype=torch.float64)
+    d = torch.tensor([-0.01, -4e-3, 0.0, 1e-3, 2.05e-3, 2.5e-3, 3.5e-3, 4.9e-3, 6e-3], dtype=torch.float64,
+                     device=device)
     for variant in VARIANTS:
         x = d.clone().requires_grad_(True)
         assert torch.autograd.gradgradcheck(lambda t: barrier(t, xi, dhat, bp, variant), (x,), eps=1e-9, atol=1e-7)
         (g,) = torch.autograd.grad(barrier(x, xi, dhat, bp, variant).sum(), x, create_graph=True)
         (h,) = torch.autograd.grad(g.sum(), x)
         assert torch.count_nonzero(h) >= 6  # the second derivative is really there
-        ref = torch.tensor([reference_hessian(float(v), xi, dhat, bp, variant) for v in d], dtype=torch.float64)
+        ref = torch.tensor([reference_hessian(float(v), xi, dhat, bp, variant) for v in d], dtype=torch.float64,
+                           device=device)
         torch.testing.assert_close(h, ref, rtol=1e-6, atol=1e-6 * float(ref.abs().max()))
 
 

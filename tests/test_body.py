@@ -391,6 +391,7 @@ def test_animated_mesh_body_rejects_bad_input():
 # The example
 
 
+@pytest.mark.slow
 def test_pose_body_example_writes_a_picture(tmp_path):
     import importlib.util
     import pathlib

@@ -65,6 +65,7 @@ def test_the_new_commands_are_registered():
         assert name in names
 
 
+@pytest.mark.slow
 def test_drape_rigid_writes_every_output(tmp_path, capsys):
     out = tmp_path / "rigid"
     code, stdout, _ = _run(["drape", *TINY, "--method", "rigid", "--out", str(out)], capsys)
@@ -85,6 +86,7 @@ def test_drape_rigid_writes_every_output(tmp_path, capsys):
     assert "| rigid |" in stdout
 
 
+@pytest.mark.slow
 def test_drape_lbfgs_from_a_data_file(tmp_path, capsys):
     # A tiny hairstyle: 24 strands of 20 vertices, written in metres, loaded back by the command.
     from hairwarp.scene.scene import default_scene
@@ -107,6 +109,7 @@ def test_drape_lbfgs_from_a_data_file(tmp_path, capsys):
     assert (out / "drape.png").stat().st_size > 0
 
 
+@pytest.mark.slow
 def test_simulate_rigid_three_frames(tmp_path, capsys):
     out = tmp_path / "sim"
     code, _, _ = _run(["simulate", *TINY, "--method", "rigid", "--pose", "nod", "--frames", "3", "--gif-frames", "3",
@@ -214,6 +217,7 @@ def test_malformed_data_file(tmp_path, capsys):
     _bad(["export", str(bad), str(tmp_path / "x.usda")], capsys, needle="input")
 
 
+@pytest.mark.slow
 def test_debug_shows_the_traceback(tmp_path):
     # In a subprocess: --debug re-raises, so the interpreter prints the traceback and exits 1.
     cmd = [sys.executable, "-m", "hairwarp.cli", "--debug", "export", str(tmp_path / "nope.data"),

@@ -134,6 +134,7 @@ def _moved(state, before) -> bool:
     return any(not torch.equal(v, before[k]) for k, v in state.items())
 
 
+@pytest.mark.slow
 def test_ranks_end_with_identical_parameters(job):
     ranks = _ranks(job)
     assert [r["rank"] for r in ranks] == [0, 1] and all(r["world_size"] == WORLD for r in ranks)
@@ -146,6 +147,7 @@ def test_ranks_end_with_identical_parameters(job):
     assert ranks[0]["dynamic_losses"] == ranks[1]["dynamic_losses"]
 
 
+@pytest.mark.slow
 def test_two_ranks_match_one_process_with_the_same_global_batch(job, single):
     initial = StaticTrainer(_static_config(), seed=SEED).model.state_dict()
     static = torch.load(job / "static_rank0.pt")

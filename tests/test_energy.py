@@ -18,7 +18,7 @@ from meshes import icosphere
 _RTOL = 1e-6
 
 
-def _scene(dtype=torch.float64, strands=12, vertices=16, batch=2, seed=0):
+def _scene(device=torch.device("cpu"), dtype=torch.float64, strands=12, vertices=16, batch=2, seed=0):
     """Strands hanging from a unit-radius-0.1 m sphere 'head', some tips pushed inside."""
     rng = np.random.default_rng(seed)
     verts, faces = icosphere(frequency=6, radius=0.1)
@@ -35,6 +35,7 @@ def _scene(dtype=torch.float64, strands=12, vertices=16, batch=2, seed=0):
     xb = x.expand(batch, -1, -1, -1).clone()
     xb[-1, :, 2:] += torch.as_tensor(rng.normal(0, 2e-3, (strands, vertices - 2, 3)), dtype=dtype)
     normals = torch.as_tensor(dirs, dtype=dtype)
+    verts, faces, x, xb, rest, normals = (t.to(device) for t in (verts, faces, x, xb, rest, normals))
     body = BodyMesh(verts, faces)
     inputs = EnergyInputs(rest_lengths=rest, rigid=x.expand(batch, -1, -1, -1).clone(),
                           scalp_normals=normals, body=body)
@@ -47,8 +48,8 @@ def _config():
                         barrier_join_fraction=0.5)
 
 
-def test_total_is_the_sum_of_its_terms_and_every_term_is_present():
-    x, inputs = _scene()
+def test_total_is_the_sum_of_its_terms_and_every_term_is_present(device):
+    x, inputs = _scene(device)
     cfg = _config()
     prev = x.detach() - 1e-3
     result = dynamic_energy(x, replace(inputs, prev=prev, prev2=prev - 1e-3), cfg)
@@ -59,8 +60,8 @@ def test_total_is_the_sum_of_its_terms_and_every_term_is_present():
     torch.testing.assert_close(result.total.detach(), summed, rtol=_RTOL, atol=0)
 
 
-def test_matches_plain_torch_reference_value_and_gradient():
-    x, inputs = _scene()
+def test_matches_plain_torch_reference_value_and_gradient(device):
+    x, inputs = _scene(device)
     cfg = _config()
     xw = x.clone().requires_grad_(True)
     xt = x.clone().requires_grad_(True)
@@ -75,8 +76,8 @@ def test_matches_plain_torch_reference_value_and_gradient():
     assert float(xw.grad[:, :, :2].abs().max()) == 0.0  # vertices 0 and 1 are fixed
 
 
-def test_gradient_matches_finite_differences():
-    x, inputs = _scene(strands=4, vertices=8, batch=1)
+def test_gradient_matches_finite_differences(device):
+    x, inputs = _scene(device, strands=4, vertices=8, batch=1)
     cfg = _config()
     x = x.clone().requires_grad_(True)
     static_energy(x, inputs, cfg).total.sum().backward()
@@ -92,8 +93,8 @@ def test_gradient_matches_finite_differences():
         assert abs(float(fd) - float(g[0, s, v, k])) <= 1e-4 * max(1.0, abs(float(fd)))
 
 
-def test_term_subset_and_zero_weights_switch_terms_off():
-    x, inputs = _scene()
+def test_term_subset_and_zero_weights_switch_terms_off(device):
+    x, inputs = _scene(device)
     cfg = _config()
     only = static_energy(x, inputs, cfg, terms=("stretch", "gravity"))
     assert set(only.terms) == {"stretch", "gravity"}
@@ -103,8 +104,8 @@ def test_term_subset_and_zero_weights_switch_terms_off():
         static_energy(x, inputs, cfg, terms=("stretchh",))
 
 
-def test_dynamic_energy_needs_previous_states_and_adds_inertia():
-    x, inputs = _scene()
+def test_dynamic_energy_needs_previous_states_and_adds_inertia(device):
+    x, inputs = _scene(device)
     with pytest.raises(ValueError, match="prev"):
         dynamic_energy(x, inputs, _config())
     moved = replace(inputs, prev=x.detach() + 1e-2, prev2=x.detach() + 2e-2)
@@ -114,7 +115,7 @@ def test_dynamic_energy_needs_previous_states_and_adds_inertia():
     torch.testing.assert_close(dyn.total - dyn.terms["inertia"], stat.total, rtol=_RTOL, atol=1e-12)
 
 
-def test_unbatched_input_gives_one_value():
-    x, inputs = _scene(batch=1)
+def test_unbatched_input_gives_one_value(device):
+    x, inputs = _scene(device, batch=1)
     r = total_energy(x[0], replace(inputs, rigid=inputs.rigid[0]), _config())
     assert r.total.shape == (1,)

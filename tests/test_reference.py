@@ -34,6 +34,7 @@ def test_first_step_from_rest_dissipates():
     assert float((result.positions[1] - start).norm(dim=-1).max()) > 0  # it did move (not converged at 30 it.)
 
 
+@pytest.mark.slow
 def test_reference_follows_the_motion(whiplash):
     scene, frames = whiplash
     config = scene.energy_config()

@@ -254,6 +254,7 @@ def test_bad_inputs_name_the_argument(tmp_path, rng):
     assert not any(tmp_path.iterdir())  # nothing written on failure
 
 
+@pytest.mark.slow
 def test_example_export_and_render_runs(tmp_path, capsys):
     path = Path(__file__).resolve().parents[1] / "examples" / "export_and_render.py"
     spec = importlib.util.spec_from_file_location("export_and_render_example", path)

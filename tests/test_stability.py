@@ -98,6 +98,7 @@ def test_very_long_hair_stays_finite(tiny):
         assert result.loss < float(total_energy(x0, inputs, EnergyConfig()).total.sum())
 
 
+@pytest.mark.slow
 def test_time_step_ten_times_too_large_stays_finite():
     rows = S.time_step_study(num_frames=3, factors=(10.0,), stride=32, nv=8)
     (row,) = rows

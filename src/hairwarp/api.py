@@ -1,11 +1,11 @@
 """The small public face: drape or simulate a scene with any method by name.
 
-    import hairwarp as hw
-    scene = hw.default_scene("bob", strand_stride=8)
-    r = hw.drape(scene, method="lbfgs", max_iterations=50)
-    r.positions                      # (M, N, 3) [m]
-    r.metrics["penetration_percent"], r.metrics["length_change_percent"]
-    hw.simulate(hw.default_scene("bob", "head_turn"), method="dynamic").positions   # (T, M, N, 3)
+import hairwarp as hw
+scene = hw.default_scene("bob", strand_stride=8)
+r = hw.drape(scene, method="lbfgs", max_iterations=50)
+r.positions                      # (M, N, 3) [m]
+r.metrics["penetration_percent"], r.metrics["length_change_percent"]
+hw.simulate(hw.default_scene("bob", "head_turn"), method="dynamic").positions   # (T, M, N, 3)
 """
 
 from __future__ import annotations

@@ -36,6 +36,7 @@ def _available_commands():
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The `hairwarp` parser with every subcommand this build has."""
     parser = argparse.ArgumentParser(
         prog="hairwarp",
         description="Differentiable hair physics (NVIDIA Warp + PyTorch) and the HairFormer neural hair simulator.",
@@ -57,6 +58,7 @@ def _as_flag(message: str, args) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the command line; returns the exit status (0 ok, 1 failure, 2 usage, 130 interrupted)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:

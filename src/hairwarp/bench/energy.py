@@ -43,7 +43,7 @@ def build_energy_inputs(batch: int, device: torch.device, *, hairstyle: str = "l
 
 
 def _closures(x, inputs, config: EnergyConfig):
-    """name -> (warp fn, torch fn), each returning a (B,) energy."""
+    """Name -> (warp fn, torch fn), each returning a (B,) energy."""
     from hairwarp import energy as hw_energy
     from hairwarp import ops
     from hairwarp.torch_reference import energy as ref_energy
@@ -162,5 +162,6 @@ def markdown_table(record: dict) -> str:
 
 
 def write_json(record: dict, path: str) -> None:
+    """Write the benchmark record as JSON to `path`."""
     with open(path, "w") as f:
         json.dump(record, f, indent=2, default=str)

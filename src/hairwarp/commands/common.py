@@ -89,7 +89,7 @@ def build_scene_from_args(args, *, simulate: bool):
 
 
 def method_name(text: str) -> str:
-    """argparse type of --method: a registered name or NAME+refine (else a usage error)."""
+    """Argparse type of --method: a registered name or NAME+refine (else a usage error)."""
     from hairwarp.methods import REFINE_SUFFIX, available
 
     base = text[: -len(REFINE_SUFFIX)] if text.endswith(REFINE_SUFFIX) else text
@@ -154,7 +154,8 @@ def describe(scene, frames) -> str:
 def picture_distances(sd):
     """Signed distances for the pictures: the fixed vertices 0 and 1 (on the scalp, |d| at
     float32 noise, often a hair below zero) shown as outside, so red marks only what a method
-    moved inside."""
+    moved inside.
+    """
     from hairwarp.config import NUM_FIXED_VERTICES
 
     sd = sd.detach().clone()

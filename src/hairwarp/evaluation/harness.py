@@ -32,8 +32,6 @@ import datetime
 import json
 import math
 import os
-import platform
-import sys
 from collections.abc import Sequence
 
 import torch

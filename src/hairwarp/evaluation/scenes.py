@@ -32,11 +32,10 @@ import functools
 import math
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 
 from hairwarp.config import EnergyConfig
-from hairwarp.scene.hairstyles import Hairstyle, generate_hairstyle, hairstyle_preset, resample_polylines
+from hairwarp.scene.hairstyles import Hairstyle, generate_hairstyle, hairstyle_preset
 from hairwarp.scene.motion import Motion, procedural_motion
 from hairwarp.scene.rotations import euler_to_axis_angle
 from hairwarp.scene.skeleton import JOINT, POSE_DIM

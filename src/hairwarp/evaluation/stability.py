@@ -306,6 +306,7 @@ def degenerate_inputs(frames, strands=(0, 1), vertex: int = 5):
 
 
 def degenerate_study(iterations: int = STUDY_ITERATIONS) -> list[dict]:
+    """Degenerate strands (zero-length segments, coincident vertices): does every method stay finite?"""
     _, frames = _tiny_frames()
     x0, inputs = degenerate_inputs(frames)
     x = x0.clone().requires_grad_(True)
@@ -345,6 +346,7 @@ def long_hair_inputs(frames, faces: torch.Tensor, factor: float):
 
 
 def long_hair_study(factors=(1.0, 2.0, 4.0), iterations: int = STUDY_ITERATIONS) -> list[dict]:
+    """Strands `factors` times longer than the scene's: penetration and length change after L-BFGS."""
     scene, frames = _tiny_frames("medium_rest")
     rows = []
     for f in factors:

@@ -374,7 +374,8 @@ def read_ply(path: str | os.PathLike, dtype: torch.dtype = torch.float32) -> dic
 
 def _ascii_element_fast(out: dict, el: dict, tokens: list, pos: int) -> int | None:
     """Vectorised read of an ASCII element of scalar properties or of triangles only; None when
-    the element needs the general row-by-row path."""
+    the element needs the general row-by-row path.
+    """
     props, count = el["props"], el["count"]
     if all(list_t is None for _, _, list_t in props):
         width = len(props)

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from hairwarp._validate import check_positive
-from hairwarp.scene.hairstyles import Hairstyle, as_strand_list, resample_polylines, resample_strands, scalp_arrays
+from hairwarp.scene.hairstyles import Hairstyle, as_strand_list, resample_strands, scalp_arrays
 from hairwarp.scene.scalp import Scalp
 
 _INT = struct.Struct("<i")

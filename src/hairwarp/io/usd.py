@@ -59,7 +59,7 @@ def _pxr():
 
 
 def _to_stage(points: np.ndarray, up_axis: str, meters_per_unit: float) -> np.ndarray:
-    """hairwarp (y up, metres) -> stage axes and units, float32."""
+    """Hairwarp (y up, metres) -> stage axes and units, float32."""
     p = points.astype(np.float64)
     if up_axis == "Z":
         p = np.stack([p[..., 0], -p[..., 2], p[..., 1]], axis=-1)

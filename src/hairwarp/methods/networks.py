@@ -71,7 +71,7 @@ class HairFormerSimulator:
         return int(self.static.config.num_vertices)
 
     def latent(self, hairstyle, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
-        """z (1, 512) of a hairstyle (least-squares encoding, computed once per hairstyle)."""
+        """Z (1, 512) of a hairstyle (least-squares encoding, computed once per hairstyle)."""
         strands = hairstyle.strands
         per_style = self._latents.get(id(strands))
         if per_style is None:

@@ -1,5 +1,6 @@
 """hairwarp.models: the HairFormer networks (Sections 3.2-3.3), the Quaffure (adapted) baseline
-(Section 4.3.1), deformation application (Eq. 2, Section 4.2.3) and checkpoints."""
+(Section 4.3.1), deformation application (Eq. 2, Section 4.2.3) and checkpoints.
+"""
 
 from hairwarp.models.checkpoint import (
     Checkpoint,

@@ -52,7 +52,8 @@ class Checkpoint:
 
     def restore_optimizer(self, optimizer: torch.optim.Optimizer) -> torch.optim.Optimizer:
         """Load the stored state into `optimizer` (built on `model`'s trainable parameters, in
-        the same order as when saved); its tensors move to the parameters' device."""
+        the same order as when saved); its tensors move to the parameters' device.
+        """
         if self.optimizer_state is None:
             raise ValueError("optimizer: the checkpoint holds no optimizer state")
         optimizer.load_state_dict(self.optimizer_state)

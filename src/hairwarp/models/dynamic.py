@@ -27,7 +27,6 @@ from torch import nn
 
 from hairwarp._validate import check_tensor
 from hairwarp.models.config import (
-    FUSION_CROSS_ATTENTION,
     FUSION_LAYERNORM_CONCAT,
     FUSION_LORA,
     DynamicConfig,
@@ -165,7 +164,8 @@ class DynamicNetwork(nn.Module):
 
     def trainable_parameters(self) -> list[nn.Parameter]:
         """The parameters an optimizer should update (everything but the frozen static network
-        and, for the LoRA variant, the frozen base head)."""
+        and, for the LoRA variant, the frozen base head).
+        """
         return [p for p in self.parameters() if p.requires_grad]
 
     @property

@@ -80,7 +80,7 @@ class CrossAttentionBlock(nn.Module):
         self.dropout = nn.Dropout(dropout)
 
     def forward(self, queries: torch.Tensor, context: torch.Tensor) -> torch.Tensor:
-        """queries (B, L, d_m), context (B, K, d_m) -> (B, L, d_m)."""
+        """Queries (B, L, d_m), context (B, K, d_m) -> (B, L, d_m)."""
         attended, _ = self.attention(queries, context, context, need_weights=False)
         x = self.norm_attention(queries + self.dropout(attended))
         return self.norm_ffn(x + self.dropout(self.ffn(x)))
@@ -112,7 +112,7 @@ class PredictionHead(nn.Module):
             last.bias.zero_()
 
     def forward(self, tokens: torch.Tensor) -> torch.Tensor:
-        """tokens (B, L, in_dim) -> raw deformations (B, L, N * 3) [m]."""
+        """Tokens (B, L, in_dim) -> raw deformations (B, L, N * 3) [m]."""
         return self.net(tokens)
 
 

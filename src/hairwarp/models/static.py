@@ -46,7 +46,7 @@ class HairEncoder(nn.Module):
         self.encoder = nn.TransformerEncoder(layer, cfg.num_encoder_layers, enable_nested_tensor=False)
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:
-        """z (B, d_z) -> H_ctx (B, L, d_m)."""
+        """Z (B, d_z) -> H_ctx (B, L, d_m)."""
         batch = z.shape[0]
         queries = (self.queries + self.position.to(self.queries.dtype)).expand(batch, -1, -1)
         tokens = torch.cat([queries, self.latent_projection(z)[:, None, :]], dim=1)

@@ -1,5 +1,6 @@
 """Torch bridge of the contact barrier B(d) (HairFormer Eq. 12-14); device code in
-`hairwarp.kernels.barrier`."""
+`hairwarp.kernels.barrier`.
+"""
 
 from __future__ import annotations
 
@@ -49,7 +50,8 @@ def _launch(kernel, d: torch.Tensor, xi: float, dhat: float, bp: float, variant_
 
 class _Barrier(torch.autograd.Function):
     """B(d); its backward is itself differentiable (`_BarrierGradient`), so a double backward
-    gives the true second derivative instead of a silent zero."""
+    gives the true second derivative instead of a silent zero.
+    """
 
     @staticmethod
     def forward(ctx, d, xi, dhat, bp, variant_id):

@@ -211,7 +211,7 @@ class BodyMesh:
 
     @property
     def dtype(self) -> torch.dtype:
-        """dtype of the vertices the body was built from."""
+        """Dtype of the vertices the body was built from."""
         return self._dtype
 
     @property

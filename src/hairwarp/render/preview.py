@@ -98,7 +98,8 @@ _TITLE_INCHES = 0.35
 class _PiecesCollection(PolyCollection):
     """A PolyCollection of open paths from one (K, P, 2) array, built without matplotlib's
     per-path validation (our arrays are checked once, as a whole): a third of a frame's time
-    otherwise, at 35 000 pieces per view."""
+    otherwise, at 35 000 pieces per view.
+    """
 
     def set_verts(self, verts, closed=False):
         make = getattr(Path, "_fast_from_codes_and_verts", None)
@@ -189,7 +190,8 @@ def _hair_colors(depth: np.ndarray, color_by: str) -> np.ndarray:
 def _cluster_decimate(vertices: np.ndarray, faces: np.ndarray, target: int):
     """Fewer triangles by vertex clustering: vertices snapped to the mean of their grid cell,
     collapsed triangles dropped. Unlike dropping triangles it leaves no holes; the cell grows
-    until at most `target` triangles remain. Returns (vertices, faces)."""
+    until at most `target` triangles remain. Returns (vertices, faces).
+    """
     corner = vertices[faces]
     area = 0.5 * np.linalg.norm(np.cross(corner[:, 1] - corner[:, 0], corner[:, 2] - corner[:, 0]), axis=1).sum()
     cell = np.sqrt(2.0 * max(area, 1e-12) / max(target, 1))

@@ -256,7 +256,6 @@ class HairLatentBasis:
                 s.shape[0], s.shape[1], self.num_vertices, 3)
         t = self._tensors(s.device, s.dtype)
         b, m = s.shape[:2]
-        k = self.mean_coefficients.shape[1]
         offsets = (s - s[:, :, :1]).reshape(b, m, -1)
         coeff = offsets @ t["V"] - t["mean"]  # (B, M, K)
         block = (t["U"].T @ coeff).reshape(b, -1)  # (B, A_max * K)

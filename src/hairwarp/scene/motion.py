@@ -178,7 +178,8 @@ def _head_oscillation(axis, amplitude_deg, frequency):
 
 def _whiplash(t, rng):
     """Fast head turns that stop abruptly (Fig. 4): constant angular acceleration up to a peak
-    speed, then an instant stop, a hold, and the same back."""
+    speed, then an instant stop, a hold, and the same back.
+    """
     a = math.radians(80.0) * _jitter(rng, 0.1)
     turn = 0.25 * _jitter(rng, 0.1)  # [s] duration of each turn
     t0, t1 = 0.4, 0.4 + turn + 1.2

@@ -104,7 +104,8 @@ def scalp_directions(
 
 def grid_uv(resolution: int, dtype=torch.float32, device=None) -> torch.Tensor:
     """(resolution^2, 2) cell-centre UVs, row-major: root m = row * resolution + col has
-    u = (col + 0.5) / resolution, v = (row + 0.5) / resolution."""
+    u = (col + 0.5) / resolution, v = (row + 0.5) / resolution.
+    """
     t = (torch.arange(resolution, dtype=torch.float64, device=device) + 0.5) / resolution
     v, u = torch.meshgrid(t, t, indexing="ij")
     return torch.stack([u.reshape(-1), v.reshape(-1)], 1).to(dtype)

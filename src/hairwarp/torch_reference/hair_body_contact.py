@@ -157,7 +157,8 @@ def point_mesh_signed_distance(
 
 def hair_body_signed_distance(x: torch.Tensor, vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     """Signed distance of every hair vertex [m]: x (M, N, 3) or (B, M, N, 3) against
-    vertices (V, 3) (shared) or (B, V, 3) (one pose per batch item); returns x.shape[:-1]."""
+    vertices (V, 3) (shared) or (B, V, 3) (one pose per batch item); returns x.shape[:-1].
+    """
     if x.dim() == 3 or vertices.dim() == 2:
         return point_mesh_signed_distance(x.reshape(-1, 3), vertices, faces).reshape(x.shape[:-1])
     per_pose = [

@@ -19,7 +19,7 @@ _DEFAULTS = EnergyConfig()
 
 
 def _fix_roots(x: torch.Tensor) -> torch.Tensor:
-    """x with vertices 0 and 1 detached: fixed in the paper, excluded from the gradient."""
+    """X with vertices 0 and 1 detached: fixed in the paper, excluded from the gradient."""
     return torch.cat([x[..., :2, :].detach(), x[..., 2:, :]], dim=-2)
 
 

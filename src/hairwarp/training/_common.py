@@ -116,7 +116,8 @@ class Trainer:
 
     def _before_resume(self) -> None:
         """Wait until every rank gets here before a checkpoint is read (rank 0 of this very run
-        may have just written it)."""
+        may have just written it).
+        """
         distributed.barrier(self.device)
 
     # ------------------------------------------------------------------------------ steps
@@ -181,7 +182,8 @@ class Trainer:
 
     def evaluate(self, batch, step: int | None = None) -> tuple[float, dict]:
         """The loss and its terms on `batch` without updating anything (at `step`'s schedule);
-        local to this rank (no collective)."""
+        local to this rank (no collective).
+        """
         self.model.eval()
         with torch.no_grad():
             loss, terms, _ = self.compute_loss(batch, self.step if step is None else step)

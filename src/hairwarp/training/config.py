@@ -229,7 +229,8 @@ class DataConfig(_TrainingConfig):
     @classmethod
     def tiny(cls) -> DataConfig:
         """64 strands x 20 vertices, 2 motions, no variants, uncropped bodies (with so few hair
-        vertices the crop costs more than it saves): for CPU tests and examples."""
+        vertices the crop costs more than it saves): for CPU tests and examples.
+        """
         return cls(strand_stride=4, num_vertices=20, motions=["nod", "whiplash"], motion_variants=1,
                    num_subjects=2, crop_body=False, pose_cache_size=64, hairstyle_cache_size=16)
 
@@ -493,7 +494,8 @@ CONFIG_CLASSES = {
 
 def parse_value(text: str) -> Any:
     """A command-line value as a TOML literal (numbers, true/false, [lists], "strings");
-    anything that does not parse is taken as a bare string."""
+    anything that does not parse is taken as a bare string.
+    """
     try:
         return tomllib.loads(f"v = {text}")["v"]
     except tomllib.TOMLDecodeError:

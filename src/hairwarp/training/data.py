@@ -333,7 +333,8 @@ class TrainingSampler:
     def generator(self, stream: int, step: int) -> np.random.Generator:
         """The generator of one global batch: keyed by (seed, stream, step), the same on every
         rank. (The key's second slot, 0, once held the rank: kept so that single-process runs
-        draw the batches they always drew.)"""
+        draw the batches they always drew.)
+        """
         return _generator(self.seed, 0, stream, step)
 
     def shard(self, batch_size: int) -> tuple[int, int]:
@@ -361,7 +362,7 @@ class TrainingSampler:
 
     # ------------------------------------------------------------------------------ hair
     def latent(self, index: int) -> torch.Tensor:
-        """z of corpus hairstyle `index` (512,), float64 on the CPU, cached."""
+        """Z of corpus hairstyle `index` (512,), float64 on the CPU, cached."""
         if not isinstance(index, (int, np.integer)) or index < 0:
             raise ValueError(f"index: expected a non-negative int, got {index!r}")
         index = int(index)
@@ -381,7 +382,8 @@ class TrainingSampler:
 
     def hairstyle(self, index: int) -> tuple[torch.Tensor, torch.Tensor]:
         """(z (512,), P_init (M, N, 3)) of corpus hairstyle `index`, on the sampler's device and
-        dtype, cached (LRU)."""
+        dtype, cached (LRU).
+        """
         cached = self._hairstyles.get(index)
         if cached is not None:
             self._hairstyles.move_to_end(index)
@@ -491,7 +493,8 @@ class TrainingSampler:
     # ------------------------------------------------------------------------------ static
     def head_rotation(self, g: np.random.Generator, radius_fraction: float) -> np.ndarray:
         """A head rotation vector (3,) [rad] on the phase-1 ellipsoid scaled by `radius_fraction`
-        (direction uniform on the sphere, mapped onto the ellipsoid's surface)."""
+        (direction uniform on the sphere, mapped onto the ellipsoid's surface).
+        """
         u = g.standard_normal(3)
         u /= max(float(np.linalg.norm(u)), 1e-12)
         return radius_fraction * np.asarray(self.config.head_rotation_radii) * u
@@ -606,7 +609,8 @@ class TrainingSampler:
     def dynamic_threshold(self, frames: int, subsample: tuple[int, int], candidates: int = 500,
                           quantile: float = 0.5) -> float:
         """The dynamic-score threshold of Section 4.2.2: the `quantile` (median) of the scores of
-        `candidates` random clips. Drawn from `corpus_seed` only: the same on every rank."""
+        `candidates` random clips. Drawn from `corpus_seed` only: the same on every rank.
+        """
         key = (frames, tuple(subsample), candidates, quantile)
         if key not in self._thresholds:
             g = _generator(self.config.corpus_seed, _STREAM_THRESHOLD)

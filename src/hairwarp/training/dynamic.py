@@ -104,7 +104,8 @@ def dynamic_loss(model: DynamicNetwork, batch: SequenceBatch, energy, clip: floa
 
 def dynamic_model_config(config: DynamicTrainingConfig, static_config) -> DynamicConfig:
     """The DynamicConfig of a run: preset, `model` overrides, the static network's config, and
-    the data's motion-descriptor size (132) and window T_w."""
+    the data's motion-descriptor size (132) and window T_w.
+    """
     fields = {**_DYNAMIC_PRESETS[config.model_preset], **config.model}
     try:
         return DynamicConfig(static=static_config, motion_dim=MOTION_DIM, window=config.window, **fields)

@@ -102,7 +102,8 @@ _QUAFFURE_PRESETS = {"paper": QuaffureConfig, "shipped": QuaffureConfig, "tiny":
 
 def model_config(config: StaticTrainingConfig, latent_dim: int = 512):
     """The network config of a run: the preset, the `model` overrides, and the data's sizes
-    (latent_dim = d_z of the hair basis, num_vertices = `data.num_vertices`)."""
+    (latent_dim = d_z of the hair basis, num_vertices = `data.num_vertices`).
+    """
     presets = _STATIC_PRESETS if config.model_kind == "static" else _QUAFFURE_PRESETS
     base = presets[config.model_preset]()
     fixed = {"latent_dim": latent_dim, "num_vertices": config.data.num_vertices}
