@@ -30,6 +30,8 @@ from typing import Any
 
 import warp as wp
 
+from hairwarp.config import NUM_FIXED_VERTICES
+
 # Gradients are hand-written beside each energy: no generated adjoints to compile.
 wp.set_module_options({"enable_backward": False})
 
@@ -44,7 +46,7 @@ TERM_INERTIA = wp.constant(6)
 NUM_TERMS = wp.constant(7)
 
 # Vertices 0 (root) and 1 are fixed (Section 3.4): the first moving vertex.
-FIRST_MOVING_VERTEX = wp.constant(2)
+FIRST_MOVING_VERTEX = wp.constant(NUM_FIXED_VERTICES)
 
 
 # ---------------------------------------------------------------- stretch (Eq. 7), edge

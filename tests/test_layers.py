@@ -49,3 +49,18 @@ def test_imports_point_down():
             if target in RANK and RANK[target] > RANK[own]:
                 upward.append(f"{path.relative_to(SRC)} imports {module}")
     assert upward == []
+
+
+def test_kernels_are_device_code_only():
+    """kernels/ imports Warp, the standard library, its own modules and the config constants; never torch."""
+    kernels = SRC.parents[1] / "kernels"
+    bad = []
+    for path in kernels.glob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
+                [node.module] if isinstance(node, ast.ImportFrom) and node.module else []
+            for name in names:
+                if name.split(".")[0] in ("torch", "numpy") or (
+                        name.startswith("hairwarp") and not name.startswith(("hairwarp.kernels", "hairwarp.config"))):
+                    bad.append(f"{path.name} imports {name}")
+    assert bad == []

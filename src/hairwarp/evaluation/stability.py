@@ -29,7 +29,7 @@ from dataclasses import replace
 
 import torch
 
-from hairwarp.config import BARRIER_VARIANTS, EnergyConfig
+from hairwarp.config import BARRIER_VARIANTS, NUM_FIXED_VERTICES, EnergyConfig
 from hairwarp.energy import EnergyInputs, total_energy
 from hairwarp import metrics as M
 from hairwarp.evaluation.scenes import comparison_scene
@@ -135,7 +135,7 @@ def barrier_trap_scene(iterations: int = STUDY_ITERATIONS, stride: int = STUDY_S
         config = EnergyConfig(barrier_variant=variant)
         row = _drape_row("barrier_trap_scene", f"table1 {variant}", frames.rigid.positions, frames.inputs, config,
                          solver, frames.body_mesh, frames.inputs.rest_lengths)
-        d = hair_body_signed_distance(row.pop("positions"), frames.body_mesh)[..., 2:]
+        d = hair_body_signed_distance(row.pop("positions"), frames.body_mesh)[..., NUM_FIXED_VERTICES:]
         deep = -(config.hair_body_xi + config.hair_body_dhat)
         row["inside_deeper_than_xi_plus_dhat_percent"] = float((d < deep).double().mean() * 100)
         rows.append(row)
@@ -476,8 +476,9 @@ def sign_consistency_study(stride: int = 16, min_depth: float = 0.02) -> list[di
     scene = Scene(body=base.body, scalp=base.scalp, hairstyle=base.hairstyle.subset(keep, 100),
                   motion=base.motion, name="unfitted")
     frames = scene.frames([0], crop=False)
-    x = frames.rigid.positions[0, :, 2:].reshape(-1, 3)
-    d = hair_body_signed_distance(frames.rigid.positions, frames.body_mesh)[0, :, 2:].reshape(-1)
+    k = NUM_FIXED_VERTICES
+    x = frames.rigid.positions[0, :, k:].reshape(-1, 3)
+    d = hair_body_signed_distance(frames.rigid.positions, frames.body_mesh)[0, :, k:].reshape(-1)
     deep = d.abs() >= min_depth
     check = sign_consistency(x[deep], frames.posed.vertices[0], scene.body.faces)
     wrong = check["wrong_outside"] | check["wrong_inside"]

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import torch
 
-from hairwarp.config import EnergyConfig
+from hairwarp.config import NUM_FIXED_VERTICES, EnergyConfig
 from hairwarp.energy import EnergyInputs, EnergyResult
 from hairwarp.torch_reference import barrier as _barrier
 from hairwarp.torch_reference import hair_body_contact as _hb
@@ -29,7 +29,7 @@ def hair_body_energy(x4: torch.Tensor, body, config: EnergyConfig, method: str) 
                                             weight=config.hair_body_weight, variant=config.barrier_variant)
     if method != "nearest_vertex":
         raise ValueError(f"hair_body: expected 'exact' or 'nearest_vertex', got {method!r}")
-    d = _hb.nearest_vertex_signed_distance(x4[:, :, 2:], body.vertices, body.faces)
+    d = _hb.nearest_vertex_signed_distance(x4[:, :, NUM_FIXED_VERTICES:], body.vertices, body.faces)
     b = _barrier.barrier(d, config.hair_body_xi, config.hair_body_dhat, config.barrier_join_fraction,
                          config.barrier_variant)
     return config.hair_body_weight * b.sum(dim=(1, 2))

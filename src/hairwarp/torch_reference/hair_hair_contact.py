@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import torch
 
+from hairwarp.config import NUM_FIXED_VERTICES
 from hairwarp.torch_reference.barrier import barrier
 
 # Above this many segments per batch item "auto" switches from brute force to the voxel grid.
@@ -191,7 +192,8 @@ def hair_hair_contact_energy(
     search = {"bruteforce": pairs_bruteforce, "grid": pairs_grid}[method]
     pairs = search(x4.detach(), xi + dhat, skip_root_segments)
     # The fixed vertices 0 and 1 take no gradient (Section 3.4).
-    x_eff = torch.cat([x4[:, :, :2].detach(), x4[:, :, 2:]], dim=2)
+    k = NUM_FIXED_VERTICES
+    x_eff = torch.cat([x4[:, :, :k].detach(), x4[:, :, k:]], dim=2)
     p0, p1, _, batch, _ = _segments(x_eff)
     i, j = pairs[:, 0], pairs[:, 1]
     d = edge_edge_distance(p0[i], p1[i], p0[j], p1[j])

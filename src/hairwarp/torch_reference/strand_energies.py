@@ -13,7 +13,7 @@ from collections.abc import Iterable, Sequence
 
 import torch
 
-from hairwarp.config import STRAND_TERMS, EnergyConfig
+from hairwarp.config import NUM_FIXED_VERTICES, STRAND_TERMS, EnergyConfig
 
 _DEFAULTS = EnergyConfig()
 
@@ -33,7 +33,7 @@ def _check_x(x) -> None:
 def _mass(x: torch.Tensor, vertex_mass) -> torch.Tensor:
     """Masses of the moving vertices, broadcastable to x[..., 2:, 0]."""
     if isinstance(vertex_mass, torch.Tensor):
-        return vertex_mass.detach()[..., 2:]
+        return vertex_mass.detach()[..., NUM_FIXED_VERTICES:]
     return x.new_tensor(float(vertex_mass))
 
 
