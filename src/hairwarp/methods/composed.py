@@ -44,8 +44,9 @@ def _refine(base: MethodResult, frames, options: MethodOptions, iterations: int,
     base_ms = base.time_ms or 0.0
     # The refine curve starts where the network ended: shift its clock by the network's time.
     history = [dict(h, time_s=h["time_s"] + base_ms * batch / 1e3) for h in result.history]
-    info = dict(base.info, refine_iterations=result.info["iterations"], refine_stop_reason=result.info["stop_reason"],
-                network_ms=base.time_ms, refine_ms=result.time_ms, loss=result.info["loss"])
+    info = dict(base.info, iterations=result.info["iterations"], stop_reason=result.info["stop_reason"],
+                refine_iterations=result.info["iterations"], network_ms=base.time_ms, refine_ms=result.time_ms,
+                loss=result.info["loss"])
     return MethodResult(positions=result.positions, time_ms=base_ms + result.time_ms, history=history, info=info)
 
 
