@@ -13,6 +13,11 @@ FLOAT_DTYPES = (torch.float32, torch.float64)
 _check_finite = True
 
 
+def finite_checks_enabled() -> bool:
+    """Whether public inputs are scanned for NaN/Inf (see `set_finite_checks`)."""
+    return _check_finite
+
+
 def set_finite_checks(enabled: bool) -> bool:
     """Turn the NaN/Inf scan of public inputs on or off; returns the previous setting."""
     global _check_finite

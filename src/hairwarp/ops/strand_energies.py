@@ -347,7 +347,7 @@ def _evaluate(
             raise ValueError("vertex_mass: expected a non-empty (M, N) tensor")
         check_same_dtype(x=x4, vertex_mass=vertex_mass)
         # Like the NaN scan, a host read: skipped when finite checks are off (hot loops).
-        if _validate._check_finite and bool((vertex_mass < 0).any()):
+        if _validate.finite_checks_enabled() and bool((vertex_mass < 0).any()):
             raise ValueError("vertex_mass: expected non-negative masses [kg]")
         given["vertex_mass"] = (vertex_mass.detach().contiguous(), 0)
         mass_value = 0.0
