@@ -115,10 +115,10 @@ def test_simulate_rigid_three_frames(tmp_path, capsys):
     code, _, _ = _run(["simulate", *TINY, "--method", "rigid", "--pose", "nod", "--frames", "3", "--gif-frames", "3",
                        "--out", str(out)], capsys)
     assert code == 0
-    for name in ("simulate.usda", "simulate.data", "simulate.png", "simulate.gif", "simulate_metrics.json",
+    for name in ("simulate.usdc", "simulate.data", "simulate.png", "simulate.gif", "simulate_metrics.json",
                  "simulate_metrics.md"):
         assert (out / name).stat().st_size > 0, name
-    usd = read_usd(out / "simulate.usda")
+    usd = read_usd(out / "simulate.usdc")
     assert usd["hair"].shape == (3, 16, 12, 3)
     assert usd["body_vertices"].shape[0] == 3
     assert usd["fps"] == 60.0

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from hairwarp.io.hair_data import load_hairstyle, read_hair_data, resample_strands, write_hair_data
+from hairwarp.io.hair_data import load_hairstyle, read_hair_data, write_hair_data
+from hairwarp.scene.hairstyles import resample_strands
 from hairwarp.scene.hairstyles import HairstyleParams, generate_hairstyle, sphere_cap_scalp
 from references.hair_data import encode_hair_data, resample_polyline
 

@@ -46,7 +46,8 @@ def add_scene_arguments(p: argparse.ArgumentParser, *, simulate: bool) -> None:
     g = p.add_argument_group("scene")
     g.add_argument("--hairstyle", default="long_straight", metavar="HAIR",
                    help=f"a preset ({', '.join(list_hairstyle_presets())}), a USC-HairSalon .data file, "
-                        "or a hair latent .npy of 512 numbers (default: long_straight)")
+                        "a USD groom (BasisCurves in .usd/.usda/.usdc), or a hair latent .npy of 512 numbers "
+                        "(default: long_straight)")
     g.add_argument("--grow", choices=("body", "head"), default="body",
                    help="presets: grow the strands around the rest body (they fall over the shoulders and "
                         "back) or around the head proxy only (faster; long hair may pass through the torso) "
@@ -55,14 +56,21 @@ def add_scene_arguments(p: argparse.ArgumentParser, *, simulate: bool) -> None:
                    help=f".data: the file's length unit; auto = cm when the hair spans more than "
                         f"{AUTO_CM_EXTENT:g} units, else m (default: auto)")
     g.add_argument("--data-up", choices=("y", "z"), default="y", help=".data: the file's up axis (default: y)")
-    g.add_argument("--align-roots", action="store_true",
-                   help=".data: translate the hair so that its mean root meets the scalp's mean root")
+    fit = g.add_mutually_exclusive_group()
+    fit.add_argument("--fit", choices=("auto", "similarity", "translate", "none"), default="auto",
+                     help="grooms from files: auto = when the roots lie off the scalp (made on another head), fit a "
+                          "similarity transform (scale, rotation, offset) of the roots onto the head by ICP, then "
+                          "project them; similarity = always; translate = mean root onto the mean scalp root; "
+                          "none = keep the file's placement (default: auto)")
+    fit.add_argument("--no-fit", dest="fit", action="store_const", const="none", help="same as --fit none")
     g.add_argument("--body", default="default",
-                   help="'default' (the shipped body) or an SMPL-format model file (.npz or .pkl)")
+                   help="'default' (the shipped body), an SMPL-format model (.npz/.pkl), a mesh (.obj/.ply/.glb/...), "
+                        "or an animated mesh (time-sampled .usd/.usda/.usdc, or an .npz of vertices (T, V, 3), "
+                        "faces and fps); a mesh body plays its own frames and takes no --pose")
     default_pose = "head_turn" if simulate else REST_POSE
-    g.add_argument("--pose", default=default_pose, metavar="POSE",
+    g.add_argument("--pose", default=None, metavar="POSE",
                    help=f"'{REST_POSE}' (the body's rest pose), a procedural motion ({', '.join(list_motions())}) "
-                        f"or an AMASS .npz (default: {default_pose})")
+                        f"or an AMASS .npz (default: {default_pose}; a mesh body plays its own frames)")
     g.add_argument("--duration", type=float, default=1.0 if simulate else None,
                    help="procedural motions: length [s] (default: " + ("1.0" if simulate else "the motion's own") + ")")
     if simulate:
@@ -81,10 +89,13 @@ def build_scene_from_args(args, *, simulate: bool):
     """The `Scene` of the scene flags (drape: one frame; simulate: a window of the motion)."""
     from hairwarp.builder import build_scene
 
+    from hairwarp.builder import REST_POSE
+
     window = dict(start=args.start, num_frames=args.frames) if simulate else \
         dict(frame=args.frame if args.frame is not None or args.time is not None else 0, time=args.time)
     return build_scene(args.hairstyle, args.body, args.pose, duration=args.duration, grow=args.grow,
-                       data_units=args.data_units, data_up=args.data_up, align_roots=args.align_roots,
+                       default_motion="head_turn" if simulate else REST_POSE,
+                       data_units=args.data_units, data_up=args.data_up, fit=args.fit,
                        strand_stride=args.strand_stride, num_vertices=args.num_vertices, seed=args.seed, **window)
 
 
@@ -200,7 +211,7 @@ def run_and_score(method, frames, config, *, simulate: bool):
 
 
 def write_animation(out: str, stem: str, frames, positions, signed_distance, label: str, gif_frames: int,
-                    *, usd_format: str = "usda") -> list[str]:
+                    *, usd_format: str = "usdc") -> list[str]:
     """USD animation, last frame as `.data`, a 6-frame strip PNG and a GIF; returns the paths.
 
     Args:
@@ -211,7 +222,7 @@ def write_animation(out: str, stem: str, frames, positions, signed_distance, lab
         signed_distance: (T, M, N) signed distances of `positions` to the body [m].
         label: the method's name, for the titles.
         gif_frames: most frames the GIF shows.
-        usd_format: "usda" (text) or "usdc" (binary).
+        usd_format: "usdc" (binary, the default: what DCC tools open fastest) or "usda" (text).
     """
     from hairwarp.io.hair_data import write_hair_data
     from hairwarp.io.usd import write_usd

@@ -3,7 +3,8 @@
 Default body, a procedural hairstyle grown around the rest body (it falls over the shoulders
 and back), a one-second head turn, simulated by one method of the registry (default auto: the
 shipped dynamic network, finished by a few L-BFGS iterations a frame and never leaving more
-vertices inside the body than the rigid placement); writes the animation as USD, preview
+vertices inside the body than the rigid placement); writes the animation as USD (binary .usdc;
+--usda for text), preview
 pictures, a GIF, and prints the metrics table. About 100 s on a 2-core CPU. The demo's energy
 leaves hair-hair contact out unless --hair-hair is given (on the CPU its broad phase makes
 each L-BFGS iteration over the 61 frames about 10x slower).
@@ -36,6 +37,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--refine", type=int, default=DEMO_REFINE, metavar="K",
                    help=f"L-BFGS iterations after a network (default: {DEMO_REFINE}; the API's auto: {AUTO_REFINE})")
     p.add_argument("--hair-hair", action="store_true", help="keep hair-hair contact in the energy (slow on a CPU)")
+    p.add_argument("--usda", action="store_true", help="write text USD (demo.usda) instead of binary demo.usdc")
     p.add_argument("--max-iterations", type=int, default=40, help="adam/lbfgs iteration cap (default: 40)")
     p.add_argument("--strand-stride", type=int, default=2,
                    help="grow on every K-th root of the 32 x 32 scalp only (default: 2, 512 strands; 1: all 1024)")
@@ -102,7 +104,8 @@ def run(args) -> int:
     body_v = frames.posed.vertices.detach().cpu()
     faces = scene.body.faces.cpu()
     hair = result.positions.detach().cpu()
-    usd_path = write_usd(os.path.join(args.out, "demo.usda"), hair, body_v, faces, fps=scene.motion.fps)
+    usd_path = write_usd(os.path.join(args.out, "demo.usda" if args.usda else "demo.usdc"), hair, body_v, faces,
+                         fps=scene.motion.fps)
     render_drape(os.path.join(args.out, "demo_rigid.png"), frames.rigid.positions[0].cpu(), body_v[0], faces,
                  signed_distance=picture_distances(sd_rigid[0]).cpu(),
                  title="rigid placement (Eq. 1), frame 0: red = inside the body")
@@ -119,6 +122,6 @@ def run(args) -> int:
     write_metrics(args.out, "demo", record, table)
     print(table)
     phases = ", ".join(f"{k} {v:.0f} s" for k, v in clock.items() if k != "start")
-    print(f"wrote {usd_path}, demo_rigid.png, demo_drape.png, demo.gif, demo_metrics.json/.md into {args.out} "
-          f"({time.perf_counter() - t0:.0f} s: {phases})")
+    print(f"wrote {os.path.basename(usd_path)}, demo_rigid.png, demo_drape.png, demo.gif, demo_metrics.json/.md "
+          f"into {args.out} ({time.perf_counter() - t0:.0f} s: {phases})")
     return 0

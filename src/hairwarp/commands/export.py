@@ -1,7 +1,7 @@
 """`hairwarp export`: convert hair (and body) files between the formats artists' tools read.
 
     hairwarp export drape.data drape.usda                  # strands -> USD BasisCurves
-    hairwarp export simulate.usda hair.ply --frame 30 --body-out body.obj
+    hairwarp export simulate.usdc hair.ply --frame 30 --body-out body.obj
     hairwarp export simulate.usda frames/ --all-frames --format obj   # hair_0000.obj, body_0000.obj, ...
     hairwarp export z.npy hair.data                        # a hair latent, decoded by the shipped basis
     hairwarp export perm_hair.data hair.usda --units cm --num-vertices 100

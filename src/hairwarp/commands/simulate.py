@@ -10,7 +10,8 @@ never more vertices inside than the rigid placement), the networks (dynamic: fra
 with its recurrent state; static: every frame on its own; quaffure), NAME+refine, adam/lbfgs
 (every frame draped on its own: static baselines, no dynamics), reference (implicit-Euler
 physics, the time step the motion's frame spacing), rigid (Eq. 1). Writes into --out:
-simulate.usda (hair + body, one time sample a frame, at the motion's fps), simulate.data (the
+simulate.usdc (binary USD, hair + body, one time sample a frame, at the motion's fps; --usda
+for text), simulate.data (the
 last frame's strands, metres), simulate.png (a strip of 6 frames, front and side; red = inside
 the body), simulate.gif, simulate_metrics.json and simulate_metrics.md (per-frame penetration
 and length change, against the rigid placement).
@@ -43,6 +44,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("--gif-frames", type=int, default=DEFAULT_GIF_FRAMES,
                    help="frames shown in the GIF, evenly spaced (rendering costs ~0.5 s each) "
                         f"(default: {DEFAULT_GIF_FRAMES})")
+    p.add_argument("--usda", action="store_true",
+                   help="write the animation as text USD (.usda, about 6x larger) instead of binary .usdc")
     add_threads_argument(p)
     add_common_arguments(p)
     p.set_defaults(run=run)
@@ -70,6 +73,9 @@ def run(args) -> int:
     gif_frames = positive_int("--gif-frames", args.gif_frames)
     t0 = time.perf_counter()
     scene = build_scene_from_args(args, simulate=True)
+    if not scene.body.has_smpl_pose and scene.num_frames < 2:
+        raise ValueError(f"--body: {args.body} has one frame (no time samples); simulate needs an animated body "
+                         "(or an SMPL-format body with --pose)")
     method, config = method_from_args(args)
     os.makedirs(args.out, exist_ok=True)
     frames = scene.frames(device=device)
@@ -79,7 +85,8 @@ def run(args) -> int:
     table = markdown_table([("rigid placement (Eq. 1)", "-", metrics["rigid"]),
                             (label, "-" if result.time_ms is None else f"{result.time_ms:.1f}", metrics["method"])])
     print(table)
-    written = write_animation(args.out, "simulate", frames, result.positions, sd, label, gif_frames)
+    written = write_animation(args.out, "simulate", frames, result.positions, sd, label, gif_frames,
+                              usd_format="usda" if args.usda else "usdc")
     record = {"command": "simulate", "scene": scene.name, "method": label, "method_info": result.info,
               "ms_per_frame": result.time_ms, "device": str(device), "fps": scene.motion.fps,
               "frames": scene.num_frames, "strands": scene.hairstyle.num_strands,

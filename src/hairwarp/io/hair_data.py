@@ -12,10 +12,9 @@ import os
 import struct
 
 import numpy as np
-import torch
 
 from hairwarp._validate import check_positive
-from hairwarp.scene.hairstyles import Hairstyle, as_strand_list, resample_strands, scalp_arrays
+from hairwarp.scene.hairstyles import Hairstyle, as_strand_list, scalp_arrays
 from hairwarp.scene.scalp import Scalp
 
 _INT = struct.Struct("<i")
@@ -128,12 +127,13 @@ def load_hairstyle(
     min_length: float = DEFAULT_MIN_LENGTH,
     align: str = "none",
     snap_roots: bool = True,
+    head_points=None,
 ) -> Hairstyle:
     """Load a `.data` hairstyle onto the scalp grid, in our frame (metres, y up, face +z).
 
-    Steps: read; convert units and the up axis; optionally translate it onto the scalp;
-    drop strands with fewer than 2 vertices or shorter than `min_length` (Section 3.1);
-    resample to `num_vertices` by arc length; map each root to the nearest scalp root.
+    Steps: read; convert units and the up axis; place it on the head (`align`); drop strands
+    with fewer than 2 vertices or shorter than `min_length` (Section 3.1); resample to
+    `num_vertices` by arc length; map each root to the nearest scalp root.
 
     Args:
         path: the `.data` file (PERM files: y up, face +z, centimetres).
@@ -142,74 +142,53 @@ def load_hairstyle(
         up: the file's up axis, "y" or "z" (z-up data are rotated by -90 degrees about x).
         num_vertices: vertices per output strand (100 in the paper).
         min_length: strands shorter than this [m] are dropped.
-        align: "none", or "roots" to translate the hair so the mean of its root positions
-            matches the mean scalp root position (a crude stand-in for the paper's ICP).
+        align: "none" (the file's placement), "roots" (translate the mean root onto the mean
+            scalp root), "similarity" (ICP with scale onto the head: `hairwarp.scene.groom`)
+            or "auto" (similarity when the roots lie off the scalp).
         snap_roots: translate each strand so its root sits exactly on its scalp root.
+        head_points: (P, 3) rest head surface [m], the similarity fit's target (default: the
+            scalp grid roots).
 
     Returns:
         A `Hairstyle`: strands (M, num_vertices, 3) float32 [m]; root_index the nearest scalp
         root of each strand; filtered the file strand indices dropped; info with the keys
         "root_distance_mean", "root_distance_max", "root_distance_median" [m] (root to
-        nearest scalp root, before snapping), "num_file_strands", "translation" [m].
+        nearest scalp root, before snapping), "num_file_strands", "translation" [m], "scale",
+        and "fit" (the fit's description, or None).
 
     Raises:
         ValueError: for a malformed file (naming it), bad arguments, or when no strand
             survives the filtering.
     """
+    from hairwarp.scene.groom import attach_strands, place_groom
+
     if units not in LENGTH_UNITS:
         raise ValueError(f"units: expected one of {sorted(LENGTH_UNITS)}, got {units!r}")
     if up not in _UP_AXES:
         raise ValueError(f"up: expected one of {sorted(_UP_AXES)}, got {up!r}")
-    if align not in ("none", "roots"):
-        raise ValueError(f"align: expected 'none' or 'roots', got {align!r}")
+    modes = {"none": "none", "roots": "translate", "similarity": "similarity", "auto": "auto"}
+    if align not in modes:
+        raise ValueError(f"align: expected one of {list(modes)}, got {align!r}")
     check_positive("min_length", min_length, allow_zero=True)
     if int(num_vertices) < 2:
         raise ValueError(f"num_vertices: expected an int >= 2, got {num_vertices}")
-    scalp_pos, scalp_nrm, scalp_uv = scalp_arrays(scalp)
+    scalp_arrays(scalp)  # checks the scalp before reading the file
     name = os.fspath(path)
     raw = read_hair_data(name)
     rot = _UP_AXES[up] * LENGTH_UNITS[units]
     strands = [a.astype(np.float64) @ rot.T for a in raw]
-    translation = np.zeros(3)
-    if align == "roots":
-        roots = np.array([a[0] for a in strands if len(a) >= 2])
-        if len(roots) == 0:
-            raise ValueError(f"{name}: no strand with at least 2 vertices")
-        translation = scalp_pos.mean(axis=0) - roots.mean(axis=0)
-        strands = [a + translation for a in strands]
-    lengths = np.array([float(np.linalg.norm(np.diff(a, axis=0), axis=1).sum()) if len(a) >= 2 else 0.0
-                        for a in strands])
-    keep = np.nonzero((lengths >= float(min_length)) & (lengths > 0))[0]
-    filtered = np.nonzero(~np.isin(np.arange(len(strands)), keep))[0]
-    if len(keep) == 0:
-        raise ValueError(
-            f"{name}: no strand is at least {min_length} m long (of {len(strands)} strands; check `units`)"
-        )
-    res = resample_strands([strands[i] for i in keep], int(num_vertices), dtype=torch.float64).numpy()
-    # Nearest scalp root of each strand root, in chunks to bound the distance matrix.
-    nearest = np.empty(len(res), dtype=np.int64)
-    dist = np.empty(len(res))
-    for start in range(0, len(res), 4096):
-        r = res[start:start + 4096, 0]
-        d2 = ((r[:, None, :] - scalp_pos[None, :, :]) ** 2).sum(-1)
-        j = d2.argmin(axis=1)
-        nearest[start:start + 4096] = j
-        dist[start:start + 4096] = np.sqrt(d2[np.arange(len(r)), j])
-    if snap_roots:
-        res = res + (scalp_pos[nearest] - res[:, 0])[:, None, :]
-        res[:, 0] = scalp_pos[nearest]
-    return Hairstyle(
-        strands=torch.tensor(res, dtype=torch.float32),
-        root_uv=torch.tensor(scalp_uv[nearest], dtype=torch.float32),
-        root_normals=torch.tensor(scalp_nrm[nearest], dtype=torch.float32),
-        root_index=torch.tensor(nearest, dtype=torch.int64),
-        filtered=torch.tensor(filtered, dtype=torch.int64),
-        name=os.path.basename(name),
-        info={
-            "root_distance_mean": float(dist.mean()),
-            "root_distance_median": float(np.median(dist)),
-            "root_distance_max": float(dist.max()),
-            "num_file_strands": len(strands),
-            "translation": translation,
-        },
-    )
+    if not any(len(a) >= 2 for a in strands):
+        raise ValueError(f"{name}: no strand with at least 2 vertices")
+    head = scalp_arrays(scalp)[0] if head_points is None else np.asarray(head_points, dtype=np.float64)
+    try:
+        style, fit = place_groom(strands, scalp, head, fit=modes[align], num_vertices=int(num_vertices),
+                                 min_length=float(min_length), name=os.path.basename(name))
+    except ValueError as exc:
+        raise ValueError(f"{name}: {exc}") from None
+    if not snap_roots:
+        moved = [a if fit is None else fit.apply(a) for a in strands]
+        style = attach_strands(moved, scalp, num_vertices=int(num_vertices), min_length=float(min_length),
+                               snap_roots=False, name=style.name, info=style.info)
+    style.info["translation"] = np.zeros(3) if fit is None else fit.translation
+    style.info["scale"] = 1.0 if fit is None else fit.scale
+    return style

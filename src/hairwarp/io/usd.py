@@ -296,3 +296,92 @@ def read_usd(path: str | os.PathLike) -> dict:
         "time_codes": times if times else [0.0],
         "widths": torch.from_numpy(np.ascontiguousarray(widths, dtype=np.float32)),
     }
+
+
+def _open_stage(path):
+    """(stage, up axis "Y"/"Z", metres per unit, pxr modules) of a USD file, read fresh."""
+    path = check_path("path", path, USD_SUFFIXES)
+    if not os.path.isfile(path):
+        raise ValueError(f"path: no such file {path!r}")
+    Gf, Sdf, Usd, UsdGeom, Vt = _pxr()
+    layer = Sdf.Layer.OpenAsAnonymous(path)
+    if layer is None:
+        raise ValueError(f"path: USD could not read {path!r}")
+    stage = Usd.Stage.Open(layer)
+    return stage, str(UsdGeom.GetStageUpAxis(stage)).upper(), float(UsdGeom.GetStageMetersPerUnit(stage)), Usd, UsdGeom
+
+
+def _world(prim, points: np.ndarray, time, Usd, UsdGeom) -> np.ndarray:
+    """Prim-local points (P, 3) in the stage's world frame (its Xform ancestors applied)."""
+    matrix = np.array(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(time), dtype=np.float64)
+    # USD matrices act on row vectors: p_world = [p 1] M.
+    return points.astype(np.float64) @ matrix[:3, :3] + matrix[3, :3]
+
+
+def read_usd_curves(path: str | os.PathLike) -> dict:
+    """Strands of the first BasisCurves of any USD file (what DCC tools export as a groom).
+
+    Curves may have different vertex counts; their Xform ancestors, the stage's upAxis and
+    metersPerUnit are applied, so strands come back in metres, y up. A time-sampled groom
+    gives its first sample.
+
+    Returns:
+        dict with strands: list of (n_i, 3) float64 arrays [m]; up_axis; meters_per_unit;
+        prim: the curves' path.
+
+    Raises:
+        ValueError: no such file, no BasisCurves, no points, counts that disagree with the
+            points, or a curve of fewer than 2 vertices (naming it).
+    """
+    stage, up_axis, mpu, Usd, UsdGeom = _open_stage(path)
+    prim = _first_prim(stage, UsdGeom.BasisCurves, HAIR_PATH)
+    if prim is None:
+        raise ValueError(f"path: {os.fspath(path)!r} holds no BasisCurves (a groom)")
+    curves = UsdGeom.BasisCurves(prim)
+    counts = np.asarray(curves.GetCurveVertexCountsAttr().Get() or [], dtype=np.int64)
+    times, frames = _samples(curves.GetPointsAttr(), Usd)
+    if not frames or counts.size == 0:
+        raise ValueError(f"path: the curves {prim.GetPath()} of {os.fspath(path)!r} have no points")
+    points = frames[0]
+    if int(counts.sum()) != len(points):
+        raise ValueError(f"path: {prim.GetPath()} declares {int(counts.sum())} curve vertices but holds {len(points)}")
+    short = np.nonzero(counts < 2)[0]
+    if short.size:
+        raise ValueError(f"path: curve {int(short[0])} of {prim.GetPath()} has {int(counts[short[0]])} vertex; "
+                         "a strand needs at least 2")
+    time = Usd.TimeCode(times[0]) if times else Usd.TimeCode.Default()
+    world = _from_stage(_world(prim, points, time, Usd, UsdGeom), up_axis, mpu).astype(np.float64)
+    strands = np.split(world, np.cumsum(counts)[:-1])
+    return {"strands": strands, "up_axis": up_axis, "meters_per_unit": mpu, "prim": str(prim.GetPath())}
+
+
+def read_usd_mesh(path: str | os.PathLike) -> dict:
+    """The first Mesh of a USD file, animated if its points are time-sampled.
+
+    Returns:
+        dict with vertices: (T, V, 3) float32 tensor [m], y up (T = 1 without time samples);
+        faces: (F, 3) int32 tensor (polygons fan-triangulated); fps: timeCodesPerSecond;
+        time_codes; animated: whether the points had time samples.
+
+    Raises:
+        ValueError: no such file, no Mesh, no points or no faces.
+    """
+    stage, up_axis, mpu, Usd, UsdGeom = _open_stage(path)
+    prim = _first_prim(stage, UsdGeom.Mesh, BODY_PATH)
+    if prim is None:
+        raise ValueError(f"path: {os.fspath(path)!r} holds no Mesh")
+    mesh = UsdGeom.Mesh(prim)
+    times, frames = _samples(mesh.GetPointsAttr(), Usd)
+    if not frames or len(frames[0]) == 0:
+        raise ValueError(f"path: the mesh {prim.GetPath()} of {os.fspath(path)!r} has no points")
+    counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get() or [], dtype=np.int64)
+    indices = np.asarray(mesh.GetFaceVertexIndicesAttr().Get() or [], dtype=np.int64)
+    if counts.size == 0:
+        raise ValueError(f"path: the mesh {prim.GetPath()} of {os.fspath(path)!r} has no faces")
+    codes = times or [None]
+    vertices = np.stack([
+        _from_stage(_world(prim, f, Usd.TimeCode(t) if t is not None else Usd.TimeCode.Default(), Usd, UsdGeom),
+                    up_axis, mpu) for f, t in zip(frames, codes)])
+    return {"vertices": torch.from_numpy(vertices.astype(np.float32)),
+            "faces": torch.from_numpy(_triangulate(counts, indices).astype(np.int32)),
+            "fps": float(stage.GetTimeCodesPerSecond()), "time_codes": times or [0.0], "animated": bool(times)}

@@ -120,6 +120,8 @@ class Body:
     head_vertex_indices: torch.Tensor
     joint_names: tuple[str, ...] = ()
     num_betas: int = 0
+    # Posed by SMPL-convention pose and shape (the networks' inputs), or playing stored frames.
+    has_smpl_pose: bool = False
 
     @property
     def num_vertices(self) -> int:
@@ -163,6 +165,7 @@ class SMPLBody(Body):
             raise ValueError(f"{model.source}: no vertex has a head weight >= {HEAD_WEIGHT_MIN}")
         self.joint_names = tuple(model.joint_names)
         self.num_betas = model.num_betas
+        self.has_smpl_pose = True
         self._buffers: dict = {}
 
     def __repr__(self) -> str:
@@ -338,6 +341,13 @@ class AnimatedMeshBody(Body):
     def num_frames(self) -> int:
         return int(self.vertices.shape[0])
 
+    def window(self, start: int, end: int) -> AnimatedMeshBody:
+        """Frames [start, end) as a body of their own, with the same rest pose and head region."""
+        if not 0 <= start < end <= self.num_frames:
+            raise ValueError(f"frames: expected 0 <= start < end <= {self.num_frames}, got [{start}, {end})")
+        return AnimatedMeshBody(self.vertices[start:end], self.faces, self.head_transforms[start:end],
+                                rest_vertices=self.rest_vertices, head_vertex_indices=self.head_vertex_indices)
+
     def pose(self, betas=None, poses=None, trans=None, frames=None) -> PosedBody:
         """The stored frames as a `PosedBody` (joints None).
 
@@ -372,3 +382,90 @@ class AnimatedMeshBody(Body):
             head = head.clone()
             head[:, :3, 3] = head[:, :3, 3] + trans
         return PosedBody(vertices=vertices, joints=None, head_transform=head)
+
+
+# A mesh without a skeleton: its head region is the top of the rest mesh, this share of its
+# height (an adult head and a little neck are about 1/7.5 and 1/30 of the height).
+HEAD_HEIGHT_SHARE = 0.13
+
+
+def closed_surface_problem(faces: torch.Tensor) -> str | None:
+    """Why a triangle mesh is not a closed 2-manifold (signed distance needs one), or None.
+
+    Every edge must be shared by exactly two triangles.
+    """
+    f = faces.long().cpu()
+    edges = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]).sort(dim=1).values
+    _, counts = torch.unique(edges, dim=0, return_counts=True)
+    open_edges = int((counts == 1).sum())
+    shared = int((counts > 2).sum())
+    if open_edges:
+        return f"{open_edges} boundary edge(s): the surface has holes"
+    if shared:
+        return f"{shared} edge(s) shared by more than two triangles"
+    return None
+
+
+def rigid_fit(source: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """(4, 4) best-fit rigid transform (Kabsch) taking points `source` (P, 3) to `target` (P, 3)."""
+    s, t = source.double(), target.double()
+    mu_s, mu_t = s.mean(0), t.mean(0)
+    u, _, vt = torch.linalg.svd((t - mu_t).T @ (s - mu_s))
+    d = torch.ones(3, dtype=torch.float64)
+    if torch.linalg.det(u) * torch.linalg.det(vt) < 0:
+        d[-1] = -1.0
+    r = u @ torch.diag(d) @ vt
+    out = torch.eye(4, dtype=torch.float64)
+    out[:3, :3] = r
+    out[:3, 3] = mu_t - r @ mu_s
+    return out
+
+
+def mesh_body(vertices: torch.Tensor, faces: torch.Tensor, *, head_vertex_indices: torch.Tensor | None = None,
+              source: str = "mesh") -> AnimatedMeshBody:
+    """A body from a static or animated triangle mesh (no skeleton, no shape space).
+
+    Frame 0 is the rest pose the hair is authored on. The head region is the top
+    `HEAD_HEIGHT_SHARE` of the rest mesh (unless given); M_head of each frame is the best-fit
+    rigid motion (Kabsch) of that region from the rest pose, so hair placed by Eq. 1 follows
+    any animated mesh, its roots projected onto the surface in every frame.
+
+    Args:
+        vertices: (T, V, 3) or (V, 3) vertex positions [m], y up, facing +z.
+        faces: (F, 3) triangles, counter-clockwise seen from outside; a closed surface.
+        head_vertex_indices: (H,) the head region, or None to take the top of the mesh.
+        source: the file name, for error messages.
+
+    Raises:
+        ValueError: naming `body` on an empty or open mesh, NaN/Inf or bad face indices.
+    """
+    vertices = torch.as_tensor(vertices, dtype=torch.float32)
+    if vertices.dim() == 2:
+        vertices = vertices[None]
+    faces = torch.as_tensor(faces)
+    if vertices.dim() != 3 or vertices.shape[-1] != 3 or vertices.shape[1] == 0:
+        raise ValueError(f"body: {source}: expected vertices (T, V, 3), got shape {tuple(vertices.shape)}")
+    if faces.dim() != 2 or faces.shape[0] == 0 or faces.shape[1] != 3:
+        raise ValueError(f"body: {source}: a body mesh needs triangles (F, 3); got faces of shape {tuple(faces.shape)}")
+    if not bool(torch.isfinite(vertices).all()):
+        raise ValueError(f"body: {source}: the vertices hold NaN or Inf")
+    if int(faces.min()) < 0 or int(faces.max()) >= vertices.shape[1]:
+        raise ValueError(f"body: {source}: face indices outside [0, {vertices.shape[1]})")
+    problem = closed_surface_problem(faces)
+    if problem is not None:
+        raise ValueError(f"body: {source}: not a closed surface ({problem}); the signed distance that finds "
+                         "hair inside the body needs a watertight mesh")
+    rest = vertices[0]
+    if head_vertex_indices is None:
+        y = rest[:, 1]
+        top = float(y.max())
+        height = top - float(y.min())
+        head_vertex_indices = torch.nonzero(y >= top - HEAD_HEIGHT_SHARE * height)[:, 0]
+    head_vertex_indices = torch.as_tensor(head_vertex_indices, dtype=torch.int64)
+    if head_vertex_indices.numel() < 3:
+        raise ValueError(f"body: {source}: the head region holds {head_vertex_indices.numel()} vertices; need 3")
+    head_rest = rest[head_vertex_indices]
+    transforms = torch.stack([rigid_fit(head_rest, frame[head_vertex_indices]) for frame in vertices])
+    transforms[0] = torch.eye(4, dtype=torch.float64)  # frame 0 is the rest pose exactly
+    return AnimatedMeshBody(vertices, faces.to(torch.int32), transforms.to(torch.float32), rest_vertices=rest,
+                            head_vertex_indices=head_vertex_indices)

@@ -124,7 +124,16 @@ class Scene:
         poses = self.motion.poses[indices].to(device=device, dtype=dtype)
         trans = self.motion.trans[indices].to(device=device, dtype=dtype)
         betas = self.motion.betas.to(device=device, dtype=dtype).expand(len(indices), -1)
-        posed = self.body.pose(betas=betas, poses=poses, trans=trans)
+        # A model with fewer shape coefficients than the motion carries takes the first ones (as
+        # SMPL readers do; `hairwarp.builder` says so once); one with more reads the rest as zero.
+        if self.body.has_smpl_pose:
+            posed = self.body.pose(betas=betas[:, : self.body.num_betas], poses=poses, trans=trans)
+        else:  # a mesh body plays its own frames (the motion only counts them and gives the rate)
+            if self.body.num_frames != self.num_frames:
+                raise ValueError(f"body: the mesh has {self.body.num_frames} frames, the motion {self.num_frames}")
+            posed = self.body.pose(frames=indices)
+            posed = type(posed)(vertices=posed.vertices.to(device=device, dtype=dtype), joints=None,
+                                head_transform=posed.head_transform.to(device=device, dtype=dtype))
         if cache["search"] is None:
             cache["search"] = root_search(self.body, cache["strands"][:, 0])
         rigid = rigid_placement(cache["strands"], posed, self.body, scalp=self.scalp,

@@ -391,7 +391,7 @@ class TrainingSampler:
         z = self.latent(index)
         strands = self.basis.decode(z, self.scalp)[0][self.strand_index]  # (M, 100, 3) float64
         if strands.shape[1] != self.num_vertices:
-            from hairwarp.io.hair_data import resample_strands
+            from hairwarp.scene.hairstyles import resample_strands
 
             strands = resample_strands(strands, self.num_vertices, dtype=torch.float64)
         item = (z.to(device=self.device, dtype=self.dtype), strands.to(device=self.device, dtype=self.dtype))
