@@ -5,6 +5,10 @@ as Table 1 counts it (the rigid placement, Eq. 1, is shared by every method and 
 Untrained weights: speed does not depend on them.
 
     python benchmarks/bm_models.py --device cuda --out OUT
+
+On CUDA every network is also timed replayed from a CUDA graph ("graph": captured once for the
+shapes, `hairwarp.runtime.CapturedCall`, what `hairwarp.methods` uses on CUDA), which removes
+the per-launch host cost that dominates at batch 1.
 """
 
 from __future__ import annotations
@@ -15,7 +19,7 @@ import os
 
 import torch
 
-from hairwarp.runtime import machine_name, time_ms
+from hairwarp.runtime import CapturedCall, machine_name, time_ms
 from hairwarp.models import (DynamicConfig, DynamicNetwork, QuaffureConfig, QuaffureNetwork, StaticConfig,
                              StaticNetwork)
 from hairwarp.models.deformation import apply_deformation
@@ -65,15 +69,22 @@ def main(argv=None):
                 for name, fn in (("static", run_static), ("dynamic", run_dynamic), ("quaffure", run_quaffure)):
                     if size == "shipped" and name == "quaffure":
                         continue
-                    try:
-                        ms = time_ms(fn, device, warmup=5, repeats=20)
-                    except RuntimeError as exc:  # e.g. bf16 unsupported on this CPU
-                        print(f"{name} {size} B={batch} {precision}: {exc}")
-                        continue
-                    rows.append({"model": name, "size": size, "batch": batch, "precision": precision,
-                                 "ms_per_call": ms, "ms_per_drape": ms / batch})
-                    print(f"{name:9s} {size:8s} B={batch:<3d} {precision}: {ms:8.3f} ms/call  "
-                          f"{ms / batch:8.4f} ms/drape", flush=True)
+                    modes = [("eager", fn)]
+                    if device.type == "cuda":
+                        try:
+                            modes.append(("graph", CapturedCall(fn)))
+                        except RuntimeError as exc:  # an op that cannot be captured
+                            print(f"{name} {size} B={batch} {precision}: no CUDA graph ({exc})")
+                    for mode, call in modes:
+                        try:
+                            ms = time_ms(call, device, warmup=5, repeats=20)
+                        except RuntimeError as exc:  # e.g. bf16 unsupported on this CPU
+                            print(f"{name} {size} B={batch} {precision}: {exc}")
+                            continue
+                        rows.append({"model": name, "size": size, "batch": batch, "precision": precision,
+                                     "mode": mode, "ms_per_call": ms, "ms_per_drape": ms / batch})
+                        print(f"{name:9s} {size:8s} B={batch:<3d} {precision} {mode:5s}: {ms:8.3f} ms/call  "
+                              f"{ms / batch:8.4f} ms/drape", flush=True)
     record = {"device": str(device), "machine": machine_name(device), "strands": m, "vertices": n,
               "results": rows}
     with open(os.path.join(args.out, "bench_models.json"), "w") as f:
