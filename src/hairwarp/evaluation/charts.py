@@ -103,6 +103,9 @@ def speed_accuracy_chart(record: dict, path: str, *, scenes: list[str] | None = 
         ax_pen.legend(fontsize=8, loc="best")
         if ax_gap.get_legend_handles_labels()[0]:
             ax_gap.legend(fontsize=8, loc="best")
+        else:  # no energy gap without the optimum E*: say how to get one rather than draw an empty panel
+            ax_gap.text(0.5, 0.5, "no energy gap: add 'reference' to --methods\n(it computes the optimum E*)",
+                        transform=ax_gap.transAxes, ha="center", va="center", fontsize=10, color="0.4")
     machine = record["machine"]
     fig.suptitle(f"Speed versus accuracy on {machine['device_name']} (scenes v{record['scenes_version']})", fontsize=12)
     fig.tight_layout()
