@@ -78,6 +78,26 @@ def barrier_log_hessian(d: Any, xi: Any, dhat: Any):
 
 
 @wp.func
+def barrier_join(xi: Any, dhat: Any, bp: Any):
+    """The extrapolation's coefficients at the join d_b = xi + bp dhat (Eq. 13-14).
+
+    Returns:
+        (f_b, f_b', D_f = f_b'' / 2, t0 = -(xi + dhat) - d_b, a3, a4); a3 and a4 are the
+        paper's quartic terms (used by BARRIER_PAPER only).
+    """
+    db = xi + bp * dhat
+    fb = barrier_log_energy(db, xi, dhat)
+    fb1 = barrier_log_gradient(db, xi, dhat)
+    df = type(xi)(0.5) * barrier_log_hessian(db, xi, dhat)
+    t0 = -(xi + dhat) - db
+    e1 = -(fb + fb1 * t0 + df * t0 * t0)
+    e2 = -(fb1 + type(xi)(2.0) * df * t0)
+    a3 = type(xi)(4.0) * e1 / (t0 * t0 * t0) - e2 / (t0 * t0)
+    a4 = e2 / (t0 * t0 * t0) - type(xi)(3.0) * e1 / (t0 * t0 * t0 * t0)
+    return fb, fb1, df, t0, a3, a4
+
+
+@wp.func
 def barrier_energy(d: Any, xi: Any, dhat: Any, bp: Any, variant: int):
     """B(d) of Eq. 12, [energy units of the caller's weight]. Zero for d >= xi + dhat."""
     zero = type(d)(0.0)
@@ -86,16 +106,9 @@ def barrier_energy(d: Any, xi: Any, dhat: Any, bp: Any, variant: int):
     db = xi + bp * dhat
     if d >= db:
         return wp.max(zero, barrier_log_energy(d, xi, dhat))
-    fb = barrier_log_energy(db, xi, dhat)
-    fb1 = barrier_log_gradient(db, xi, dhat)
-    df = type(d)(0.5) * barrier_log_hessian(db, xi, dhat)
+    fb, fb1, df, t0, a3, a4 = barrier_join(xi, dhat, bp)
     tau = d - db
-    t0 = -(xi + dhat) - db
     if variant == BARRIER_PAPER:
-        e1 = -(fb + fb1 * t0 + df * t0 * t0)
-        e2 = -(fb1 + type(d)(2.0) * df * t0)
-        a3 = type(d)(4.0) * e1 / (t0 * t0 * t0) - e2 / (t0 * t0)
-        a4 = e2 / (t0 * t0 * t0) - type(d)(3.0) * e1 / (t0 * t0 * t0 * t0)
         return wp.max(zero, fb + fb1 * tau + df * tau * tau + a3 * tau * tau * tau + a4 * tau * tau * tau * tau)
     if variant == BARRIER_QUADRATIC:
         return fb + fb1 * tau + df * tau * tau
@@ -114,16 +127,9 @@ def barrier_gradient(d: Any, xi: Any, dhat: Any, bp: Any, variant: int):
         if barrier_log_energy(d, xi, dhat) <= zero:
             return zero
         return barrier_log_gradient(d, xi, dhat)
-    fb = barrier_log_energy(db, xi, dhat)
-    fb1 = barrier_log_gradient(db, xi, dhat)
-    df = type(d)(0.5) * barrier_log_hessian(db, xi, dhat)
+    fb, fb1, df, t0, a3, a4 = barrier_join(xi, dhat, bp)
     tau = d - db
-    t0 = -(xi + dhat) - db
     if variant == BARRIER_PAPER:
-        e1 = -(fb + fb1 * t0 + df * t0 * t0)
-        e2 = -(fb1 + type(d)(2.0) * df * t0)
-        a3 = type(d)(4.0) * e1 / (t0 * t0 * t0) - e2 / (t0 * t0)
-        a4 = e2 / (t0 * t0 * t0) - type(d)(3.0) * e1 / (t0 * t0 * t0 * t0)
         value = fb + fb1 * tau + df * tau * tau + a3 * tau * tau * tau + a4 * tau * tau * tau * tau
         if value <= zero:
             return zero
@@ -144,16 +150,9 @@ def barrier_hessian(d: Any, xi: Any, dhat: Any, bp: Any, variant: int):
         if barrier_log_energy(d, xi, dhat) <= zero:
             return zero
         return barrier_log_hessian(d, xi, dhat)
-    fb = barrier_log_energy(db, xi, dhat)
-    fb1 = barrier_log_gradient(db, xi, dhat)
-    df = type(d)(0.5) * barrier_log_hessian(db, xi, dhat)
+    fb, fb1, df, t0, a3, a4 = barrier_join(xi, dhat, bp)
     tau = d - db
-    t0 = -(xi + dhat) - db
     if variant == BARRIER_PAPER:
-        e1 = -(fb + fb1 * t0 + df * t0 * t0)
-        e2 = -(fb1 + type(d)(2.0) * df * t0)
-        a3 = type(d)(4.0) * e1 / (t0 * t0 * t0) - e2 / (t0 * t0)
-        a4 = e2 / (t0 * t0 * t0) - type(d)(3.0) * e1 / (t0 * t0 * t0 * t0)
         value = fb + fb1 * tau + df * tau * tau + a3 * tau * tau * tau + a4 * tau * tau * tau * tau
         if value <= zero:
             return zero

@@ -250,18 +250,7 @@ def read_usd(path: str | os.PathLike) -> dict:
             do not all have the same vertex count.
         ImportError: when usd-core is not installed.
     """
-    path = check_path("path", path, USD_SUFFIXES)
-    if not os.path.isfile(path):
-        raise ValueError(f"path: no such file {path!r}")
-    Gf, Sdf, Usd, UsdGeom, Vt = _pxr()
-    # Opened as anonymous: a fresh read even if this process opened (or wrote) the path before.
-    layer = Sdf.Layer.OpenAsAnonymous(path)
-    if layer is None:
-        raise ValueError(f"path: USD could not read {path!r}")
-    stage = Usd.Stage.Open(layer)
-    up_axis = str(UsdGeom.GetStageUpAxis(stage)).upper()
-    mpu = float(UsdGeom.GetStageMetersPerUnit(stage))
-
+    stage, up_axis, mpu, Usd, UsdGeom = _open_stage(path)
     prim = _first_prim(stage, UsdGeom.BasisCurves, HAIR_PATH)
     if prim is None:
         raise ValueError(f"path: {path!r} holds no BasisCurves (hair)")
@@ -304,6 +293,7 @@ def _open_stage(path):
     if not os.path.isfile(path):
         raise ValueError(f"path: no such file {path!r}")
     Gf, Sdf, Usd, UsdGeom, Vt = _pxr()
+    # Opened as anonymous: a fresh read even if this process opened (or wrote) the path before.
     layer = Sdf.Layer.OpenAsAnonymous(path)
     if layer is None:
         raise ValueError(f"path: USD could not read {path!r}")
