@@ -130,7 +130,8 @@ def train_static(args) -> None:
     def config(steps):
         return StaticTrainingConfig(model_kind=args.kind, model_preset="shipped", phase_steps=steps, phase2_hairstyles=PHASE2_HAIRSTYLES,
                                     phase3_hairstyles=PHASE3_HAIRSTYLES, batch_size=args.batch,
-                                    bp_schedule=args.bp_schedule,
+                                    bp_schedule=args.bp_schedule, learning_rate=args.lr,
+                                    loss_normalization=args.loss_normalization,
                                     checkpoint_every=0, data=data_config())
 
     if args.steps:  # the probe overestimates: its hairstyles are all decoded for the first time
@@ -196,6 +197,10 @@ def main(argv=None) -> None:
     parser.add_argument("--bp-schedule", default=StaticTrainingConfig.bp_schedule, choices=BP_SCHEDULES,
                         help="static/quaffure: how b_p falls from 0.9 to 0.01 (geometric spends more steps "
                              "where the quadratic barrier's push-out force is strong)")
+    parser.add_argument("--loss-normalization", default=StaticTrainingConfig.loss_normalization,
+                        choices=("none", "rigid"),
+                        help="static/quaffure: divide each sample's energy by its rigid placement's (rigid)")
+    parser.add_argument("--lr", type=float, default=StaticTrainingConfig.learning_rate, help="Adam step size")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--workers", type=int, default=max(1, (os.cpu_count() or 2) - 2))
     parser.add_argument("--static", default=None, help="dynamic: the trained static checkpoint (float32 run file)")

@@ -35,6 +35,10 @@ from hairwarp.scene.motion import DEFAULT_FPS, list_motions
 MODEL_PRESETS = ("paper", "shipped", "tiny")
 STATIC_MODEL_KINDS = ("static", "quaffure")
 BP_SCHEDULES = ("linear", "geometric")
+LOSS_NORMALIZATIONS = ("none", "rigid")
+# Energy added to the rigid placement's before dividing by it ("rigid" normalization): keeps
+# samples that start at rest (energy near its minimum) from being magnified.
+LOSS_NORMALIZATION_FLOOR = 1.0
 LATENT_SOURCES = ("corpus", "sample")
 DTYPES = ("float32", "float64")
 SCALP_GRID = 32  # roots per side of the scalp grid (Section 3.1: 32 x 32 = 1024 strands)
@@ -288,6 +292,11 @@ class StaticTrainingConfig(_TrainingConfig):
         deformation_clip: clamp of each deformation component [m] early in training (0.01).
         clip_steps: steps during which the clip applies; None: phase 0.
         grad_clip_norm: clip the gradient norm to this (0: off; the paper does not clip).
+        loss_normalization: "none" (Eq. 5 averaged over the batch, the paper) or "rigid":
+            each sample's energy divided by its rigid placement's at the step's b_p (plus
+            `LOSS_NORMALIZATION_FLOOR`), so a sample whose tips start 10 cm inside the body
+            (contact gradients ~1e5 times gravity's, tools/diagnose_one_scene.py) does not
+            drown the others in Adam's second moment.
         checkpoint_every: write `checkpoint.pt` every this many steps (0: only at the end).
         dtype: "float32" (training) or "float64" (checks).
         energy: overrides of `hairwarp.config.EnergyConfig` fields (b_p is set per step).
@@ -308,6 +317,7 @@ class StaticTrainingConfig(_TrainingConfig):
     deformation_clip: float = 0.01
     clip_steps: int | None = None
     grad_clip_norm: float = 0.0
+    loss_normalization: str = "none"
     checkpoint_every: int = 1000
     dtype: str = "float32"
     energy: dict = field(default_factory=dict)
@@ -338,6 +348,7 @@ class StaticTrainingConfig(_TrainingConfig):
         if self.clip_steps is not None:
             _int(owner, "clip_steps", self.clip_steps)
         _number(owner, "grad_clip_norm", self.grad_clip_norm)
+        _choice(owner, "loss_normalization", self.loss_normalization, LOSS_NORMALIZATIONS)
         _int(owner, "checkpoint_every", self.checkpoint_every)
         _choice(owner, "dtype", self.dtype, DTYPES)
         _check_energy(owner, self.energy)

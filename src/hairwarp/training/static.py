@@ -33,7 +33,7 @@ from hairwarp.training._common import (
     stored_seed,
     term_means,
 )
-from hairwarp.training.config import StaticTrainingConfig, energy_config
+from hairwarp.training.config import LOSS_NORMALIZATION_FLOOR, StaticTrainingConfig, energy_config
 from hairwarp.training.data import HairBatch, TrainingSampler
 
 
@@ -122,7 +122,7 @@ def build_model(config: StaticTrainingConfig, latent_dim: int = 512) -> nn.Modul
     return StaticNetwork(cfg) if config.model_kind == "static" else QuaffureNetwork(cfg)
 
 
-def static_loss(model: nn.Module, batch: HairBatch, energy, clip: float | None = None):
+def static_loss(model: nn.Module, batch: HairBatch, energy, clip: float | None = None, normalization: str = "none"):
     """Eq. 5 averaged over the batch for the drapes a static network predicts.
 
     Args:
@@ -130,6 +130,7 @@ def static_loss(model: nn.Module, batch: HairBatch, energy, clip: float | None =
         batch: the samples (latents, shapes, poses, rigid placement, energy inputs).
         energy: the `EnergyConfig` (b_p of this step inside).
         clip: optional clamp of each deformation component [m].
+        normalization: "none" or "rigid" (`StaticTrainingConfig.loss_normalization`).
 
     Returns:
         (loss () tensor, terms {name: batch-mean float}, positions (B, M, N, 3)).
@@ -137,6 +138,10 @@ def static_loss(model: nn.Module, batch: HairBatch, energy, clip: float | None =
     deformation = model(batch.z, batch.betas, batch.poses, clip=clip)
     positions = apply_deformation(batch.rigid, deformation, batch.root_uv)
     result = total_energy(positions, batch.inputs, energy)
+    if normalization == "rigid":
+        with torch.no_grad():
+            scale = total_energy(batch.rigid, batch.inputs, energy).total.abs() + LOSS_NORMALIZATION_FLOOR
+        return (result.total / scale).mean(), term_means(result.terms), positions
     return result.total.mean(), term_means(result.terms), positions
 
 
@@ -243,7 +248,8 @@ class StaticTrainer(Trainer):
     def compute_loss(self, batch: HairBatch, step: int, model: nn.Module | None = None):
         s = self.schedule(step)
         energy = energy_config(self.config.energy, barrier_join_fraction=s["bp"])
-        loss, terms, _ = static_loss(self.model if model is None else model, batch, energy, s["clip"])
+        loss, terms, _ = static_loss(self.model if model is None else model, batch, energy, s["clip"],
+                                     self.config.loss_normalization)
         size = batch.info.get("global_batch_size", batch.batch_size)
         extras = {"phase": s["phase"], "bp": s["bp"], "clip": s["clip"], "batch_size": size}
         return loss, terms, extras
