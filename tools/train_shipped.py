@@ -130,7 +130,7 @@ def train_static(args) -> None:
     def config(steps):
         return StaticTrainingConfig(model_kind=args.kind, model_preset="shipped", phase_steps=steps, phase2_hairstyles=PHASE2_HAIRSTYLES,
                                     phase3_hairstyles=PHASE3_HAIRSTYLES, batch_size=args.batch,
-                                    bp_schedule=args.bp_schedule, learning_rate=args.lr,
+                                    bp_schedule=args.bp_schedule, learning_rate=args.lr, bp_start=args.bp_start,
                                     loss_normalization=args.loss_normalization,
                                     checkpoint_every=0, data=data_config())
 
@@ -200,6 +200,8 @@ def main(argv=None) -> None:
     parser.add_argument("--loss-normalization", default=StaticTrainingConfig.loss_normalization,
                         choices=("none", "rigid"),
                         help="static/quaffure: divide each sample's energy by its rigid placement's (rigid)")
+    parser.add_argument("--bp-start", type=float, default=StaticTrainingConfig.bp_start,
+                        help="static/quaffure: b_p at the first step (0.9 in the paper; 0.01 = constant)")
     parser.add_argument("--lr", type=float, default=StaticTrainingConfig.learning_rate, help="Adam step size")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--workers", type=int, default=max(1, (os.cpu_count() or 2) - 2))
