@@ -116,6 +116,16 @@ def _finish(trainer, args, kind: str, info: dict, start: float) -> None:
     print(json.dumps(info, indent=1))
 
 
+def _energy_overrides(items) -> dict:
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise SystemExit(f"--energy: expected FIELD=VALUE, got {item!r}")
+        out[key.strip()] = float(value)
+    return out
+
+
 def train_static(args) -> None:
     from hairwarp.training.config import StaticTrainingConfig
     from hairwarp.training.data import TrainingSampler
@@ -131,7 +141,7 @@ def train_static(args) -> None:
         return StaticTrainingConfig(model_kind=args.kind, model_preset="shipped", phase_steps=steps, phase2_hairstyles=PHASE2_HAIRSTYLES,
                                     phase3_hairstyles=PHASE3_HAIRSTYLES, batch_size=args.batch,
                                     bp_schedule=args.bp_schedule, learning_rate=args.lr, bp_start=args.bp_start,
-                                    loss_normalization=args.loss_normalization,
+                                    loss_normalization=args.loss_normalization, energy=_energy_overrides(args.energy),
                                     checkpoint_every=0, data=data_config())
 
     if args.steps:  # the probe overestimates: its hairstyles are all decoded for the first time
@@ -202,6 +212,8 @@ def main(argv=None) -> None:
                         help="static/quaffure: divide each sample's energy by its rigid placement's (rigid)")
     parser.add_argument("--bp-start", type=float, default=StaticTrainingConfig.bp_start,
                         help="static/quaffure: b_p at the first step (0.9 in the paper; 0.01 = constant)")
+    parser.add_argument("--energy", action="append", default=[], metavar="FIELD=VALUE",
+                        help="override an EnergyConfig field in the training loss (repeatable), e.g. stretch_weight=1e10")
     parser.add_argument("--lr", type=float, default=StaticTrainingConfig.learning_rate, help="Adam step size")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--workers", type=int, default=max(1, (os.cpu_count() or 2) - 2))

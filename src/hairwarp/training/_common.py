@@ -85,6 +85,7 @@ class Trainer:
         self.history: list[dict] = []
         self._log = None
         self._ddp = None
+        self.curve = None  # a `hairwarp.training.monitor.LearningCurve` where the trainer keeps one
         if world_size > 1:
             distributed.check_process_group(rank, world_size)
             if self.config.batch_size < world_size:
@@ -207,9 +208,11 @@ class Trainer:
 
             bar = tqdm(total=end, initial=self.step, desc=f"train {self.kind}", dynamic_ncols=True)
         try:
+            self.record_curve()
             while self.step < end:
                 record = self.train_step()
                 records.append(record)
+                self.record_curve()
                 every = self.config.checkpoint_every
                 if self.out is not None and every and self.step % every == 0 and self.step < end:
                     self.save()
@@ -222,6 +225,17 @@ class Trainer:
         if self.out is not None:
             self.save()
         return records
+
+    def record_curve(self) -> dict | None:
+        """Record the learning curve at the current step when it is due (and write it); None else.
+
+        Every rank evaluates the same record (it is deterministic); rank 0 writes it.
+        """
+        if self.curve is None or not self.curve.due(self.step):
+            return None
+        entry = self.curve.record(self.step)
+        self.curve.write()
+        return entry
 
     @staticmethod
     def _postfix(record: dict) -> str:

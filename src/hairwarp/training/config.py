@@ -264,6 +264,17 @@ def energy_config(overrides: dict, **fixed) -> EnergyConfig:
     return EnergyConfig(**{**overrides, **fixed})
 
 
+def _check_curve(owner: str, cfg) -> None:
+    _int(owner, "curve_every", cfg.curve_every)
+    cfg.curve_scenes = list(cfg.curve_scenes)
+    for name in cfg.curve_scenes:
+        if not isinstance(name, str):
+            _fail(owner, "curve_scenes", "scene names", cfg.curve_scenes)
+    if cfg.curve_strand_stride is not None:
+        _int(owner, "curve_strand_stride", cfg.curve_strand_stride, 1)
+    _int(owner, "curve_reference_iterations", cfg.curve_reference_iterations)
+
+
 # ------------------------------------------------------------------------------------ static
 @dataclass
 class StaticTrainingConfig(_TrainingConfig):
@@ -299,6 +310,14 @@ class StaticTrainingConfig(_TrainingConfig):
             drown the others in Adam's second moment.
         checkpoint_every: write `checkpoint.pt` every this many steps (0: only at the end).
         dtype: "float32" (training) or "float64" (checks).
+        curve_every: record the learning curve (`hairwarp.training.monitor`: per-term gradient
+            norms w.r.t. the map, displacement by vertex index, held-out scores) at step 0, every
+            this many steps and at the end, into `learning_curve.json` / `.png` (0: off).
+        curve_scenes: held-out comparison scenes scored by the curve (static scenes of
+            `hairwarp.evaluation.scenes`; the trainer needs their factory, `scene_factory`).
+        curve_strand_stride: their size: None full size (every scalp root), k every k-th root.
+        curve_reference_iterations: L-BFGS iterations over the free map that give each scene's
+            reference energy E* for the energy gap (0: no energy gap).
         energy: overrides of `hairwarp.config.EnergyConfig` fields (b_p is set per step).
         data: what the sampler draws.
     """
@@ -320,12 +339,17 @@ class StaticTrainingConfig(_TrainingConfig):
     loss_normalization: str = "none"
     checkpoint_every: int = 1000
     dtype: str = "float32"
+    curve_every: int = 500
+    curve_scenes: list = field(default_factory=lambda: ["table1", "medium_poses"])
+    curve_strand_stride: int | None = None
+    curve_reference_iterations: int = 100
     energy: dict = field(default_factory=dict)
     data: DataConfig = field(default_factory=DataConfig)
 
     def __post_init__(self):
         owner = type(self).__name__
         _choice(owner, "model_kind", self.model_kind, STATIC_MODEL_KINDS)
+        _check_curve(owner, self)
         _choice(owner, "model_preset", self.model_preset, MODEL_PRESETS)
         _check_model_keys(owner, self.model, StaticConfig if self.model_kind == "static" else QuaffureConfig)
         self.phase_steps = tuple(self.phase_steps)
@@ -373,6 +397,7 @@ class StaticTrainingConfig(_TrainingConfig):
         return cls(
             model_kind=model_kind, model_preset="tiny", phase_steps=(4, 4, 4, 4), phase2_hairstyles=2,
             phase3_hairstyles=3, batch_size=2, learning_rate=1e-3, checkpoint_every=0, data=DataConfig.tiny(),
+            curve_every=0,
         )
 
 

@@ -162,6 +162,9 @@ class StaticTrainer(Trainer):
         resume: a checkpoint (file or run folder) to continue from: weights, optimizer
             state and step; it may come from a run with another world size.
         sampler: a ready `TrainingSampler` (tests share one); None builds it from the config.
+        scene_factory: builds the learning curve's held-out scenes
+            (`hairwarp.evaluation.scenes.comparison_scene`, which the layers keep out of this
+            package's imports); None scores the training batch only (`config.curve_every`).
 
     Raises:
         ValueError: on a bad config, a checkpoint of another model kind or sizes.
@@ -178,6 +181,7 @@ class StaticTrainer(Trainer):
         world_size: int = 1,
         resume=None,
         sampler: TrainingSampler | None = None,
+        scene_factory=None,
     ):
         device = torch.device(device)
         self.device = device
@@ -226,6 +230,10 @@ class StaticTrainer(Trainer):
             for group in self.optimizer.param_groups:
                 group["lr"] = config.learning_rate
         self._setup_run(out, seed, rank, world_size, 0 if ckpt is None else ckpt.step)
+        if config.curve_every > 0:
+            from hairwarp.training.monitor import LearningCurve
+
+            self.curve = LearningCurve(self, scene_factory)
 
     @property
     def total_steps(self) -> int:
@@ -264,6 +272,7 @@ def train_static(
     resume=None,
     steps: int | None = None,
     progress: bool = True,
+    scene_factory=None,
 ) -> StaticTrainer:
     """Train a static network (or Quaffure, `config.model_kind`) and write its checkpoint.
 
@@ -280,13 +289,14 @@ def train_static(
         resume: checkpoint (file or folder) to continue from (any world size wrote it).
         steps: run at most this many steps (None: to the end of the curriculum).
         progress: show the progress bar (rank 0).
+        scene_factory: the learning curve's held-out scenes (see `StaticTrainer`).
 
     Returns:
         The trainer (its `model`, `history`, `step`).
     """
     ctx = distributed.init_distributed(device)  # under torchrun: join the data-parallel run
     trainer = StaticTrainer(config, out=out, device=ctx.device, seed=seed, rank=ctx.rank,
-                            world_size=ctx.world_size, resume=resume)
+                            world_size=ctx.world_size, resume=resume, scene_factory=scene_factory)
     try:
         trainer.train(steps, progress=progress)
     finally:
