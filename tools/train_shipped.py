@@ -79,10 +79,16 @@ def _time_steps(trainer, warmup: int, timed: int, device) -> float:
 def _loop(trainer, budget_s: float, start: float, device) -> None:
     from tqdm.auto import tqdm
 
-    bar = tqdm(total=trainer.total_steps, desc=f"train {trainer.kind}", mininterval=10)
+    bar = tqdm(total=trainer.total_steps, initial=trainer.step, desc=f"train {trainer.kind}", mininterval=10)
     every = max(1, trainer.total_steps // 20)
+    trainer.record_curve()  # the learning curve (--curve-every), when due
     while trainer.step < trainer.total_steps and time.perf_counter() - start < budget_s:
         record = trainer.train_step()
+        entry = trainer.record_curve()
+        if entry is not None and "held_out" in entry:
+            print(json.dumps({"step": entry["step"], **{k: [round(v["penetration_percent"], 2),
+                              round(v["length_change_percent"], 2)] for k, v in entry["held_out"].items()}}),
+                  flush=True)
         bar.update(1)
         if trainer.step % every == 0:
             print(json.dumps({k: record[k] for k in ("step", "loss", "phase", "bp") if k in record}), flush=True)
@@ -142,7 +148,22 @@ def train_static(args) -> None:
                                     phase3_hairstyles=PHASE3_HAIRSTYLES, batch_size=args.batch,
                                     bp_schedule=args.bp_schedule, learning_rate=args.lr, bp_start=args.bp_start,
                                     loss_normalization=args.loss_normalization, energy=_energy_overrides(args.energy),
-                                    checkpoint_every=0, data=data_config())
+                                    checkpoint_every=0, data=data_config(), curve_every=0)
+
+    from hairwarp.evaluation.scenes import comparison_scene
+
+    run = os.path.join(args.out, f"{args.kind}_run")
+    if args.resume and os.path.isfile(os.path.join(run, "checkpoint.pt")):
+        # Continue the run of an earlier call (same steps, schedule and batches): --minutes is
+        # this call's budget.
+        trainer = StaticTrainer(None, out=run, device=device, seed=args.seed, sampler=sampler, resume=run,
+                                scene_factory=comparison_scene)
+        print(f"resumed {run} at step {trainer.step} of {trainer.total_steps}", flush=True)
+        _loop(trainer, args.minutes * 60 - 20, start, device)
+        _finish(trainer, args, args.kind, {"phase_steps": list(trainer.config.phase_steps), "resumed": True,
+                                          "batch": trainer.config.batch_size, "strand_stride": STRAND_STRIDE,
+                                          "encode_s": enc_s}, start)
+        return
 
     if args.steps:  # the probe overestimates: its hairstyles are all decoded for the first time
         s_step, total = float("nan"), args.steps
@@ -154,9 +175,9 @@ def train_static(args) -> None:
         total = max(20, int(remaining / s_step))
     steps = tuple(int(round(total * share)) for share in PHASE_SHARES)
     print(f"probe: {s_step * 1e3:.0f} ms/step at batch {args.batch}; training {steps} steps", flush=True)
-    run = os.path.join(args.out, f"{args.kind}_run")
     shutil.rmtree(run, ignore_errors=True)
-    trainer = StaticTrainer(config(steps), out=run, device=device, seed=args.seed, sampler=sampler)
+    trainer = StaticTrainer(config(steps).replace(curve_every=args.curve_every, curve_scenes=args.curve_scenes.split(",")),
+                            out=run, device=device, seed=args.seed, sampler=sampler, scene_factory=comparison_scene)
     _loop(trainer, args.minutes * 60 - 20, start, device)
     _finish(trainer, args, args.kind, {"phase_steps": steps, "probe_ms_per_step": s_step * 1e3,
                                       "batch": args.batch, "strand_stride": STRAND_STRIDE,
@@ -215,6 +236,12 @@ def main(argv=None) -> None:
     parser.add_argument("--energy", action="append", default=[], metavar="FIELD=VALUE",
                         help="override an EnergyConfig field in the training loss (repeatable), e.g. stretch_weight=1e10")
     parser.add_argument("--lr", type=float, default=StaticTrainingConfig.learning_rate, help="Adam step size")
+    parser.add_argument("--curve-every", type=int, default=250,
+                        help="static/quaffure: learning curve every this many steps (0: off): "
+                             "OUT/<kind>_run/learning_curve.json and .png")
+    parser.add_argument("--curve-scenes", default="table1,medium_poses", help="held-out scenes of the curve")
+    parser.add_argument("--resume", action="store_true",
+                        help="static/quaffure: continue OUT/<kind>_run from its checkpoint (an earlier call's run)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--workers", type=int, default=max(1, (os.cpu_count() or 2) - 2))
     parser.add_argument("--static", default=None, help="dynamic: the trained static checkpoint (float32 run file)")

@@ -88,8 +88,13 @@ def run(args) -> int:
     cls = DynamicTrainer if args.kind == "dynamic" else StaticTrainer
     # Under torchrun: join the data-parallel run (each rank on its device); else one process.
     ctx = init_distributed(device)
+    extra = {}
+    if cls is StaticTrainer:  # the learning curve scores the held-out comparison scenes
+        from hairwarp.evaluation.scenes import comparison_scene
+
+        extra["scene_factory"] = comparison_scene
     trainer = cls(config, out=args.out, device=ctx.device, seed=args.seed, rank=ctx.rank,
-                  world_size=ctx.world_size, resume=args.resume)
+                  world_size=ctx.world_size, resume=args.resume, **extra)
     if trainer.kind != args.kind:
         raise ValueError(f"--resume: the checkpoint trains a {trainer.kind} network, not {args.kind}")
     try:
