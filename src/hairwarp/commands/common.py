@@ -117,8 +117,9 @@ def add_method_arguments(p: argparse.ArgumentParser, *, max_iterations: int, def
     g = p.add_argument_group("method")
     g.add_argument("--method", default=default, metavar="METHOD", type=method_name,
                    help=f"one of {', '.join(available())}, or any of them followed by '+refine'; auto: the "
-                        f"shipped network finished by {AUTO_REFINE} L-BFGS iterations, never more vertices "
-                        f"inside than the rigid placement (default: {default})")
+                        f"shipped network (a drape: static, finished by {AUTO_REFINE} L-BFGS iterations; a motion: "
+                        "dynamic), every frame left with more vertices inside or a higher energy than the rigid "
+                        f"placement redone by L-BFGS (default: {default})")
     g.add_argument("--refine", type=int, default=0, metavar="K",
                    help="finish a network method with K L-BFGS iterations of the same energy (default: 0; "
                         f"auto: {AUTO_REFINE})")

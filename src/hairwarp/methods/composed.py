@@ -5,8 +5,10 @@
   finish). With `refine` 0 it is the network alone; L-BFGS keeps its best iterate, so the
   refined energy is never above the network's.
 - "auto" (`AutoMethod`): what the command line and `hairwarp.drape` use by default. A drape
-  runs the static network with `AUTO_REFINE` refine iterations; a motion the dynamic network,
-  refined the same way. It never leaves a frame with more vertices inside the body, or a
+  runs the static network with `AUTO_REFINE` refine iterations; a motion the dynamic network
+  with `AUTO_REFINE_MOTION` (none by default: every frame of a motion is one more drape to
+  refine, tens of seconds an iteration for a second of 1024 x 100 hair on a CPU; pass
+  `refine=K` to ask for them). It never leaves a frame with more vertices inside the body, or a
   higher energy, than the rigid placement: such a frame is draped again by L-BFGS from the
   rigid placement, and should that still be worse, the rigid placement is kept. Without a usable network (none
   shipped, a body without SMPL pose parameters, another vertex count) it is L-BFGS alone.
@@ -24,6 +26,11 @@ from hairwarp.methods.optimizers import OptimizerMethod
 
 # L-BFGS iterations "auto" runs after the network (when `options.refine` is 0).
 AUTO_REFINE = 20
+# ... and after the dynamic network on a motion (frames worse than the rigid placement are
+# still redone, see `AutoMethod`).
+AUTO_REFINE_MOTION = 0
+# L-BFGS iterations of a frame that "auto" redoes from the rigid placement (at least).
+AUTO_FALLBACK_ITERATIONS = 50
 # L-BFGS iterations "auto" gives a drape without a network (when `options.max_iterations` is None).
 AUTO_LBFGS_ITERATIONS = 200
 
@@ -102,7 +109,7 @@ class AutoMethod(Method):
                 energy = total_energy(x, sub_frames.inputs, config).total
             return (penetration_percent(x, sub_frames.body_mesh) > pen_rigid) | (energy > energy_rigid)
 
-        refine = self.options.refine or AUTO_REFINE
+        refine = self.options.refine or (AUTO_REFINE_MOTION if network_name == "dynamic" else AUTO_REFINE)
         network = self._network(network_name, frames)
         if network is None:
             iterations = self.options.max_iterations or AUTO_LBFGS_ITERATIONS
@@ -111,7 +118,7 @@ class AutoMethod(Method):
         else:
             base = network.simulate(frames) if network_name == "dynamic" else network.drape(frames)
             result = _refine(base, frames, self.options, refine, metrics)
-            chosen = f"{network_name} + {refine} L-BFGS iterations"
+            chosen = f"{network_name} + {refine} L-BFGS iterations" if refine else network_name
         rigid = frames.rigid.positions
         pen_rigid = penetration_percent(rigid, frames.body_mesh)
         with torch.no_grad():
@@ -121,7 +128,7 @@ class AutoMethod(Method):
         if bool(worse.any()):
             idx = torch.nonzero(worse)[:, 0]
             sub = _select_frames(frames, idx)
-            again = OptimizerMethod("lbfgs", refine_options(self.options, max(refine, 50))).drape(sub)
+            again = OptimizerMethod("lbfgs", refine_options(self.options, max(refine, AUTO_FALLBACK_ITERATIONS))).drape(sub)
             still = worse_than_rigid(again.positions, sub, pen_rigid[idx], energy_rigid[idx])
             positions = result.positions.clone()
             positions[idx] = torch.where(still[:, None, None, None], rigid[idx], again.positions)
