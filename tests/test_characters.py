@@ -128,7 +128,8 @@ def test_simulate_needs_time_samples(mesh_files, tmp_path, capsys):
     folder, _ = mesh_files
     assert main(["simulate", "--body", str(folder / "still.usda"), "--strand-stride", "64",
                  "--out", str(tmp_path)]) == 1
-    assert "--body:" in capsys.readouterr().err and "time samples" in capsys.readouterr().err + "time samples"
+    err = capsys.readouterr().err
+    assert "--body:" in err and "time samples" in err
 
 
 # ------------------------------------------------------------------ grooms
