@@ -3,14 +3,25 @@
 The contact term of HairFormer Eq. 12 takes d = the signed distance from a hair vertex to the
 body surface (negative inside), with xi = 1 mm and dhat = 1.5 mm for hair-body contact.
 
-Sign. `wp.mesh_query_point_sign_normal` signs the distance by the angle-weighted pseudo-normal
-of the closest feature (face, edge or vertex; Baerentzen & Aanaes 2005). It is local: it reads
-only the faces within `epsilon` of the closest distance, so it stays correct on a mesh cropped
-to the triangles hair can reach, as long as the closest point of every hair vertex survives the
-crop. `wp.mesh_query_point_sign_winding_number` is global (a solid-angle sum over the whole
-mesh): on a cropped, open mesh the winding number is no longer 0/1 and the sign breaks; without
-`support_winding_number=True` it silently falls back to ray parity, also global. Hence the
-pseudo-normal, on watertight, consistently oriented, outward meshes.
+Sign. By the angle-weighted pseudo-normal of the closest feature (Baerentzen & Aanaes 2005):
+the float32 BVH query (`wp.mesh_query_point_no_sign`) finds the closest face, the closest point
+on it is recomputed in the caller's precision, its region (face interior, one of the three
+edges, one of the three vertices) read from the exact zeros of its barycentrics, and the sign
+is that of dot(p - closest, n) with n the face normal, the edge's pseudo-normal (the sum of the
+two unit normals of the faces that share it) or the vertex's angle-weighted normal. The edge
+and vertex pseudo-normals are computed on the host side from the mesh's adjacency
+(`hairwarp.ops.hair_body_contact`) and passed in. This holds for *any* closest point, so a tie
+between faces (the medial axis: a capsule's axis, a slab's mid-plane, a sphere's centre, where
+faces from opposite sides are equally close) cannot change the sign: whichever tied face the
+query keeps, its own feature signs the point correctly.
+`wp.mesh_query_point_sign_normal` (used before) pools the normals of *every* face within
+`epsilon` of the closest distance into one vector; on the medial axis that pools opposite sides,
+the sum cancels and the sign is a coin toss (31 of 300 points on a capsule's axis and 22 of 400
+on a slab's mid-plane were called outside). The winding number and ray parity are global (a
+solid-angle sum or ray votes over the whole mesh): on a mesh cropped to the triangles hair can
+reach (open by design) they break. The feature pseudo-normal is local: it needs only the
+closest face's neighbours (a crop keeps its one-ring for the normals), is exact on ties, and
+costs one dot product.
 
 Precision. `wp.Mesh` is float32: the query finds the closest face in float32, then the closest
 point on that face is recomputed in the caller's precision (float32 or float64) by the
@@ -49,12 +60,53 @@ FAR = wp.constant(1.0e18)
 
 
 @wp.func
-def body_signed_distance(
-    mesh: wp.uint64,
-    epsilon: float,
-    vertices: wp.array(dtype=Any),
+def feature_pseudo_normal(
+    vertex_normals: wp.array(dtype=Any),
+    edge_normals: wp.array(dtype=Any),
     faces: wp.array(dtype=wp.int32),
     vertex_offset: int,
+    edge_offset: int,
+    face: int,
+    a: Any,
+    b: Any,
+    c: Any,
+    u: Any,
+    v: Any,
+    w: Any,
+):
+    """Pseudo-normal of the feature of face `face` (corners a, b, c) that holds the closest
+    point u a + v b + w c: a vertex (two barycentrics exactly zero), an edge (one zero) or the
+    face's interior. `point_triangle_closest_barycentric` writes exact zeros on the boundary
+    regions; an interior point within rounding of an edge keeps the face normal, which is then
+    parallel to p - closest and signs it as well.
+
+    Edge k of a face joins its corners k and (k + 1) % 3: edge 0 = ab, 1 = bc, 2 = ca.
+    """
+    zero = u * type(u)(0.0)
+    if u == zero and v == zero:
+        return vertex_normals[vertex_offset + faces[3 * face + 2]]
+    if v == zero and w == zero:
+        return vertex_normals[vertex_offset + faces[3 * face + 0]]
+    if w == zero and u == zero:
+        return vertex_normals[vertex_offset + faces[3 * face + 1]]
+    if w == zero:
+        return edge_normals[edge_offset + 3 * face + 0]
+    if u == zero:
+        return edge_normals[edge_offset + 3 * face + 1]
+    if v == zero:
+        return edge_normals[edge_offset + 3 * face + 2]
+    return wp.cross(b - a, c - a)
+
+
+@wp.func
+def body_signed_distance(
+    mesh: wp.uint64,
+    vertices: wp.array(dtype=Any),
+    faces: wp.array(dtype=wp.int32),
+    vertex_normals: wp.array(dtype=Any),
+    edge_normals: wp.array(dtype=Any),
+    vertex_offset: int,
+    edge_offset: int,
     p: Any,
     max_dist: float,
     zero_dist: Any,
@@ -65,28 +117,36 @@ def body_signed_distance(
     (then d = 0, gradient = 0). The gradient is the unit vector sign * (p - closest), the
     outward direction; within `zero_dist` of the surface, where that direction is rounding
     noise, it is the closest face's unit normal (the exact gradient on a face's interior).
+    The sign is that of the closest feature's pseudo-normal (see the module docstring).
 
     Args:
         mesh: `wp.Mesh` id (float32 points).
-        epsilon: tie tolerance of the pseudo-normal, as a fraction of the mesh's average edge
-            length (Warp's convention).
         vertices: the mesh vertices in the caller's precision (vec3 or vec3d), for refinement.
         faces: flat triangle indices (3 F).
+        vertex_normals: angle-weighted vertex pseudo-normals, like `vertices` (not unit).
+        edge_normals: edge pseudo-normals per face edge, (3 F per mesh), like `vertices`.
         vertex_offset: index of this mesh's first vertex in `vertices` (batched bodies).
+        edge_offset: index of this mesh's first face edge in `edge_normals` (3 F per mesh).
         p: query point (vec3 or vec3d).
         max_dist: query radius [m].
         zero_dist: distance below which p counts as on the surface [m].
     """
     zero = zero_dist * type(zero_dist)(0.0)
     p32 = wp.vec3(wp.float32(p[0]), wp.float32(p[1]), wp.float32(p[2]))
-    q = wp.mesh_query_point_sign_normal(mesh, p32, max_dist, epsilon)
+    q = wp.mesh_query_point_no_sign(mesh, p32, max_dist)
     if not q.result:
         return 0, zero, p * zero
     a = vertices[vertex_offset + faces[3 * q.face + 0]]
     b = vertices[vertex_offset + faces[3 * q.face + 1]]
     c = vertices[vertex_offset + faces[3 * q.face + 2]]
     u, v, w, dist2 = point_triangle_closest_barycentric(p, a, b, c)
-    sign = type(zero_dist)(q.sign)
+    pseudo = feature_pseudo_normal(
+        vertex_normals, edge_normals, faces, vertex_offset, edge_offset, q.face, a, b, c, u, v, w
+    )
+    offset = p - (u * a + v * b + w * c)
+    sign = type(zero_dist)(-1.0)
+    if wp.dot(offset, pseudo) > zero:
+        sign = type(zero_dist)(1.0)
     if dist2 > zero_dist * zero_dist:
         # n: unit (p - closest), exactly the face normal's direction in the face region.
         dist, n, grad_a, grad_b, grad_c = point_triangle_distance_gradient_at(p, a, b, c, u, v, w)
@@ -101,11 +161,13 @@ def signed_distance_kernel(
     # In:
     points: wp.array(dtype=Any),
     mesh_ids: wp.array(dtype=wp.uint64),
-    mesh_epsilon: wp.array(dtype=float),
     body_vertices: wp.array(dtype=Any),
     faces: wp.array(dtype=wp.int32),
+    vertex_normals: wp.array(dtype=Any),
+    edge_normals: wp.array(dtype=Any),
     points_per_batch: int,
     body_vertex_count: int,
+    body_face_count: int,
     body_batch_stride: int,
     zero_dist: Any,
     # Out:
@@ -117,10 +179,12 @@ def signed_distance_kernel(
     body = (i // points_per_batch) * body_batch_stride
     found, d, g = body_signed_distance(
         mesh_ids[body],
-        mesh_epsilon[body],
         body_vertices,
         faces,
+        vertex_normals,
+        edge_normals,
         body * body_vertex_count,
+        body * body_face_count * 3,
         points[i],
         wp.float32(FAR),
         zero_dist,
@@ -137,12 +201,14 @@ def hair_body_energy_strand_kernel(
     # In:
     x: wp.array(dtype=Any),
     mesh_ids: wp.array(dtype=wp.uint64),
-    mesh_epsilon: wp.array(dtype=float),
     body_vertices: wp.array(dtype=Any),
     faces: wp.array(dtype=wp.int32),
+    vertex_normals: wp.array(dtype=Any),
+    edge_normals: wp.array(dtype=Any),
     num_strands: int,
     num_vertices: int,
     body_vertex_count: int,
+    body_face_count: int,
     body_batch_stride: int,
     xi: Any,
     dhat: Any,
@@ -166,8 +232,8 @@ def hair_body_energy_strand_kernel(
     base = s * num_vertices
     body = (s // num_strands) * body_batch_stride
     mesh = mesh_ids[body]
-    epsilon = mesh_epsilon[body]
     vertex_offset = body * body_vertex_count
+    edge_offset = body * body_face_count * 3
     zero = xi * type(xi)(0.0)
     reach = xi + dhat
     # Query radius slack over the carried upper bound: the query measures in float32.
@@ -196,13 +262,15 @@ def hair_body_energy_strand_kernel(
         # Exact query bounded by ub: its distance lets the following vertices skip theirs.
         radius = wp.float32(wp.min(ub + slack * (type(xi)(1.0) + ub), type(xi)(FAR)))
         found, d, g = body_signed_distance(
-            mesh, epsilon, body_vertices, faces, vertex_offset, p, radius, zero_dist
+            mesh, body_vertices, faces, vertex_normals, edge_normals, vertex_offset, edge_offset,
+            p, radius, zero_dist
         )
         queries += 1
         if found == 0 and radius < FAR:
             # A float32 miss at the bound (or a sliver skipped): retry unbounded.
             found, d, g = body_signed_distance(
-                mesh, epsilon, body_vertices, faces, vertex_offset, p, wp.float32(FAR), zero_dist
+                mesh, body_vertices, faces, vertex_normals, edge_normals, vertex_offset, edge_offset,
+                p, wp.float32(FAR), zero_dist
             )
             queries += 1
         if found == 0:
@@ -226,12 +294,14 @@ def hair_body_energy_vertex_kernel(
     # In:
     x: wp.array(dtype=Any),
     mesh_ids: wp.array(dtype=wp.uint64),
-    mesh_epsilon: wp.array(dtype=float),
     body_vertices: wp.array(dtype=Any),
     faces: wp.array(dtype=wp.int32),
+    vertex_normals: wp.array(dtype=Any),
+    edge_normals: wp.array(dtype=Any),
     num_strands: int,
     num_vertices: int,
     body_vertex_count: int,
+    body_face_count: int,
     body_batch_stride: int,
     xi: Any,
     dhat: Any,
@@ -260,16 +330,18 @@ def hair_body_energy_vertex_kernel(
         return
     body = (i // (num_strands * num_vertices)) * body_batch_stride
     mesh = mesh_ids[body]
-    epsilon = mesh_epsilon[body]
     vertex_offset = body * body_vertex_count
+    edge_offset = body * body_face_count * 3
     reach32 = wp.float32(xi + dhat)
     queries = int(1)
     found, d, g = body_signed_distance(
-        mesh, epsilon, body_vertices, faces, vertex_offset, p, reach32, zero_dist
+        mesh, body_vertices, faces, vertex_normals, edge_normals, vertex_offset, edge_offset,
+        p, reach32, zero_dist
     )
     if found == 0:
         found, d, g = body_signed_distance(
-            mesh, epsilon, body_vertices, faces, vertex_offset, p, wp.float32(FAR), zero_dist
+            mesh, body_vertices, faces, vertex_normals, edge_normals, vertex_offset, edge_offset,
+            p, wp.float32(FAR), zero_dist
         )
         queries = 2
     e = zero

@@ -13,7 +13,10 @@ Which segments can touch (decided here, documented in `hairwarp.ops.hair_hair_co
 Two passes, because Warp does not replay the dynamic loop of a hash-grid query in a backward
 pass (and we want no generated adjoint at all):
     1. broad phase (`hair_hair_pairs_kernel`, not differentiable): one thread per segment
-       queries a `wp.HashGrid` of segment midpoints, grouped by batch item, and writes every
+       queries a `wp.HashGrid` of segment midpoints, grouped by batch item, within a radius set
+       by its own length (each pair is found by one query: the lower id's between typical
+       segments, the longer segment's otherwise), rejects candidates by the midpoint bound of
+       the pair, and writes every
        pair (i < j) with an exact segment distance < xi + dhat into a fixed-capacity buffer,
        counting with an atomic (the count goes on past the capacity, so overflow is detected
        and the needed size known).
@@ -45,14 +48,18 @@ def segment_midpoints_kernel(
     num_strands: int,
     # Out:
     midpoint_out: wp.array(dtype=wp.vec3),
+    half_length_out: wp.array(dtype=float),
     group_out: wp.array(dtype=wp.int32),
 ):
-    """Midpoint (float32: the grid only needs it to a margin) and batch item of each segment."""
+    """Midpoint and half length (float32: the grid only needs them to a margin) and batch item
+    of each segment.
+    """
     seg = wp.tid()
     strand = seg // (num_vertices - 1)
     v0 = strand * num_vertices + seg % (num_vertices - 1)
     m = (x_in[v0] + x_in[v0 + 1]) * type(x_in[v0][0])(0.5)
     midpoint_out[seg] = wp.vec3(m)
+    half_length_out[seg] = wp.float32(wp.length(x_in[v0 + 1] - x_in[v0])) * 0.5
     group_out[seg] = strand // num_strands
 
 
@@ -62,10 +69,14 @@ def hair_hair_pairs_kernel(
     grid: wp.uint64,
     x_in: wp.array(dtype=Any),
     midpoint_in: wp.array(dtype=wp.vec3),
+    half_length_in: wp.array(dtype=float),
     group_in: wp.array(dtype=wp.int32),
     num_vertices: int,
     skip_root_segments: int,
-    query_radius: float,
+    cutoff32: float,
+    long_half_length: float,
+    relative_slack: float,
+    absolute_slack: float,
     cutoff: Any,
     capacity: int,
     # Out:
@@ -74,8 +85,16 @@ def hair_hair_pairs_kernel(
 ):
     """Pairs (i < j) of segments of different strands with distance < cutoff = xi + dhat.
 
-    `query_radius` bounds the midpoint distance of any such pair: cutoff + max segment length
-    (two segments at distance d have midpoints at most d + (l_i + l_j) / 2 apart).
+    Two segments at distance d have midpoints at most d + l_i / 2 + l_j / 2 apart. A segment
+    is "long" when its half length exceeds `long_half_length` (H). Each pair is found by one
+    query only: between two short segments by the lower id's, within cutoff + l_i / 2 + H;
+    a pair with a long segment by its longer segment's (ties: the lower id), within
+    cutoff + l_i. So the query radius follows the segment's own length, and a few stretched
+    segments (an L-BFGS line search's trial points reach 8x the rest length) no longer widen
+    every query. A candidate j is rejected by the pair's midpoint bound
+    cutoff + (l_i + l_j) / 2 before the exact test. Bounds are widened by `relative_slack` and
+    `absolute_slack` [m] for the float32 rounding of midpoints and lengths (the ownership
+    tests need none: both threads read the same float32 half lengths).
     """
     i = wp.tid()
     segs_per_strand = num_vertices - 1
@@ -86,25 +105,38 @@ def hair_hair_pairs_kernel(
     p0 = x_in[vi]
     p1 = x_in[vi + 1]
     mi = midpoint_in[i]
+    half_i = half_length_in[i]
+    long_i = half_i > long_half_length
+    reach_i = cutoff32 + half_i
+    radius = (reach_i + wp.max(half_i, long_half_length)) * (1.0 + relative_slack) + absolute_slack
     cutoff2 = cutoff * cutoff
-    query = wp.hash_grid_query(grid, mi, query_radius, group_in[i])
+    query = wp.hash_grid_query(grid, mi, radius, group_in[i])
     j = int(0)
     while wp.hash_grid_query_next(query, j):
-        # Each unordered pair once; never the same strand (this also drops j == i).
-        if j <= i:
+        if not long_i and j <= i:
+            continue  # a short-short pair is the lower id's; this also drops j == i
+        half_j = half_length_in[j]
+        if long_i:
+            # Short partners, and long ones that are shorter (ties: the lower id); drops j == i.
+            if half_j > half_i or (half_j == half_i and j <= i):
+                continue
+        elif half_j > long_half_length:
+            continue  # the long segment's query finds this pair
+        bound = (reach_i + half_j) * (1.0 + relative_slack) + absolute_slack
+        e = midpoint_in[j] - mi
+        if wp.dot(e, e) > bound * bound:
             continue
         strand_j = j // segs_per_strand
         if strand_j == strand_i or j % segs_per_strand < skip_root_segments:
-            continue
-        if wp.length(midpoint_in[j] - mi) > query_radius:
             continue
         vj = strand_j * num_vertices + j % segs_per_strand
         s, t, dist2 = edge_edge_closest_parameters(p0, p1, x_in[vj], x_in[vj + 1])
         if dist2 < cutoff2:
             slot = wp.atomic_add(count_out, 0, 1)
             if slot < capacity:
-                pairs_out[2 * slot] = i
-                pairs_out[2 * slot + 1] = j
+                # Stored as (lower id, higher id).
+                pairs_out[2 * slot] = wp.min(i, j)
+                pairs_out[2 * slot + 1] = wp.max(i, j)
 
 
 @wp.func

@@ -5,6 +5,8 @@ to the hair's reach), batch 1 and 32 (B different frames of a head-turn motion).
 
 Writes {"device", "machine", "sizes", "results": [{"name", "warp_ms", "torch_ms", ...}]},
 a result named "total" included (Eq. 6 without L_func_reg: every term, inertia too).
+The plain-torch hair-hair peer runs one batch item at a time (`torch_hair_hair_by_item`): at
+batch 32 in one call it needs ~35 GB on the CPU.
 """
 
 from __future__ import annotations
@@ -42,12 +44,39 @@ def build_energy_inputs(batch: int, device: torch.device, *, hairstyle: str = "l
     return x, inputs, scene, frames
 
 
+def torch_hair_hair_by_item(x, config: EnergyConfig):
+    """The plain-torch hair-hair peer, one batch item at a time: (B,) energies.
+
+    Its voxel-grid search holds every candidate pair of the 27 neighbouring voxels at once,
+    about 1.1 GB per 1024 x 100 batch item on the CPU (measured; docs/contact.md): the whole
+    batch of 32 in one call needs ~35 GB and was killed for memory at 24 GB. Item by item its
+    peak stays that of one item, and the result is the same (pairs never cross items).
+    """
+    from hairwarp.torch_reference import hair_hair_contact as ref_hh
+
+    c = config
+    return torch.cat([
+        ref_hh.hair_hair_contact_energy(x[b:b + 1], c.hair_diameter, c.hair_hair_dhat, c.barrier_join_fraction,
+                                        c.hair_hair_weight, c.barrier_variant, method="grid")[0]
+        for b in range(x.shape[0])
+    ])
+
+
+def _torch_total_by_item(x, inputs, config: EnergyConfig):
+    """Plain-torch total energy with its hair-hair term evaluated item by item (see above)."""
+    from hairwarp.torch_reference import energy as ref_energy
+
+    rest = ref_energy.total_energy(x, inputs, replace(config, hair_hair_weight=0.0), dynamic=True).total
+    if config.hair_hair_weight == 0.0:
+        return rest
+    return rest + torch_hair_hair_by_item(x, config)
+
+
 def _closures(x, inputs, config: EnergyConfig):
     """Name -> (warp fn, torch fn), each returning a (B,) energy."""
     from hairwarp import energy as hw_energy
     from hairwarp import ops
     from hairwarp.torch_reference import energy as ref_energy
-    from hairwarp.torch_reference import hair_hair_contact as ref_hh
     from hairwarp.torch_reference import strand_energies as ref
 
     c = config
@@ -77,12 +106,11 @@ def _closures(x, inputs, config: EnergyConfig):
     out["hair_hair_contact"] = (
         lambda: ops.hair_hair_contact_energy(x, c.hair_diameter, c.hair_hair_dhat, c.barrier_join_fraction,
                                              weight=c.hair_hair_weight, variant=c.barrier_variant)[0],
-        lambda: ref_hh.hair_hair_contact_energy(x, c.hair_diameter, c.hair_hair_dhat, c.barrier_join_fraction,
-                                                c.hair_hair_weight, c.barrier_variant, method="grid")[0],
+        lambda: torch_hair_hair_by_item(x, c),
     )
     out["total"] = (
         lambda: hw_energy.total_energy(x, inputs, c, dynamic=True).total,
-        lambda: ref_energy.total_energy(x, inputs, c, dynamic=True).total,
+        lambda: _torch_total_by_item(x, inputs, c),
     )
     return out
 

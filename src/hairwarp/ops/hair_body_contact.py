@@ -6,8 +6,12 @@ deforms (`update`), and cropped to the triangles the hair can reach (`crop`, `cr
 `hair_body_contact_energy` is the contact term, `hair_body_signed_distance` the per-vertex
 distance for metrics, `point_mesh_signed_distance` the one-shot signed distance of points.
 
-Sign convention: d < 0 inside the body, by the angle-weighted pseudo-normal (see the kernel
-module for why not the winding number). Meshes must be watertight, edge-manifold and
+Sign convention: d < 0 inside the body, by the angle-weighted pseudo-normal of the closest
+feature (face, edge or vertex; see the kernel module for why, and why not the winding number).
+The edge and vertex pseudo-normals are computed here, on the device, from the mesh's adjacency
+(found once when the body is built) and recomputed when the body moves (`update`); a crop keeps
+the one-ring of its faces (extra vertices and "normal faces" outside its BVH) so its normals
+are those of the full body. Meshes must be watertight, edge-manifold and
 consistently oriented with outward normals (counter-clockwise seen from outside).
 Gradients flow to the hair/points only: `wp.Mesh` queries give none to the body vertices.
 """
@@ -23,11 +27,6 @@ from hairwarp.kernels import hair_body_contact as kernels
 from hairwarp.ops.barrier import barrier_variant_id, check_barrier_parameters
 
 INDEX_DTYPES = (torch.int32, torch.int64)
-
-# Tie tolerance of the pseudo-normal (Warp's default fraction of the average edge length).
-# It is fixed in metres when a body is built and inherited by its crops, so a crop ties the
-# same faces as the full mesh.
-_EPSILON_FRACTION = 1.0e-3
 
 # Below this distance [m] a point counts as on the surface and gets the face normal as the
 # gradient: in float32 the closest point carries ~1e-7 m of rounding at body scale.
@@ -93,16 +92,53 @@ def _check_mesh(vertices: torch.Tensor, faces: torch.Tensor, *, require_watertig
         )
 
 
-def _average_edge_length(points: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
-    """(B,) mean edge length of each mesh [m], as Warp's `Mesh.average_edge_length`."""
+def _edge_inverse(faces: torch.Tensor) -> tuple[torch.Tensor, int]:
+    """(3 F,) id of the undirected edge of each face edge (edge k joins corners k, k + 1), and
+    the number of distinct edges. Reads the count back to the host (`torch.unique`).
+    """
     f = faces.long()
-    a, b, c = points[:, f[:, 0]], points[:, f[:, 1]], points[:, f[:, 2]]
-    lengths = (
-        torch.linalg.vector_norm(a - b, dim=-1)
-        + torch.linalg.vector_norm(a - c, dim=-1)
-        + torch.linalg.vector_norm(c - b, dim=-1)
-    )
-    return lengths.to(torch.float64).mean(-1) / 3.0
+    directed = torch.stack([f, f.roll(-1, dims=1)], dim=-1).reshape(-1, 2)
+    undirected = torch.sort(directed, dim=1).values
+    keys = undirected[:, 0] * (int(f.max()) + 1) + undirected[:, 1]
+    unique, inverse = torch.unique(keys, return_inverse=True)
+    return inverse, int(unique.numel())
+
+
+def _pseudo_normals(points: torch.Tensor, faces: torch.Tensor, edge_inverse: torch.Tensor, num_edges: int,
+                    face_rows: torch.Tensor | None):
+    """Vertex and edge pseudo-normals (Baerentzen & Aanaes 2005) of B posed meshes.
+
+    Args:
+        points: (B, V, 3) vertices.
+        faces: (R, 3) int64 faces the normals are summed over (a crop's one-ring).
+        edge_inverse: (3 R,) undirected edge id of each face edge (`_edge_inverse`).
+        num_edges: number of distinct edges.
+        face_rows: (F,) rows of `faces` that the BVH holds (None: all of them).
+
+    Returns:
+        vertex normals (B, V, 3) (angle-weighted sums of unit face normals) and edge normals
+        (B, F, 3, 3) (per face edge, the sum of the unit normals of the faces sharing it); not
+        normalised: only their direction's side matters. Zero-area faces contribute nothing.
+    """
+    batch, count = points.shape[:2]
+    a, b, c = points[:, faces[:, 0]], points[:, faces[:, 1]], points[:, faces[:, 2]]
+    normal = torch.cross(b - a, c - a, dim=-1)
+    length = torch.linalg.vector_norm(normal, dim=-1, keepdim=True)
+    unit = torch.where(length > 0, normal / length.clamp_min(torch.finfo(points.dtype).tiny), 0.0)
+
+    def angle(e0, e1):
+        return torch.atan2(torch.linalg.vector_norm(torch.cross(e0, e1, dim=-1), dim=-1), (e0 * e1).sum(-1))
+
+    corner = torch.stack([angle(b - a, c - a), angle(c - b, a - b), angle(a - c, b - c)], dim=-1)
+    weighted = (corner[..., None] * unit[:, :, None, :]).reshape(batch, -1, 3)
+    vertex = torch.zeros(batch, count, 3, dtype=points.dtype, device=points.device)
+    vertex.index_add_(1, faces.reshape(-1), weighted)
+    per_edge = torch.zeros(batch, num_edges, 3, dtype=points.dtype, device=points.device)
+    per_edge.index_add_(1, edge_inverse, unit[:, :, None, :].expand(-1, -1, 3, -1).reshape(batch, -1, 3))
+    inverse = edge_inverse.view(-1, 3)
+    if face_rows is not None:
+        inverse = inverse[face_rows]
+    return vertex, per_edge[:, inverse]
 
 
 class BodyMesh:
@@ -140,17 +176,16 @@ class BodyMesh:
         _check_mesh(vertices, faces, require_watertight=require_watertight)
         batched = vertices.dim() == 3
         v = vertices.detach().reshape(-1, vertices.shape[-2], 3)
-        epsilon = _EPSILON_FRACTION * _average_edge_length(v, faces)[:1]
         faces = faces.to(torch.int32).contiguous()
-        self._setup(v, faces, batched, bool(require_watertight), None, None, epsilon)
+        self._setup(v, faces, batched, bool(require_watertight), None, None, faces.long(), None)
 
     @classmethod
-    def _from_parts(cls, vertices, faces, batched, watertight, vertex_map, face_map, epsilon):
+    def _from_parts(cls, vertices, faces, batched, watertight, vertex_map, face_map, normal_faces, face_rows):
         body = cls.__new__(cls)
-        body._setup(vertices, faces, batched, watertight, vertex_map, face_map, epsilon)
+        body._setup(vertices, faces, batched, watertight, vertex_map, face_map, normal_faces, face_rows)
         return body
 
-    def _setup(self, vertices, faces, batched, watertight, vertex_map, face_map, epsilon):
+    def _setup(self, vertices, faces, batched, watertight, vertex_map, face_map, normal_faces, face_rows):
         self._batched = batched
         self._watertight = watertight
         self._faces = faces
@@ -158,7 +193,13 @@ class BodyMesh:
         # repeated crops so `update` accepts the full body's vertices.
         self._vertex_map = vertex_map
         self._face_map = face_map
-        self._epsilon_abs = epsilon  # (1,) float64 tensor [m]
+        # Faces the pseudo-normals are summed over: every face, or for a crop the one-ring of
+        # its faces (which may reach vertices outside its BVH); `_face_rows` picks the BVH's
+        # faces among them (None: the same faces).
+        self._normal_faces = normal_faces
+        self._face_rows = face_rows
+        self._edge_inverse, self._num_edges = _edge_inverse(normal_faces)
+        self._normals = {}  # dtype -> (vertex normals, edge normals), dropped by `update`
         self._points32 = vertices.to(torch.float32).contiguous().clone()
         self._points64 = None
         if vertices.dtype == torch.float64:
@@ -173,16 +214,15 @@ class BodyMesh:
             ]
             ids = [m.id for m in self._meshes]
             self._mesh_ids = wp.array(ids, dtype=wp.uint64, device=_warp.warp_device(device))
-        self._epsilon = torch.empty(self._points32.shape[0], dtype=torch.float32, device=device)
-        self._epsilon_wp = wp.from_torch(self._epsilon, dtype=wp.float32)
-        self._refresh_epsilon()
 
-    def _refresh_epsilon(self) -> None:
-        # The query takes its tie tolerance as a fraction of each mesh's average edge length:
-        # convert the fixed tolerance in metres, on the device (no host synchronisation).
-        edge = _average_edge_length(self._points32, self._faces)
-        fraction = self._epsilon_abs.to(self._points32.device) / edge
-        self._epsilon.copy_(fraction.to(torch.float32))
+    def _normals_as(self, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B V, 3) vertex and (3 B F, 3) face-edge pseudo-normals in `dtype`, contiguous."""
+        if dtype not in self._normals:
+            vertex, edge = _pseudo_normals(
+                self._vertices_as(dtype), self._normal_faces, self._edge_inverse, self._num_edges, self._face_rows
+            )
+            self._normals[dtype] = (vertex.reshape(-1, 3).contiguous(), edge.reshape(-1, 3).contiguous())
+        return self._normals[dtype]
 
     @property
     def batch_size(self) -> int:
@@ -274,7 +314,7 @@ class BodyMesh:
                 self._points64.copy_(v)
             for mesh in self._meshes:
                 mesh.refit()
-        self._refresh_epsilon()
+        self._normals = {}
 
     def crop(self, reach_centers: torch.Tensor, reach_radii: torch.Tensor) -> "BodyMesh":
         """A BodyMesh with only the triangles that meet the union of balls B(center_k, radius_k).
@@ -343,18 +383,29 @@ class BodyMesh:
         kept = keep.view(batch, self.num_faces).any(dim=0).nonzero().reshape(-1)
         if kept.numel() == 0:
             raise ValueError("reach_centers: no body triangle lies within reach of any ball: nothing to keep")
-        faces = self._faces[kept].long()
+        # The BVH holds the kept faces; the pseudo-normals also need the faces around them (the
+        # one-ring of every kept vertex, among this mesh's own normal faces), so the crop keeps
+        # those faces and their vertices for the normals only.
+        kept_rows = kept if self._face_rows is None else self._face_rows[kept]
+        parent_normal_faces = self._normal_faces
+        kept_mask = torch.zeros(self.num_vertices, dtype=torch.bool, device=self.device)
+        kept_mask[parent_normal_faces[kept_rows].reshape(-1)] = True
+        ring = kept_mask[parent_normal_faces].any(dim=1).nonzero().reshape(-1)
         used_mask = torch.zeros(self.num_vertices, dtype=torch.bool, device=self.device)
-        used_mask[faces.reshape(-1)] = True
+        used_mask[parent_normal_faces[ring].reshape(-1)] = True
         used = used_mask.nonzero().reshape(-1)
         remap = torch.full((self.num_vertices,), -1, dtype=torch.int64, device=self.device)
         remap[used] = torch.arange(used.numel(), device=self.device)
-        new_faces = remap[faces].to(torch.int32).contiguous()
+        new_faces = remap[self._faces[kept].long()].to(torch.int32).contiguous()
+        normal_faces = remap[parent_normal_faces[ring]]
+        ring_position = torch.full((parent_normal_faces.shape[0],), -1, dtype=torch.int64, device=self.device)
+        ring_position[ring] = torch.arange(ring.numel(), device=self.device)
+        face_rows = ring_position[kept_rows]
         source = self._points64 if self._points64 is not None else self._points32
         vertex_map = used if self._vertex_map is None else self._vertex_map[used]
         face_map = kept if self._face_map is None else self._face_map[kept]
         return BodyMesh._from_parts(
-            source[:, used], new_faces, self._batched, False, vertex_map, face_map, self._epsilon_abs
+            source[:, used], new_faces, self._batched, False, vertex_map, face_map, normal_faces, face_rows
         )
 
     def crop_for_hair(
@@ -408,6 +459,7 @@ def _signed_distance_forward(points: torch.Tensor, body: BodyMesh, points_per_ba
     stride = _body_stride(body, batch)
     distance = torch.empty(points.shape[0], dtype=points.dtype, device=points.device)
     gradient = torch.empty_like(points)
+    vertex_normals, edge_normals = body._normals_as(points.dtype)
     with _warp.launch_scope(points.device):
         wp.launch(
             kernels.signed_distance_kernel,
@@ -415,11 +467,13 @@ def _signed_distance_forward(points: torch.Tensor, body: BodyMesh, points_per_ba
             inputs=[
                 _warp.as_warp(points, vec3=True),
                 body._mesh_ids,
-                body._epsilon_wp,
                 _warp.as_warp(body._vertices_as(points.dtype), vec3=True),
                 body._faces_wp,
+                _warp.as_warp(vertex_normals, vec3=True),
+                _warp.as_warp(edge_normals, vec3=True),
                 points_per_batch,
                 body.num_vertices,
+                body.num_faces,
                 stride,
                 _warp.scalar(_ZERO_DISTANCE[points.dtype], points.dtype),
             ],
@@ -512,15 +566,18 @@ def _energy_forward(x, body, xi, dhat, bp, weight, variant_id, strategy):
     stride = _body_stride(body, batch)
     gradient = torch.empty_like(x)
     device = _warp.warp_device(x.device)
+    vertex_normals, edge_normals = body._normals_as(x.dtype)
     common = [
         _warp.as_warp(x, vec3=True),
         body._mesh_ids,
-        body._epsilon_wp,
         _warp.as_warp(body._vertices_as(x.dtype), vec3=True),
         body._faces_wp,
+        _warp.as_warp(vertex_normals, vec3=True),
+        _warp.as_warp(edge_normals, vec3=True),
         num_strands,
         num_vertices,
         body.num_vertices,
+        body.num_faces,
         stride,
         _warp.scalar(xi, x.dtype),
         _warp.scalar(dhat, x.dtype),

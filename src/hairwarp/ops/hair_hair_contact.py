@@ -26,6 +26,12 @@ radius as width: max segment length + xi + dhat.
 
 Host synchronisations: the grid's cell size needs the max segment length on the host, and the
 pair count is read back to size the narrow phase and detect overflow: two reads per call.
+
+Memory: the pair buffer is one per device, reused across calls (grown to 1.25 x a call's need,
+never shrunk), capped at `max_pairs` pairs of 8 bytes (default 64 per segment: 1.6 GiB for
+1024 x 100 hair at batch 32, of which a drape touches ~1 pair per segment, 26 MiB). Besides it,
+a call holds ~36 bytes per segment (midpoint, half length, group, the grid's sorted ids and
+keys) and the gradient (the size of `x`). See docs/contact.md.
 """
 
 from __future__ import annotations
@@ -51,18 +57,35 @@ _GRID_DIM = 64
 # The grid works on float32 midpoints; this relative slack on the query radius covers their
 # rounding, so no pair within the cutoff is missed (the exact test uses the input precision).
 _RADIUS_SLACK = 1e-4
+# Broad-phase shape, measured on the CPU (docs/contact.md): a segment longer than _LONG_FACTOR
+# times the mean is "long" (found from its own query), and grid cells are _CELL_FACTOR times
+# a typical query's radius (fewer, fuller cells: each visited cell costs a lookup).
+_LONG_FACTOR = 1.5
+_CELL_FACTOR = 1.5
 
 
 class HairHairCapacityError(RuntimeError):
-    """The pair buffer was too small and `on_overflow="raise"`; `needed` holds the count."""
+    """The pair buffer was too small: with `on_overflow="raise"` (message names `capacity`), or
+    more pairs than the cap `max_pairs` that growth may reach (message names `max_pairs`).
+    `needed` holds the pair count found.
+    """
 
-    def __init__(self, needed: int, capacity: int):
-        super().__init__(
-            f"capacity: hair-hair contact found {needed} segment pairs but the pair buffer holds {capacity}; "
-            f"pass capacity >= {needed} (or on_overflow='grow')"
-        )
+    def __init__(self, needed: int, capacity: int, max_pairs: int | None = None):
+        if max_pairs is None:
+            message = (
+                f"capacity: hair-hair contact found {needed} segment pairs but the pair buffer holds {capacity}; "
+                f"pass capacity >= {needed} (or on_overflow='grow')"
+            )
+        else:
+            message = (
+                f"max_pairs: hair-hair contact found {needed} segment pairs, more than the pair buffer may grow to "
+                f"(max_pairs = {max_pairs}, {PAIR_BYTES * max_pairs / 2**20:.0f} MiB); the hair is piled far denser "
+                f"than a drape (~1 pair per segment), or pass max_pairs >= {needed}"
+            )
+        super().__init__(message)
         self.needed = needed
         self.capacity = capacity
+        self.max_pairs = max_pairs
 
 
 @dataclass
@@ -132,10 +155,13 @@ def _check_hair(x) -> torch.Tensor:
     return x if x.dim() == 4 else x.unsqueeze(0)
 
 
-def _check_options(capacity, skip_root_segments, on_overflow):
+def _check_options(capacity, skip_root_segments, on_overflow, max_pairs=None):
     if capacity is not None:
         if isinstance(capacity, bool) or not isinstance(capacity, int) or capacity < 0:
             raise ValueError(f"capacity: expected None or an int >= 0, got {capacity!r}")
+    if max_pairs is not None:
+        if isinstance(max_pairs, bool) or not isinstance(max_pairs, int) or max_pairs < 0:
+            raise ValueError(f"max_pairs: expected None or an int >= 0, got {max_pairs!r}")
     skip = skip_root_segments
     if isinstance(skip, bool) or not isinstance(skip, int) or skip < 0:
         raise ValueError(f"skip_root_segments: expected an int >= 0, got {skip_root_segments!r}")
@@ -149,6 +175,36 @@ def _check_options(capacity, skip_root_segments, on_overflow):
 _learned_capacity: dict[int, int] = {}
 
 
+# Growth cap of the pair buffer for max_pairs=None, per segment: a draped groom has about one
+# pair per segment (1024 x 100 hair on the default body: 103 021 pairs for 99 328 segments);
+# 64 per segment means every segment within xi + dhat of 64 others, a pile, not a drape.
+DEFAULT_MAX_PAIRS_PER_SEGMENT = 64
+# Bytes per pair in the buffer (two int32 segment ids).
+PAIR_BYTES = 8
+
+
+def default_max_pairs(num_segments: int) -> int:
+    """Cap on the pair buffer for max_pairs=None: `DEFAULT_MAX_PAIRS_PER_SEGMENT` per segment."""
+    return DEFAULT_MAX_PAIRS_PER_SEGMENT * num_segments
+
+
+# The pair buffer, one per device, reused across calls: it grows (to 1.25 x what a call needs,
+# within that call's cap) and never shrinks, so a loop over one hairstyle allocates it once.
+_pair_buffers: dict[str, torch.Tensor] = {}
+
+
+def _pair_buffer(device: torch.device, rows: int, cap: int) -> torch.Tensor:
+    """A (>= rows, 2) int32 buffer on `device`, reused across calls; rows <= cap."""
+    key = str(device)
+    buffer = _pair_buffers.get(key)
+    if buffer is None or buffer.shape[0] < rows:
+        size = min(max(rows + rows // 4, 1), max(cap, 1))
+        _pair_buffers.pop(key, None)  # free the old one before allocating the new one
+        buffer = torch.empty(max(size, rows, 1), 2, dtype=torch.int32, device=device)
+        _pair_buffers[key] = buffer
+    return buffer
+
+
 def default_capacity(num_segments: int) -> int:
     """Pair-buffer capacity used for capacity=None.
 
@@ -159,36 +215,47 @@ def default_capacity(num_segments: int) -> int:
     return max(configured, _learned_capacity.get(num_segments, 0))
 
 
-def _broad_phase(x4, cutoff, capacity, skip_root_segments, on_overflow):
+def _broad_phase(x4, cutoff, capacity, skip_root_segments, on_overflow, max_pairs=None):
     """Broad phase on (B, M, N, 3) contiguous detached hair.
 
     Returns:
-        pairs (P, 2) int32 flat segment ids (unordered), the count found, whether it exceeded
-        the capacity, and the capacity used first.
+        pairs (P, 2) int32 flat segment ids (unordered; a view of the shared pair buffer, valid
+        until the next call), the count found, whether it exceeded the capacity, and the
+        capacity used first.
     """
     b, m, n, _ = x4.shape
     num_segments = b * m * max(n - 1, 0)
+    cap = default_max_pairs(num_segments) if max_pairs is None else max_pairs
     requested = default_capacity(num_segments) if capacity is None else capacity
+    # The buffer never exceeds the cap; a larger capacity request is clamped to it.
+    requested = min(requested, cap)
     device = x4.device
     if num_segments == 0 or m < 2:
         return torch.zeros(0, 2, dtype=torch.int32, device=device), 0, False, requested
 
     x_flat = x4.detach().reshape(-1, 3)
-    # Host read 1: the cell size. Two segments closer than the cutoff have midpoints at most
-    # cutoff + max length apart; the float32 midpoints add up to |coordinate| * 2^-24 each.
-    max_len, max_coord = torch.stack(
-        [(x4[:, :, 1:] - x4[:, :, :-1]).norm(dim=-1).max(), x_flat.abs().max()]
-    ).tolist()
-    query_radius = (cutoff + max_len) * (1.0 + _RADIUS_SLACK) + 4.0 * max_coord * 2.0**-23
+    # Host read 1: the grid's scale. Two segments closer than the cutoff have midpoints at most
+    # cutoff + (l_i + l_j) / 2 apart; the float32 midpoints add up to |coordinate| * 2^-24 each.
+    lengths = (x4[:, :, 1:] - x4[:, :, :-1]).norm(dim=-1)
+    mean_len, max_len, max_coord = torch.stack([lengths.mean(), lengths.max(), x_flat.abs().max()]).tolist()
+    absolute_slack = 4.0 * max_coord * 2.0**-23
+    # Segments longer than _LONG_FACTOR x the mean are "long": their pairs are found from their
+    # own (wider) queries, so the others query within cutoff + their length / 2 + H only. Cells
+    # as wide as a typical query radius. Sizing both by the longest segment made every query
+    # pay for it: an L-BFGS trial point with one segment stretched to 72 mm took 0.6-1.2 s
+    # (docs/contact.md).
+    long_half = 0.5 * min(max_len, _LONG_FACTOR * mean_len)
+    cell_width = (cutoff + 2.0 * long_half) * _CELL_FACTOR * (1.0 + _RADIUS_SLACK) + absolute_slack
 
     wp_device = _warp.warp_device(device)
     midpoints = torch.empty(num_segments, 3, dtype=torch.float32, device=device)
+    half_lengths = torch.empty(num_segments, dtype=torch.float32, device=device)
     groups = torch.empty(num_segments, dtype=torch.int32, device=device)
     count = torch.zeros(1, dtype=torch.int32, device=device)
 
-    def run(cap):
+    def run(room):
         count.zero_()
-        pairs = torch.empty(max(cap, 1), 2, dtype=torch.int32, device=device)
+        pairs = _pair_buffer(device, room, cap)
         with _warp.launch_scope(device):
             wp.launch(
                 hh_kernels.hair_hair_pairs_kernel,
@@ -197,12 +264,16 @@ def _broad_phase(x4, cutoff, capacity, skip_root_segments, on_overflow):
                     wp.uint64(grid.id),
                     x_wp,
                     mid_wp,
+                    half_wp,
                     group_wp,
                     n,
                     skip_root_segments,
-                    float(query_radius),
+                    float(cutoff),
+                    float(long_half),
+                    _RADIUS_SLACK,
+                    float(absolute_slack),
                     _warp.scalar(cutoff, x4.dtype),
-                    cap,
+                    room,
                 ],
                 outputs=[_warp.as_warp(count), _warp.as_warp(pairs)],
                 device=wp_device,
@@ -213,16 +284,17 @@ def _broad_phase(x4, cutoff, capacity, skip_root_segments, on_overflow):
     with _warp.launch_scope(device):
         x_wp = _warp.as_warp(x_flat, vec3=True)
         mid_wp = wp.from_torch(midpoints, dtype=wp.vec3)
+        half_wp = _warp.as_warp(half_lengths)
         group_wp = _warp.as_warp(groups)
         wp.launch(
             hh_kernels.segment_midpoints_kernel,
             dim=num_segments,
             inputs=[x_wp, n, m],
-            outputs=[mid_wp, group_wp],
+            outputs=[mid_wp, half_wp, group_wp],
             device=wp_device,
         )
         grid = _hash_grid(wp_device)
-        grid.build(mid_wp, float(query_radius), groups=group_wp)
+        grid.build(mid_wp, float(cell_width), groups=group_wp)
 
     pairs, found = run(requested)
     overflow = found > requested
@@ -230,6 +302,8 @@ def _broad_phase(x4, cutoff, capacity, skip_root_segments, on_overflow):
     if overflow:
         if on_overflow == "raise":
             raise HairHairCapacityError(found, requested)
+        if on_overflow == "grow" and found > cap:
+            raise HairHairCapacityError(found, requested, cap)
         if on_overflow == "grow":
             if capacity is None:
                 learned = max(_learned_capacity.get(num_segments, 0), found + found // 4)
@@ -293,6 +367,7 @@ def hair_hair_contact_pairs(
     *,
     skip_root_segments: int = DEFAULT_SKIP_ROOT_SEGMENTS,
     on_overflow: str = "grow",
+    max_pairs: int | None = None,
 ) -> HairHairPairs:
     """Broad phase of hair-hair contact: segment pairs closer than xi + dhat (not differentiable).
 
@@ -308,6 +383,10 @@ def hair_hair_contact_pairs(
             a buffer of exactly the needed size; complete result), "raise"
             (`HairHairCapacityError` with the needed count) or "warn" (RuntimeWarning, keep the
             first `capacity` pairs found; which ones is arbitrary on the GPU).
+        max_pairs: cap on the pair buffer [pairs], 8 bytes each; None =
+            `DEFAULT_MAX_PAIRS_PER_SEGMENT` (64) per segment. `capacity` is clamped to it, and
+            "grow" never grows past it: more pairs than that raise `HairHairCapacityError`
+            naming `max_pairs`.
 
     Returns:
         `HairHairPairs` (pairs (P, 2) int64 flat segment ids, sorted; pair_count; overflow;
@@ -315,13 +394,16 @@ def hair_hair_contact_pairs(
 
     Raises:
         ValueError: naming the argument, for bad inputs.
-        HairHairCapacityError: on overflow with `on_overflow="raise"`.
+        HairHairCapacityError: on overflow with `on_overflow="raise"`, or more pairs than
+            `max_pairs`.
     """
     x4 = _check_hair(x)
     xi, dhat, _ = check_barrier_parameters(xi, dhat, 0.5)
-    _check_options(capacity, skip_root_segments, on_overflow)
+    _check_options(capacity, skip_root_segments, on_overflow, max_pairs)
     x4 = x4.detach().contiguous()
-    pairs, found, overflow, requested = _broad_phase(x4, xi + dhat, capacity, skip_root_segments, on_overflow)
+    pairs, found, overflow, requested = _broad_phase(
+        x4, xi + dhat, capacity, skip_root_segments, on_overflow, max_pairs
+    )
     pairs = pairs.long()
     if pairs.shape[0] > 1:
         # Deterministic order (GPU atomics write in any order): lexicographic by (i, j).
@@ -341,6 +423,7 @@ def hair_hair_contact_energy(
     *,
     skip_root_segments: int = DEFAULT_SKIP_ROOT_SEGMENTS,
     on_overflow: str = "grow",
+    max_pairs: int | None = None,
 ) -> tuple[torch.Tensor, HairHairContactInfo]:
     """Hair-hair contact energy L_hh of HairFormer Eq. 12, differentiable w.r.t. `x`.
 
@@ -362,6 +445,10 @@ def hair_hair_contact_energy(
         skip_root_segments: segments with index below this along each strand take no part.
         on_overflow: "grow" (default: rerun with enough room, the energy is complete), "raise"
             (`HairHairCapacityError`) or "warn" (RuntimeWarning; energy over the pairs kept).
+        max_pairs: cap on the pair buffer [pairs], 8 bytes each; None =
+            `DEFAULT_MAX_PAIRS_PER_SEGMENT` (64) per segment. `capacity` is clamped to it, and
+            "grow" never grows past it: more pairs than that raise `HairHairCapacityError`
+            naming `max_pairs`.
 
     Returns:
         (energy, info): energy of shape (B,) for batched input, () for (M, N, 3), dtype and
@@ -371,16 +458,17 @@ def hair_hair_contact_energy(
     Raises:
         ValueError: naming the argument, for bad inputs (shape, dtype, NaN/Inf, barrier
             parameters, variant, capacity, on_overflow).
-        HairHairCapacityError: on overflow with `on_overflow="raise"`.
+        HairHairCapacityError: on overflow with `on_overflow="raise"`, or more pairs than
+            `max_pairs`.
     """
     x4 = _check_hair(x)
     xi, dhat, bp = check_barrier_parameters(xi, dhat, bp)
     weight = check_positive("weight", weight, allow_zero=True)
     variant_id = barrier_variant_id(variant)
-    _check_options(capacity, skip_root_segments, on_overflow)
+    _check_options(capacity, skip_root_segments, on_overflow, max_pairs)
     x4c = x4.contiguous()
     pairs, found, overflow, requested = _broad_phase(
-        x4c.detach(), xi + dhat, capacity, skip_root_segments, on_overflow
+        x4c.detach(), xi + dhat, capacity, skip_root_segments, on_overflow, max_pairs
     )
     energy = _HairHairContactEnergy.apply(x4c, pairs.contiguous(), xi, dhat, bp, weight, variant_id)
     if x.dim() == 3:

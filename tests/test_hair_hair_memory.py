@@ -1,0 +1,127 @@
+"""Memory bound of hair-hair contact (`hairwarp.ops.hair_hair_contact`): the pair buffer is
+reused across calls, its growth is capped by `max_pairs`, and more pairs than the cap is one
+clear error naming it. See docs/contact.md for the bound."""
+
+import numpy as np
+import pytest
+import torch
+
+from hairwarp.ops import hair_hair_contact_energy, hair_hair_contact_pairs
+from hairwarp.ops import hair_hair_contact as hh
+from hairwarp.ops.hair_hair_contact import HairHairCapacityError
+from references import hair_hair_contact as ref
+
+XI, DHAT, BP = 2e-3, 3e-3, 0.1
+
+
+def _pile(rng):
+    """10 strands of 13 vertices packed in 3 mm: every pair of strands is in contact."""
+    return torch.tensor(ref.random_hair(rng, batch=1, strands=10, vertices=13, extent=3e-3, segment=5e-4))
+
+
+def test_growth_beyond_the_cap_is_one_error_naming_max_pairs(rng):
+    x = _pile(rng)
+    full, info = hair_hair_contact_energy(x, XI, DHAT, BP)
+    needed = info.pair_count
+    assert needed > 100 and float(full) > 0
+    # Room for every pair: the same energy as without a cap, even starting from a tiny buffer.
+    capped, info_capped = hair_hair_contact_energy(x, XI, DHAT, BP, capacity=3, max_pairs=needed)
+    assert info_capped.pair_count == needed and info_capped.overflow
+    np.testing.assert_allclose(capped.numpy(), full.numpy(), rtol=1e-13)
+    # One pair short of the need: growth would pass the cap.
+    for call in (
+        lambda: hair_hair_contact_energy(x, XI, DHAT, BP, capacity=3, max_pairs=needed - 1),
+        lambda: hair_hair_contact_pairs(x, XI, DHAT, capacity=3, max_pairs=needed - 1),
+    ):
+        with pytest.raises(HairHairCapacityError, match=f"max_pairs.*max_pairs >= {needed}") as err:
+            call()
+        assert err.value.needed == needed and err.value.max_pairs == needed - 1
+
+
+def test_capacity_is_clamped_to_the_cap(rng):
+    x = _pile(rng)
+    needed = hair_hair_contact_pairs(x, XI, DHAT).pair_count
+    assert needed > 100
+    _, info = hair_hair_contact_energy(x, XI, DHAT, BP, capacity=10**9, max_pairs=needed)
+    assert info.capacity == needed and not info.overflow
+
+
+def test_default_cap_is_per_segment():
+    assert hh.default_max_pairs(1000) == hh.DEFAULT_MAX_PAIRS_PER_SEGMENT * 1000
+    # The default cap bounds the buffer of the benchmark's largest case (1024 x 100 hair,
+    # batch 32): 64 pairs per segment, 8 bytes each, under 2 GiB.
+    segments = 32 * 1024 * 99
+    assert hh.default_max_pairs(segments) * hh.PAIR_BYTES < 2 * 2**30
+
+
+def test_pair_buffer_is_reused_across_calls(rng):
+    x = _pile(rng)
+    hair_hair_contact_energy(x, XI, DHAT, BP)  # the buffer exists and is large enough
+    buffer = hh._pair_buffers["cpu"]
+    before = (buffer.data_ptr(), buffer.shape[0])
+    for _ in range(3):
+        energy, info = hair_hair_contact_energy(x + 1e-5 * torch.randn_like(x), XI, DHAT, BP)
+        assert info.pair_count > 100
+    after = hh._pair_buffers["cpu"]
+    assert (after.data_ptr(), after.shape[0]) == before
+
+
+def test_returned_pairs_do_not_alias_the_shared_buffer(rng):
+    x = _pile(rng)
+    first = hair_hair_contact_pairs(x, XI, DHAT)
+    kept = first.pairs.clone()
+    assert kept.shape[0] > 100
+    # Another call writes other pairs into the shared buffer.
+    far = x.clone()
+    far[:, ::2] += 1.0
+    hair_hair_contact_pairs(far, XI, DHAT)
+    torch.testing.assert_close(first.pairs, kept, rtol=0, atol=0)
+
+
+def test_bad_max_pairs_raises_naming_it(rng):
+    x = _pile(rng)
+    for bad in (-1, 2.5, True):
+        with pytest.raises(ValueError, match="max_pairs"):
+            hair_hair_contact_energy(x, XI, DHAT, BP, max_pairs=bad)
+
+
+def test_benchmark_torch_peer_item_by_item_equals_whole_batch(rng):
+    """The benchmark's plain-torch hair-hair peer runs one batch item at a time to bound its
+    memory; it must give the whole-batch result."""
+    from hairwarp.bench.energy import torch_hair_hair_by_item
+    from hairwarp.config import EnergyConfig
+    from hairwarp.torch_reference import hair_hair_contact as torch_ref
+
+    config = EnergyConfig(hair_diameter=XI, hair_hair_dhat=DHAT, barrier_join_fraction=BP, hair_hair_weight=2.0)
+    x = torch.tensor(ref.random_hair(rng, batch=3, strands=8, vertices=12, extent=6e-3, segment=1e-3))
+    whole, pairs = torch_ref.hair_hair_contact_energy(x, XI, DHAT, BP, 2.0, config.barrier_variant, method="grid")
+    assert pairs.shape[0] > 30 and bool((whole > 0).all())
+    torch.testing.assert_close(torch_hair_hair_by_item(x, config), whole, rtol=1e-12, atol=0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_stretched_and_equal_length_segments_find_every_pair_once(rng, dtype):
+    """The broad phase finds a pair from one query only: the lower id's between typical
+    segments, the longer segment's when one is long (> 1.5 x the mean), the lower id's on
+    equal lengths. Stretched segments (as an L-BFGS trial point makes) and exactly equal
+    lengths (a straight grid) must still give exactly the brute-force pairs."""
+    x = ref.random_hair(rng, batch=2, strands=8, vertices=12, extent=0.01, segment=2e-3)
+    # Stretch a few segments 5-10x by moving the tail of their strand.
+    for b, m, v, factor in ((0, 1, 5, 6.0), (0, 4, 7, 10.0), (1, 2, 3, 5.0), (1, 6, 8, 8.0)):
+        step = x[b, m, v + 1] - x[b, m, v]
+        x[b, m, v + 1:] += (factor - 1.0) * step
+    # Two strands of exactly equal segment lengths crossing near each other.
+    grid = np.zeros((1, 2, 12, 3))
+    grid[0, 0, :, 0] = np.arange(12) * 2e-3
+    grid[0, 1, :, 1] = np.arange(12) * 2e-3 - 11e-3
+    grid[0, 1, :, 0] = 11e-3
+    grid[0, 1, :, 2] = 3e-3
+    for hair in (x, grid):
+        hair = torch.tensor(hair).to(dtype).double().numpy()
+        _, expected = ref.energy(hair, XI, DHAT, BP)
+        assert expected.shape[0] > 0
+        found = hair_hair_contact_pairs(torch.tensor(hair, dtype=dtype), XI, DHAT)
+        np.testing.assert_array_equal(found.pairs.numpy(), expected)
+        assert found.pair_count == expected.shape[0]
+    lengths = np.linalg.norm(np.diff(x, axis=2), axis=-1)
+    assert lengths.max() > 3 * lengths.mean()  # long segments were present
