@@ -212,6 +212,32 @@ def test_static_batches_follow_the_curriculum(sampler, data):
     assert b3.inputs.body.batch_size == 4 and b3.inputs.scalp_normals.shape == (4, m, 3)
 
 
+def test_long_hair_fraction_biases_phase_2_3_towards_long_hairstyles(data):
+    """long_hair_fraction = 1: every phase-2/3 sample is a long hairstyle of the pool (measured
+    on its decoded strands, not only its parameter); the poses drawn stay those of the paper's
+    sampler (the swap is drawn last)."""
+    long_cfg = dataclasses.replace(data, long_hair_fraction=1.0, long_hair_length=0.3)
+    plain, biased = TrainingSampler(data, seed=0), TrainingSampler(long_cfg, seed=0)
+    pool = biased.long_hairstyles(40)
+    assert pool and len(pool) < 40
+    assert pool == [i for i in range(40) if biased.corpus_length(i) >= 0.3]
+    for phase in (2, 3):
+        a = plain.static_batch(5, phase, 0.5, 6, num_hairstyles=40)
+        b = biased.static_batch(5, phase, 0.5, 6, num_hairstyles=40)
+        assert all(i in pool for i in b.hairstyle_ids)
+        assert torch.equal(a.poses, b.poses)
+        # Decoded strand length (arc length) of the long picks vs the pool's short ones.
+        arc = (b.strands[:, :, 1:] - b.strands[:, :, :-1]).norm(dim=-1).sum(-1).median(dim=1).values
+        short = [i for i in range(40) if i not in pool][:3]
+        _, s_strands = biased.hairstyles(short)
+        s_arc = (s_strands[:, :, 1:] - s_strands[:, :, :-1]).norm(dim=-1).sum(-1).median(dim=1).values
+        assert arc.min() > s_arc.max()
+    with pytest.raises(ValueError, match="long_hair_fraction"):
+        dataclasses.replace(data, long_hair_fraction=1.5)
+    with pytest.raises(ValueError, match="long_hair_fraction"):
+        dataclasses.replace(data, long_hair_fraction=0.5, latent_source="sample")
+
+
 def test_batched_placement_matches_eq1_reference(data):
     """Different hairstyles and poses in one batch: each sample's P_rigid is Eq. 1's; the
     cropped body gives the uncropped body's contact energy."""

@@ -36,12 +36,13 @@ PHASE3_HAIRSTYLES = 512
 PHASE_SHARES = (0.05, 0.15, 0.25, 0.55)
 
 
-def data_config():
+def data_config(long_hair_fraction: float = 0.0):
     from hairwarp.training.config import DataConfig
 
     # Every hairstyle of the pool stays decoded (256 x 100 x 3 float32: 0.3 MB each): decoding one
     # costs ~40 ms on the CPU, which at batch 32 would be most of a step.
-    return DataConfig(strand_stride=STRAND_STRIDE, hairstyle_cache_size=PHASE3_HAIRSTYLES, pose_cache_size=4096)
+    return DataConfig(strand_stride=STRAND_STRIDE, hairstyle_cache_size=PHASE3_HAIRSTYLES, pose_cache_size=4096,
+                      long_hair_fraction=long_hair_fraction)
 
 
 def _encode_chunk(indices):
@@ -122,13 +123,13 @@ def _finish(trainer, args, kind: str, info: dict, start: float) -> None:
     print(json.dumps(info, indent=1))
 
 
-def _energy_overrides(items) -> dict:
+def _overrides(flag: str, items, cast=float) -> dict:
     out = {}
     for item in items:
         key, sep, value = item.partition("=")
         if not sep:
-            raise SystemExit(f"--energy: expected FIELD=VALUE, got {item!r}")
-        out[key.strip()] = float(value)
+            raise SystemExit(f"{flag}: expected FIELD=VALUE, got {item!r}")
+        out[key.strip()] = cast(value)
     return out
 
 
@@ -139,7 +140,7 @@ def train_static(args) -> None:
 
     start = time.perf_counter()
     device = torch.device(args.device)
-    sampler = TrainingSampler(data_config(), seed=args.seed, device=device)
+    sampler = TrainingSampler(data_config(args.long_hair_fraction), seed=args.seed, device=device)
     enc_s = precompute_latents(sampler, PHASE3_HAIRSTYLES, args.workers)
     print(f"encoded {PHASE3_HAIRSTYLES} corpus latents in {enc_s:.1f} s", flush=True)
 
@@ -147,8 +148,9 @@ def train_static(args) -> None:
         return StaticTrainingConfig(model_kind=args.kind, model_preset="shipped", phase_steps=steps, phase2_hairstyles=PHASE2_HAIRSTYLES,
                                     phase3_hairstyles=PHASE3_HAIRSTYLES, batch_size=args.batch,
                                     bp_schedule=args.bp_schedule, learning_rate=args.lr, bp_start=args.bp_start,
-                                    loss_normalization=args.loss_normalization, energy=_energy_overrides(args.energy),
-                                    checkpoint_every=0, data=data_config(), curve_every=0)
+                                    loss_normalization=args.loss_normalization, energy=_overrides("--energy", args.energy),
+                                    model=_overrides("--model", args.model, int), checkpoint_every=0,
+                                    data=data_config(args.long_hair_fraction), curve_every=0)
 
     from hairwarp.evaluation.scenes import comparison_scene
 
@@ -235,6 +237,10 @@ def main(argv=None) -> None:
                         help="static/quaffure: b_p at the first step (0.9 in the paper; 0.01 = constant)")
     parser.add_argument("--energy", action="append", default=[], metavar="FIELD=VALUE",
                         help="override an EnergyConfig field in the training loss (repeatable), e.g. stretch_weight=1e10")
+    parser.add_argument("--model", action="append", default=[], metavar="FIELD=INT",
+                        help="static: override a network size field (repeatable), e.g. grid_height=16 grid_width=16")
+    parser.add_argument("--long-hair-fraction", type=float, default=0.0,
+                        help="static: share of phase-2/3 samples drawn from the pool's long hairstyles (>= 0.4 m)")
     parser.add_argument("--lr", type=float, default=StaticTrainingConfig.learning_rate, help="Adam step size")
     parser.add_argument("--curve-every", type=int, default=250,
                         help="static/quaffure: learning curve every this many steps (0: off): "

@@ -164,6 +164,12 @@ class DataConfig(_TrainingConfig):
             noise.
         shape_std: standard deviation of the representative betas (SMPL units).
         beta_noise_std: Gaussian noise added to betas in phase 3 and dynamic training.
+        long_hair_fraction: share of each phase-2/3 batch drawn from the long hairstyles of the
+            pool (corpus parameter length >= `long_hair_length`); 0 (the paper): uniform over
+            the pool. The log-uniform corpus has ~16 % of hairstyles >= 0.4 m, so without it the
+            long, deep-start hair of phase 0-1 grows rare later and is forgotten
+            (docs/training_diagnosis.md, H7).
+        long_hair_length: the length [m] from which a corpus hairstyle counts as long.
         head_rotation_radii: semi-axes [rad] of the phase-1 ellipsoid of head rotation vectors
             about x (nod), y (turn) and z (tilt), reached at the end of phase 1.
         phase1_rest_fraction: share of phase-1 samples kept at the rest pose (no rotation),
@@ -186,6 +192,8 @@ class DataConfig(_TrainingConfig):
     num_subjects: int = 8
     shape_std: float = 1.0
     beta_noise_std: float = 0.1
+    long_hair_fraction: float = 0.0
+    long_hair_length: float = 0.4
     head_rotation_radii: tuple = (0.6, 1.0, 0.5)
     phase1_rest_fraction: float = 0.1
     fps: float = DEFAULT_FPS
@@ -212,6 +220,11 @@ class DataConfig(_TrainingConfig):
         _int(owner, "motion_variants", self.motion_variants, 1)
         _int(owner, "num_subjects", self.num_subjects, 1)
         _number(owner, "shape_std", self.shape_std)
+        _number(owner, "long_hair_fraction", self.long_hair_fraction, maximum=1.0)
+        _number(owner, "long_hair_length", self.long_hair_length, strict=True)
+        if self.long_hair_fraction > 0 and self.latent_source != "corpus":
+            _fail(owner, "long_hair_fraction", "0 unless latent_source is 'corpus' (sampled latents have no length)",
+                  self.long_hair_fraction)
         _number(owner, "beta_noise_std", self.beta_noise_std)
         self.head_rotation_radii = tuple(self.head_rotation_radii)
         if len(self.head_rotation_radii) != 3:
@@ -316,7 +329,7 @@ class StaticTrainingConfig(_TrainingConfig):
         curve_scenes: held-out comparison scenes scored by the curve (static scenes of
             `hairwarp.evaluation.scenes`; the trainer needs their factory, `scene_factory`).
         curve_strand_stride: their size: None full size (every scalp root), k every k-th root.
-        curve_reference_iterations: L-BFGS iterations over the free map that give each scene's
+        curve_reference_iterations: L-BFGS iterations over the free vertices (the L-BFGS baseline) that give each scene's
             reference energy E* for the energy gap (0: no energy gap).
         energy: overrides of `hairwarp.config.EnergyConfig` fields (b_p is set per step).
         data: what the sampler draws.

@@ -313,6 +313,7 @@ class TrainingSampler:
         self._descriptors: dict = {}
         self._thresholds: dict = {}
         self._phase0: HairBatch | None = None
+        self._long_pools: dict = {}
 
     # ------------------------------------------------------------------------------ sizes
     @property
@@ -379,6 +380,20 @@ class TrainingSampler:
                 z = self.basis.encode(style.strands.double(), style.root_uv)
             self._latents[index] = z.to(torch.float64)
         return self._latents[index]
+
+    def corpus_length(self, index: int) -> float:
+        """The length parameter [m] of corpus hairstyle `index` (no decoding: the first draw of
+        its generator, as in `latent`).
+        """
+        return sample_hairstyle_params(_generator(self.config.corpus_seed, _STREAM_CORPUS, int(index))).length
+
+    def long_hairstyles(self, num_hairstyles: int) -> list[int]:
+        """Indices < `num_hairstyles` of the corpus hairstyles at least `long_hair_length` long."""
+        key = ("long", num_hairstyles)
+        if key not in self._long_pools:
+            threshold = self.config.long_hair_length
+            self._long_pools[key] = [i for i in range(num_hairstyles) if self.corpus_length(i) >= threshold]
+        return self._long_pools[key]
 
     def hairstyle(self, index: int) -> tuple[torch.Tensor, torch.Tensor]:
         """(z (512,), P_init (M, N, 3)) of corpus hairstyle `index`, on the sampler's device and
@@ -567,6 +582,13 @@ class TrainingSampler:
                 keys = [None] * batch_size
             else:
                 keys = [(pool[p], f) for p, f in zip(picks, frames)]
+            if cfg.long_hair_fraction > 0:
+                # Drawn after everything else, so the poses of the batch are the paper's.
+                long_pool = self.long_hairstyles(num_hairstyles)
+                swap = g.uniform(size=batch_size) < cfg.long_hair_fraction
+                repl = g.integers(0, max(len(long_pool), 1), size=batch_size)
+                if long_pool:
+                    ids = [long_pool[int(r)] if s else i for i, s, r in zip(ids, swap, repl)]
             info.update(motions=[self.entries[pool[p]].name for p in picks], frames=frames)
         info.update(hairstyles=ids, global_batch_size=batch_size, shard=[lo, hi])
         z, strands = self.hairstyles(ids[lo:hi])

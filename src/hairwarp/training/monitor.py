@@ -12,7 +12,7 @@ into `<out>/learning_curve.json` (and a figure `<out>/learning_curve.png`):
   the layers keep training below evaluation, so the caller hands the trainer the scene
   factory, `comparison_scene`, as `scene_factory`):
   penetration %, length change %, total static energy and, when a reference energy E* was
-  computed at setup (`curve_reference_iterations` L-BFGS iterations over the free 8 x 8 map
+  computed at setup (`curve_reference_iterations` L-BFGS iterations over the free vertices
   from the rigid placement), the energy gap (E - E*) / (E0 - E*) (1: the rigid placement, 0: the
   reference), plus the displacement by vertex index.
 
@@ -89,8 +89,8 @@ class HeldOutScenes:
         num_vertices: N of the network (the scenes are resampled to it).
         strand_stride: None for full size, else every k-th scalp root.
         energy: the `EnergyConfig` the scores use (b_p of the run's end).
-        reference_iterations: L-BFGS iterations over the free map for E* (0: no energy gap).
-        grid: (H, W) of the network's deformation map (the free map of the reference).
+        reference_iterations: L-BFGS iterations over the free vertices for E* (0: no energy gap).
+        grid: (H, W) of the network's deformation map (unused by the vertex reference).
         device, dtype: where the network runs.
     """
 
@@ -144,22 +144,17 @@ class HeldOutScenes:
         return out
 
     def _reference(self, item, iterations: int, grid):
-        """E* by L-BFGS over the free map (the issue's reference), per frame."""
+        """E* per frame: the L-BFGS baseline over the free vertices from the rigid placement
+        (`hairwarp.solvers.direct.optimize_drape`, the harness's L-BFGS). torch's own L-BFGS over
+        the free map stalls at the rigid placement on table1 (docs/training_diagnosis.md), which
+        made the gap read as zero. `grid` is kept for the signature; the vertices need none.
+        """
+        from hairwarp.solvers.direct import DirectOptimizationConfig, optimize_drape
+
         frames = item["frames"]
         rigid = frames.rigid.positions
-        b, _, n, _ = rigid.shape
-        d = torch.zeros(b, grid[0], grid[1], n, 3, device=rigid.device, dtype=rigid.dtype, requires_grad=True)
-        opt = torch.optim.LBFGS([d], lr=1.0, max_iter=1, history_size=20, line_search_fn="strong_wolfe")
-
-        def closure():
-            opt.zero_grad(set_to_none=True)
-            loss = total_energy(apply_deformation(rigid, d, item["root_uv"]), frames.inputs, self.energy).total.sum()
-            loss.backward()
-            return loss
-
-        for _ in range(iterations):
-            opt.step(closure)
-        x = apply_deformation(rigid, d.detach(), item["root_uv"])
+        solver = DirectOptimizationConfig(method="lbfgs", max_iterations=iterations, patience=50)
+        x = optimize_drape(rigid, frames.inputs, self.energy, solver).positions
         with torch.no_grad():
             e = total_energy(x, frames.inputs, self.energy).total.detach()
         return e, self._scores(x, item, e)
