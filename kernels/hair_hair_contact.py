@@ -10,20 +10,25 @@ Which segments can touch (decided here, documented in `hairwarp.ops.hair_hair_co
     - only segments whose index along the strand is >= `skip_root_segments` (2 by default:
       the segments that touch the fixed vertices 0 and 1).
 
-Two passes, because Warp does not replay the dynamic loop of a hash-grid query in a backward
-pass (and we want no generated adjoint at all):
-    1. broad phase (`hair_hair_pairs_kernel`, not differentiable): one thread per segment
-       queries a `wp.HashGrid` of segment midpoints, grouped by batch item, within a radius set
-       by its own length (each pair is found by one query: the lower id's between typical
-       segments, the longer segment's otherwise), rejects candidates by the midpoint bound of
-       the pair, and writes every
-       pair (i < j) with an exact segment distance < xi + dhat into a fixed-capacity buffer,
-       counting with an atomic (the count goes on past the capacity, so overflow is detected
-       and the needed size known).
-    2. narrow phase (`hair_hair_energy_kernel`): one straight-line thread per pair computes
+Two passes, because the broad phase's loops are data dependent (and we want no generated
+adjoint at all):
+    1. broad phase, not differentiable: `segment_cells_kernel` gives each segment its midpoint,
+       half length, batch item and grid slot; torch sorts the segments by slot and
+       `grid_ranges_kernel` marks each slot's [start, end) in that order (one grid over the
+       whole batch, the batch item part of the slot, so a query only meets its own item);
+       `hair_hair_pairs_kernel`, one thread per segment, walks the cells of its query box
+       (radius set by its own length: each pair is found by one query, the lower id's between
+       typical segments, the longer segment's otherwise), rejects candidates by the midpoint
+       bound of the pair, and writes every pair (i < j) with an exact segment distance
+       < xi + dhat into a fixed-capacity buffer, counting with an atomic (the count goes on
+       past the capacity, so overflow is detected and the needed size known). The grid's
+       scales live on the device (`grid_params`): nothing is read back to launch it, so it can
+       be captured in a CUDA graph.
+    2. narrow phase (`hair_hair_energy_kernel`): one straight-line thread per pair slot computes
        lambda_hh * B(d) and its gradient w.r.t. the four endpoints in the same pass (envelope
        theorem, `kernels/distances.py`), accumulating energy per batch item and gradient per
-       vertex with atomics. Fixed vertices (v = 0, 1) receive no gradient.
+       vertex with atomics; slots past the device count return at once. Fixed vertices
+       (v = 0, 1) receive no gradient.
 """
 
 from typing import Any
@@ -40,43 +45,88 @@ wp.set_module_options({"enable_backward": False})
 NUM_FIXED_VERTICES = wp.constant(2)
 
 
+# Cells per axis of the broad phase's grid table: cell (ix, iy, iz) of batch item g has the slot
+# ((g * D + ix mod D) * D + iy mod D) * D + iz mod D. Distinct cells within D of each other never
+# share a slot, so a query (clamped to D cells per axis) visits each candidate once; far cells
+# that wrap onto the same slot only add candidates that the distance test rejects.
+GRID_DIM = wp.constant(64)
+
+
+@wp.func
+def grid_slot(ix: int, iy: int, iz: int, group: int):
+    """Table slot of cell (ix, iy, iz) of batch item `group` (periodic in GRID_DIM per axis)."""
+    d = GRID_DIM
+    return ((group * d + ((ix % d) + d) % d) * d + ((iy % d) + d) % d) * d + ((iz % d) + d) % d
+
+
+@wp.func
+def grid_cell(p: wp.vec3, inv_width: float):
+    """Integer cell of point p for cells of width 1 / inv_width [m]."""
+    return wp.vec3i(int(wp.floor(p[0] * inv_width)), int(wp.floor(p[1] * inv_width)), int(wp.floor(p[2] * inv_width)))
+
+
 @wp.kernel
-def segment_midpoints_kernel(
+def segment_cells_kernel(
     # In:
     x_in: wp.array(dtype=Any),
     num_vertices: int,
     num_strands: int,
+    grid_params: wp.array(dtype=float),
     # Out:
     midpoint_out: wp.array(dtype=wp.vec3),
     half_length_out: wp.array(dtype=float),
     group_out: wp.array(dtype=wp.int32),
+    slot_out: wp.array(dtype=wp.int32),
 ):
-    """Midpoint and half length (float32: the grid only needs them to a margin) and batch item
-    of each segment.
+    """Midpoint and half length (float32: the grid only needs them to a margin), batch item and
+    grid slot of each segment; the cell width is read from the device (`grid_params[0]`), so the
+    broad phase needs no host value.
     """
     seg = wp.tid()
     strand = seg // (num_vertices - 1)
     v0 = strand * num_vertices + seg % (num_vertices - 1)
-    m = (x_in[v0] + x_in[v0 + 1]) * type(x_in[v0][0])(0.5)
-    midpoint_out[seg] = wp.vec3(m)
+    m = wp.vec3((x_in[v0] + x_in[v0 + 1]) * type(x_in[v0][0])(0.5))
+    group = strand // num_strands
+    midpoint_out[seg] = m
     half_length_out[seg] = wp.float32(wp.length(x_in[v0 + 1] - x_in[v0])) * 0.5
-    group_out[seg] = strand // num_strands
+    group_out[seg] = group
+    c = grid_cell(m, 1.0 / grid_params[0])
+    slot_out[seg] = grid_slot(c[0], c[1], c[2], group)
+
+
+@wp.kernel
+def grid_ranges_kernel(
+    # In:
+    sorted_slots: wp.array(dtype=wp.int32),
+    count: int,
+    # Out:
+    slot_start_out: wp.array(dtype=wp.int32),
+    slot_end_out: wp.array(dtype=wp.int32),
+):
+    """[start, end) of each occupied slot in the slot-sorted segment order (others stay 0, 0)."""
+    i = wp.tid()
+    s = sorted_slots[i]
+    if i == 0 or sorted_slots[i - 1] != s:
+        slot_start_out[s] = i
+    if i == count - 1 or sorted_slots[i + 1] != s:
+        slot_end_out[s] = i + 1
 
 
 @wp.kernel
 def hair_hair_pairs_kernel(
     # In:
-    grid: wp.uint64,
     x_in: wp.array(dtype=Any),
     midpoint_in: wp.array(dtype=wp.vec3),
     half_length_in: wp.array(dtype=float),
     group_in: wp.array(dtype=wp.int32),
+    sorted_ids: wp.array(dtype=wp.int64),
+    slot_start: wp.array(dtype=wp.int32),
+    slot_end: wp.array(dtype=wp.int32),
+    grid_params: wp.array(dtype=float),
     num_vertices: int,
     skip_root_segments: int,
     cutoff32: float,
-    long_half_length: float,
     relative_slack: float,
-    absolute_slack: float,
     cutoff: Any,
     capacity: int,
     # Out:
@@ -85,22 +135,27 @@ def hair_hair_pairs_kernel(
 ):
     """Pairs (i < j) of segments of different strands with distance < cutoff = xi + dhat.
 
-    Two segments at distance d have midpoints at most d + l_i / 2 + l_j / 2 apart. A segment
-    is "long" when its half length exceeds `long_half_length` (H). Each pair is found by one
-    query only: between two short segments by the lower id's, within cutoff + l_i / 2 + H;
-    a pair with a long segment by its longer segment's (ties: the lower id), within
-    cutoff + l_i. So the query radius follows the segment's own length, and a few stretched
-    segments (an L-BFGS line search's trial points reach 8x the rest length) no longer widen
-    every query. A candidate j is rejected by the pair's midpoint bound
-    cutoff + (l_i + l_j) / 2 before the exact test. Bounds are widened by `relative_slack` and
-    `absolute_slack` [m] for the float32 rounding of midpoints and lengths (the ownership
-    tests need none: both threads read the same float32 half lengths).
+    One thread per segment walks the grid cells its query box covers (at most GRID_DIM per
+    axis: the whole table row, so no cell is visited twice). Two segments at distance d have
+    midpoints at most d + l_i / 2 + l_j / 2 apart. A segment is "long" when its half length
+    exceeds H = `grid_params[1]`. Each pair is found by one query only: between two short
+    segments by the lower id's, within cutoff + l_i / 2 + H; a pair with a long segment by its
+    longer segment's (ties: the lower id), within cutoff + l_i. So the query radius follows the
+    segment's own length, and a few stretched segments (an L-BFGS line search's trial points
+    reach 8x the rest length) do not widen every query. A candidate j is rejected by the pair's
+    midpoint bound cutoff + (l_i + l_j) / 2 before the exact test. Bounds are widened by
+    `relative_slack` and `grid_params[2]` [m] for the float32 rounding of midpoints and lengths
+    (the ownership tests need none: both threads read the same float32 half lengths). H, the
+    cell width and the slack are device values: the launch needs nothing from the host.
     """
     i = wp.tid()
     segs_per_strand = num_vertices - 1
     if i % segs_per_strand < skip_root_segments:
         return
+    long_half_length = grid_params[1]
+    absolute_slack = grid_params[2]
     strand_i = i // segs_per_strand
+    group_i = group_in[i]
     vi = strand_i * num_vertices + i % segs_per_strand
     p0 = x_in[vi]
     p1 = x_in[vi + 1]
@@ -110,33 +165,43 @@ def hair_hair_pairs_kernel(
     reach_i = cutoff32 + half_i
     radius = (reach_i + wp.max(half_i, long_half_length)) * (1.0 + relative_slack) + absolute_slack
     cutoff2 = cutoff * cutoff
-    query = wp.hash_grid_query(grid, mi, radius, group_in[i])
-    j = int(0)
-    while wp.hash_grid_query_next(query, j):
-        if not long_i and j <= i:
-            continue  # a short-short pair is the lower id's; this also drops j == i
-        half_j = half_length_in[j]
-        if long_i:
-            # Short partners, and long ones that are shorter (ties: the lower id); drops j == i.
-            if half_j > half_i or (half_j == half_i and j <= i):
-                continue
-        elif half_j > long_half_length:
-            continue  # the long segment's query finds this pair
-        bound = (reach_i + half_j) * (1.0 + relative_slack) + absolute_slack
-        e = midpoint_in[j] - mi
-        if wp.dot(e, e) > bound * bound:
-            continue
-        strand_j = j // segs_per_strand
-        if strand_j == strand_i or j % segs_per_strand < skip_root_segments:
-            continue
-        vj = strand_j * num_vertices + j % segs_per_strand
-        s, t, dist2 = edge_edge_closest_parameters(p0, p1, x_in[vj], x_in[vj + 1])
-        if dist2 < cutoff2:
-            slot = wp.atomic_add(count_out, 0, 1)
-            if slot < capacity:
-                # Stored as (lower id, higher id).
-                pairs_out[2 * slot] = wp.min(i, j)
-                pairs_out[2 * slot + 1] = wp.max(i, j)
+    inv_width = 1.0 / grid_params[0]
+    lo = grid_cell(mi - wp.vec3(radius), inv_width)
+    hi = grid_cell(mi + wp.vec3(radius), inv_width)
+    hi = wp.vec3i(wp.min(hi[0], lo[0] + GRID_DIM - 1), wp.min(hi[1], lo[1] + GRID_DIM - 1),
+                  wp.min(hi[2], lo[2] + GRID_DIM - 1))
+    for cx in range(lo[0], hi[0] + 1):
+        for cy in range(lo[1], hi[1] + 1):
+            for cz in range(lo[2], hi[2] + 1):
+                slot = grid_slot(cx, cy, cz, group_i)
+                for k in range(slot_start[slot], slot_end[slot]):
+                    j = int(sorted_ids[k])
+                    if group_in[j] != group_i:
+                        continue  # cannot happen (the group is in the slot); kept as a guard
+                    if not long_i and j <= i:
+                        continue  # a short-short pair is the lower id's; this also drops j == i
+                    half_j = half_length_in[j]
+                    if long_i:
+                        # Short partners, and long ones that are shorter (ties: the lower id).
+                        if half_j > half_i or (half_j == half_i and j <= i):
+                            continue
+                    elif half_j > long_half_length:
+                        continue  # the long segment's query finds this pair
+                    bound = (reach_i + half_j) * (1.0 + relative_slack) + absolute_slack
+                    e = midpoint_in[j] - mi
+                    if wp.dot(e, e) > bound * bound:
+                        continue
+                    strand_j = j // segs_per_strand
+                    if strand_j == strand_i or j % segs_per_strand < skip_root_segments:
+                        continue
+                    vj = strand_j * num_vertices + j % segs_per_strand
+                    s, t, dist2 = edge_edge_closest_parameters(p0, p1, x_in[vj], x_in[vj + 1])
+                    if dist2 < cutoff2:
+                        n = wp.atomic_add(count_out, 0, 1)
+                        if n < capacity:
+                            # Stored as (lower id, higher id).
+                            pairs_out[2 * n] = wp.min(i, j)
+                            pairs_out[2 * n + 1] = wp.max(i, j)
 
 
 @wp.func
@@ -150,6 +215,8 @@ def hair_hair_energy_kernel(
     # In:
     x_in: wp.array(dtype=Any),
     pairs_in: wp.array(dtype=wp.int32),
+    count_in: wp.array(dtype=wp.int32),
+    capacity: int,
     num_vertices: int,
     num_strands: int,
     xi: Any,
@@ -161,13 +228,16 @@ def hair_hair_energy_kernel(
     energy_out: wp.array(dtype=wp.float64),
     gradient_out: wp.array(dtype=Any),
 ):
-    """Per pair k: energy_out[b] += weight * B(d), gradient_out[v] += weight * B'(d) dd/dx_v.
+    """Per pair k < min(count, capacity): energy_out[b] += weight * B(d), gradient_out[v] += weight * B'(d) dd/dx_v.
 
     The energy sums up to millions of small terms into one number per batch item: it is
     accumulated in float64 whatever the input precision (a float32 running sum of 1.6 M terms
     was measured 0.3 % off). Each vertex gradient sums only tens of terms: input precision.
     """
     k = wp.tid()
+    # Launched over the buffer (or the count read by the host): pairs past the count are empty.
+    if k >= wp.min(count_in[0], capacity):
+        return
     i = pairs_in[2 * k]
     j = pairs_in[2 * k + 1]
     segs_per_strand = num_vertices - 1

@@ -219,6 +219,28 @@ def test_overflow_reported_with_tiny_capacity(rng):
     assert not info.overflow
 
 
+def test_deferred_overflow_reads_nothing_until_checked(rng):
+    """on_overflow="defer" (the CUDA-graph path): with room, the same energy and gradient as
+    "grow"; without, the first `capacity` pairs only, and `check()` raises naming the capacity."""
+    x = _t(ref.random_hair(rng, batch=2, strands=6, vertices=10)).requires_grad_(True)
+    full, info_full = hair_hair_contact_energy(x, XI, DHAT, BP, WEIGHT)
+    (g_full,) = torch.autograd.grad(full.sum(), x)
+    needed = info_full.pair_count
+    deferred, info = hair_hair_contact_energy(x, XI, DHAT, BP, WEIGHT, capacity=needed + 5, on_overflow="defer")
+    (g_deferred,) = torch.autograd.grad(deferred.sum(), x)
+    np.testing.assert_allclose(deferred.detach().numpy(), full.detach().numpy(), rtol=1e-12)
+    np.testing.assert_allclose(g_deferred.numpy(), g_full.numpy(), rtol=1e-12, atol=1e-18)
+    assert info.pair_count == needed and not info.overflow
+    info.check()
+    partial, info = hair_hair_contact_energy(x, XI, DHAT, BP, WEIGHT, capacity=3, on_overflow="defer")
+    assert float(partial.detach().sum()) < float(full.detach().sum())
+    assert info.overflow and info.pair_count == needed
+    with pytest.raises(HairHairCapacityError, match=f"capacity >= {needed}"):
+        info.check()
+    with pytest.raises(ValueError, match="on_overflow"):
+        hair_hair_contact_pairs(x, XI, DHAT, on_overflow="defer")
+
+
 def test_batched_equals_separate_calls(rng):
     x_np = ref.random_hair(rng, batch=3, strands=5, vertices=9)
     x = _t(x_np).requires_grad_(True)

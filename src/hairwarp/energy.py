@@ -51,12 +51,19 @@ class EnergyResult:
         total: (B,) differentiable w.r.t. the hair positions.
         terms: name -> (B,) weighted value of each term (detached), names from
             `hairwarp.config.ALL_TERMS`; terms switched off are absent.
-        hair_hair_pairs: number of hair-hair contact pairs found (all batch items), if computed.
+        hair_hair_info: the hair-hair `HairHairContactInfo` (pair count on the device until read),
+            or the count itself (the plain-torch reference), if computed.
     """
 
     total: torch.Tensor
     terms: dict[str, torch.Tensor] = field(default_factory=dict)
-    hair_hair_pairs: int | None = None
+    hair_hair_info: object | None = None
+
+    @property
+    def hair_hair_pairs(self) -> int | None:
+        """Number of hair-hair contact pairs found (all batch items), if computed (reads the device)."""
+        info = self.hair_hair_info
+        return info if info is None or isinstance(info, int) else info.pair_count
 
 
 def _as_batched(x: torch.Tensor) -> torch.Tensor:
@@ -76,6 +83,8 @@ def total_energy(
     *,
     dynamic: bool = False,
     terms: tuple[str, ...] | None = None,
+    graph_safe: bool = False,
+    hair_hair_capacity: int | None = None,
 ) -> EnergyResult:
     """The total energy of hair positions `x`: Eq. 5, or Eq. 6 (without L_func_reg) when `dynamic`.
 
@@ -86,6 +95,11 @@ def total_energy(
         config: weights and constants (defaults: `EnergyConfig()`).
         dynamic: add the inertia term of Eq. 16 (needs `inputs.prev` and `inputs.prev2`).
         terms: restrict to a subset of `hairwarp.config.ALL_TERMS` (ablations).
+        graph_safe: read nothing back to the host (a CUDA graph can capture the call): the
+            hair-hair pairs beyond the pair buffer's capacity are dropped instead of regrown,
+            and `result.hair_hair_info.check()` says so afterwards (see `CapturedEnergy`).
+        hair_hair_capacity: pair-buffer capacity [pairs] for the whole batch; None:
+            `config.hair_hair_capacity_per_segment` per segment.
 
     Returns:
         EnergyResult with `total` of shape (B,) ((1,) for an unbatched `x`).
@@ -132,6 +146,8 @@ def total_energy(
 
     if "hair_hair_contact" in wanted and config.hair_hair_weight != 0.0:
         segments = xb.shape[1] * (xb.shape[2] - 1)
+        if hair_hair_capacity is None:
+            hair_hair_capacity = config.hair_hair_capacity_per_segment * segments * xb.shape[0]
         e_hh, info = ops.hair_hair_contact_energy(
             xb,
             config.hair_diameter,
@@ -139,11 +155,12 @@ def total_energy(
             config.barrier_join_fraction,
             weight=config.hair_hair_weight,
             variant=config.barrier_variant,
-            capacity=config.hair_hair_capacity_per_segment * segments * xb.shape[0],
+            capacity=hair_hair_capacity,
+            on_overflow="defer" if graph_safe else "grow",
         )
         result.total = result.total + e_hh
         result.terms["hair_hair_contact"] = e_hh.detach()
-        result.hair_hair_pairs = int(info.pair_count)
+        result.hair_hair_info = info
 
     if x.dim() == 3:
         result.total = result.total.reshape(1)
@@ -158,3 +175,87 @@ def static_energy(x: torch.Tensor, inputs: EnergyInputs, config: EnergyConfig | 
 def dynamic_energy(x: torch.Tensor, inputs: EnergyInputs, config: EnergyConfig | None = None, **kw) -> EnergyResult:
     """Eq. 6 without L_func_reg: the static energy plus inertia (Eq. 16) (see `total_energy`)."""
     return total_energy(x, inputs, config, dynamic=True, **kw)
+
+
+class CapturedEnergy:
+    """`total_energy` and its gradient for one hair shape, captured in a CUDA graph and replayed.
+
+    On CUDA a forward+backward of the total energy is a few dozen kernel launches and torch ops
+    whose host cost dominates at small batch; a replay launches them at once. The capture is
+    possible because nothing in the graph-safe energy reads the device (`graph_safe=True`): the
+    hair-hair pair buffer has a fixed capacity, set from an eager warm-up call (twice its pair
+    count, at least one pair per segment: a drape has about one), and `check()` raises `HairHairCapacityError` if a
+    later call found more pairs than that (the energy then missed some). On the CPU (or with
+    `use_graph=False`) the same object evaluates eagerly with the same results.
+
+    Args:
+        x: (B, M, N, 3) example hair positions [m]: shape, dtype and device of every call.
+        inputs, config, dynamic, terms: as `total_energy` (held by reference: the graph reads
+            the body, rest lengths and previous states they hold at replay time).
+        use_graph: capture on CUDA (default); False evaluates eagerly everywhere.
+
+    Call: `energy, gradient = captured(x)`: (B,) energies [J] and (B, M, N, 3) d energy / d x
+    (zero on the fixed vertices 0, 1), both new tensors.
+    """
+
+    def __init__(self, x: torch.Tensor, inputs: EnergyInputs, config: EnergyConfig | None = None, *,
+                 dynamic: bool = False, terms: tuple[str, ...] | None = None, use_graph: bool = True):
+        from hairwarp._validate import check_tensor
+
+        check_tensor("x", x, shape=(None, None, None, 3), allow_empty=False)
+        self.inputs, self.config, self.dynamic, self.terms = inputs, config or EnergyConfig(), dynamic, terms
+        self.shape, self.dtype, self.device = tuple(x.shape), x.dtype, x.device
+        # Eager warm-up: checks the inputs, compiles the kernels, and sizes the pair buffer.
+        probe = self._evaluate(x, graph_safe=False)
+        segments = x.shape[0] * x.shape[1] * (x.shape[2] - 1)
+        found = 0 if probe[2] is None else probe[2].pair_count
+        self.hair_hair_capacity = max(2 * found, segments, 1)
+        self._info = None
+        self._graph = None
+        if use_graph and x.device.type == "cuda":
+            from hairwarp.runtime import CapturedCall
+
+            def step(x_static):
+                energy, gradient, info = self._evaluate(x_static, graph_safe=True)
+                self._graph_info = info
+                return energy, gradient
+
+            self._graph = CapturedCall(step, x)
+            self._info = self._graph_info
+
+    @property
+    def captured(self) -> bool:
+        """Whether calls replay a CUDA graph."""
+        return self._graph is not None
+
+    def _evaluate(self, x: torch.Tensor, graph_safe: bool):
+        xg = x.detach().requires_grad_(True)
+        with torch.enable_grad():
+            result = total_energy(xg, self.inputs, self.config, dynamic=self.dynamic, terms=self.terms,
+                                  graph_safe=graph_safe,
+                                  hair_hair_capacity=getattr(self, "hair_hair_capacity", None) if graph_safe else None)
+            (gradient,) = torch.autograd.grad(result.total.sum(), xg)
+        return result.total.detach(), gradient, result.hair_hair_info
+
+    def __call__(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        if tuple(x.shape) != self.shape or x.dtype != self.dtype or x.device != self.device:
+            raise ValueError(f"x: expected {self.shape} {self.dtype} on {self.device} (the captured shape), "
+                             f"got {tuple(x.shape)} {x.dtype} on {x.device}")
+        if self._graph is not None:
+            return self._graph(x)
+        energy, gradient, self._info = self._evaluate(x, graph_safe=True)
+        return energy, gradient
+
+    def overflowed(self) -> bool:
+        """Whether the last call found more hair-hair pairs than the buffer holds (reads the device)."""
+        return self._info is not None and self._info.overflow
+
+    def check(self) -> None:
+        """Raise `HairHairCapacityError` if the last call found more hair-hair pairs than the
+        buffer holds (reads the device once).
+
+        Raises:
+            HairHairCapacityError: the last energy missed pairs; build a new `CapturedEnergy`.
+        """
+        if self._info is not None:
+            self._info.check()

@@ -171,14 +171,15 @@ class CapturedCall:
     the graph's buffer (a later replay overwrites it).
 
     Args:
-        fn: a function of CUDA tensors returning a tensor; no host synchronisation inside, no
+        fn: a function of CUDA tensors returning a tensor (or a tuple of them); no host synchronisation inside, no
             data-dependent shapes or control flow (the graph records one path).
         *example: tensors with the shapes, dtypes and device of every later call (none for a
             closure over its tensors: it is then replayed on what they hold at capture).
         warmup: eager calls on a side stream before the capture (allocator, cuBLAS handles).
     """
 
-    def __init__(self, fn: Callable[..., torch.Tensor], *example: torch.Tensor, warmup: int = 3):
+    def __init__(self, fn: Callable[..., torch.Tensor | tuple[torch.Tensor, ...]], *example: torch.Tensor,
+                 warmup: int = 3):
         self.inputs = [t.detach().clone() for t in example]
         device = self.inputs[0].device if self.inputs else torch.device("cuda", torch.cuda.current_device())
         stream = torch.cuda.Stream(device=device)
@@ -208,4 +209,6 @@ class CapturedCall:
         for buffer, value in zip(self.inputs, args):
             buffer.copy_(value)
         self.graph.replay()
+        if isinstance(self.output, tuple):
+            return tuple(t.clone() for t in self.output)
         return self.output.clone()

@@ -17,21 +17,27 @@ Which segment pairs count:
 Normalisation: energy = weight * sum over pairs of B(d), a sum (not a mean), per batch item;
 `weight` is lambda_hh of Eq. 12 [J per pair at B = 1].
 
-Broad phase: one `wp.HashGrid` over all segment midpoints of the whole batch, built with the
-batch item as the point *group*, so a query only visits its own item: one build and one launch
-for any batch size, with no cross-item candidates to reject (one grid per item would cost B
-builds and B launches; one ungrouped grid over items that overlap in space, as poses of one
-hairstyle do, would make every query visit B times the candidates). Cells have the query
-radius as width: max segment length + xi + dhat.
+Broad phase: one grid over all segment midpoints of the whole batch, the batch item part of
+each cell's slot, so a query only visits its own item: one sort and one launch for any batch
+size, with no cross-item candidates to reject (one grid per item would cost B builds and B
+launches; one grid without the item over items that overlap in space, as poses of one hairstyle
+do, would make every query visit B times the candidates). Segments are sorted by slot with
+`torch.sort`; cells are as wide as a typical query's radius (max segment length capped at
+1.5 x the mean, + xi + dhat), computed on the device with the other scales of the grid.
 
-Host synchronisations: the grid's cell size needs the max segment length on the host, and the
-pair count is read back to size the narrow phase and detect overflow: two reads per call.
+Host synchronisations: none to launch. With `on_overflow` "grow", "raise" or "warn" the pair
+count is read back once (to size the narrow phase and handle overflow). With "defer" nothing is
+read: the narrow phase runs over the whole buffer (slots past the device count return at once),
+and the count and overflow are read only when `HairHairContactInfo` is asked for them
+(`check()` raises on overflow): the path a CUDA graph captures.
 
-Memory: the pair buffer is one per device, reused across calls (grown to 1.25 x a call's need,
-never shrunk), capped at `max_pairs` pairs of 8 bytes (default 64 per segment: 1.6 GiB for
-1024 x 100 hair at batch 32, of which a drape touches ~1 pair per segment, 26 MiB). Besides it,
-a call holds ~36 bytes per segment (midpoint, half length, group, the grid's sorted ids and
-keys) and the gradient (the size of `x`). See docs/contact.md.
+Memory: the pair buffer is one per device, reused across eager calls (grown to 1.25 x a call's
+need, never shrunk), capped at `max_pairs` pairs of 8 bytes (default 64 per segment: 1.6 GiB for
+1024 x 100 hair at batch 32, of which a drape touches ~1 pair per segment, 26 MiB); a call being
+captured in a CUDA graph gets buffers of its own, sized by its capacity (the graph keeps them).
+Besides it, a call holds ~36 bytes per segment (midpoint, half length, group, slot, sorted order),
+the grid's slot table (2 MiB per batch item: 64^3 start and end indices) and the gradient (the
+size of `x`). See docs/contact.md.
 """
 
 from __future__ import annotations
@@ -49,11 +55,10 @@ from hairwarp.config import EnergyConfig
 from hairwarp.kernels import hair_hair_contact as hh_kernels
 from hairwarp.ops.barrier import barrier_variant_id, check_barrier_parameters
 
-OVERFLOW_POLICIES = ("grow", "raise", "warn")
+OVERFLOW_POLICIES = ("grow", "raise", "warn", "defer")
 DEFAULT_SKIP_ROOT_SEGMENTS = 2
-# Hash-grid table size (cells hash into it; collisions only add candidates that the distance
-# test rejects). 64^3 entries cost 2 MB of start/end indices per device.
-_GRID_DIM = 64
+# Slots of the grid table per batch item (`kernels.hair_hair_contact.GRID_DIM` cubed).
+_GRID_SLOTS = 64**3
 # The grid works on float32 midpoints; this relative slack on the query radius covers their
 # rounding, so no pair within the cutoff is missed (the exact test uses the input precision).
 _RADIUS_SLACK = 1e-4
@@ -88,23 +93,50 @@ class HairHairCapacityError(RuntimeError):
         self.max_pairs = max_pairs
 
 
-@dataclass
 class HairHairContactInfo:
     """Diagnostics of one hair-hair contact evaluation.
 
+    The pair count stays on the device until asked for ("defer": nothing read back at the call).
+
     Attributes:
         pair_count: number of segment pairs closer than xi + dhat (the energy sums over all of
-            them unless `on_overflow="warn"` dropped some).
+            them unless `on_overflow` "warn" or "defer" had to drop some); reading it reads
+            the device.
         overflow: True if `pair_count` exceeded the capacity the call was given.
         capacity: the pair-buffer capacity the call was given.
     """
 
-    pair_count: int
-    overflow: bool
-    capacity: int
+    def __init__(self, count, capacity: int, max_pairs: int | None = None):
+        self._count = count
+        self.capacity = int(capacity)
+        self._max_pairs = max_pairs
+
+    @property
+    def pair_count(self) -> int:
+        # Read on every access: a CUDA graph's replays rewrite the device count in place.
+        if isinstance(self._count, torch.Tensor):
+            return int(self._count.reshape(-1)[0].item())
+        return self._count
+
+    @property
+    def overflow(self) -> bool:
+        return self.pair_count > self.capacity
+
+    def check(self) -> None:
+        """Raise `HairHairCapacityError` if pairs were dropped (reads the device once).
+
+        Raises:
+            HairHairCapacityError: the count exceeded the capacity (the energy missed pairs).
+        """
+        if self.overflow:
+            raise HairHairCapacityError(self.pair_count, self.capacity)
 
     def __getitem__(self, key: str):
         return getattr(self, key)
+
+    def __repr__(self) -> str:
+        count = "on device" if isinstance(self._count, torch.Tensor) else self._count
+        return f"HairHairContactInfo(pair_count={count}, capacity={self.capacity})"
 
 
 @dataclass
@@ -135,16 +167,6 @@ class HairHairPairs:
         seg = self.pairs
         strand = seg // (n - 1)
         return torch.stack([strand // m, strand % m, seg % (n - 1)], dim=-1)
-
-
-# One hash grid per device, reused across calls (its table is the expensive allocation).
-_grids: dict[str, wp.HashGrid] = {}
-
-
-def _hash_grid(device: str) -> wp.HashGrid:
-    if device not in _grids:
-        _grids[device] = wp.HashGrid(_GRID_DIM, _GRID_DIM, _GRID_DIM, device=device)
-    return _grids[device]
 
 
 def _check_hair(x) -> torch.Tensor:
@@ -193,8 +215,16 @@ def default_max_pairs(num_segments: int) -> int:
 _pair_buffers: dict[str, torch.Tensor] = {}
 
 
+def _capturing(device: torch.device) -> bool:
+    return device.type == "cuda" and torch.cuda.is_current_stream_capturing()
+
+
 def _pair_buffer(device: torch.device, rows: int, cap: int) -> torch.Tensor:
-    """A (>= rows, 2) int32 buffer on `device`, reused across calls; rows <= cap."""
+    """A (>= rows, 2) int32 buffer on `device`, reused across calls; rows <= cap. A call being
+    captured gets its own (a later call must not free or grow what a graph replays).
+    """
+    if _capturing(device):
+        return torch.empty(max(rows, 1), 2, dtype=torch.int32, device=device)
     key = str(device)
     buffer = _pair_buffers.get(key)
     if buffer is None or buffer.shape[0] < rows:
@@ -215,13 +245,31 @@ def default_capacity(num_segments: int) -> int:
     return max(configured, _learned_capacity.get(num_segments, 0))
 
 
+def _grid_params(x4: torch.Tensor, cutoff: float) -> torch.Tensor:
+    """(3,) float32 on the device: cell width, long half length H, absolute slack [m] (no host read).
+
+    Two segments closer than the cutoff have midpoints at most cutoff + (l_i + l_j) / 2 apart;
+    the float32 midpoints add up to |coordinate| * 2^-24 each. Segments longer than
+    _LONG_FACTOR x the mean are "long": their pairs are found from their own (wider) queries, so
+    the others query within cutoff + their length / 2 + H only. Cells are _CELL_FACTOR x a typical
+    query's radius. Sizing both by the longest segment made every query pay for it: an L-BFGS
+    trial point with one segment stretched to 72 mm took 0.6-1.2 s (docs/contact.md).
+    """
+    lengths = (x4[:, :, 1:] - x4[:, :, :-1]).norm(dim=-1)
+    long_half = 0.5 * torch.minimum(lengths.max(), _LONG_FACTOR * lengths.mean())
+    absolute_slack = 4.0 * x4.abs().max() * 2.0**-23
+    cell_width = (cutoff + 2.0 * long_half) * _CELL_FACTOR * (1.0 + _RADIUS_SLACK) + absolute_slack
+    return torch.stack([cell_width, long_half, absolute_slack]).to(torch.float32)
+
+
 def _broad_phase(x4, cutoff, capacity, skip_root_segments, on_overflow, max_pairs=None):
     """Broad phase on (B, M, N, 3) contiguous detached hair.
 
     Returns:
-        pairs (P, 2) int32 flat segment ids (unordered; a view of the shared pair buffer, valid
-        until the next call), the count found, whether it exceeded the capacity, and the
-        capacity used first.
+        pairs (P, 2) int32 flat segment ids (unordered; in eager calls a view of the shared pair
+        buffer, valid until the next call; with "defer" the whole buffer, rows past the count
+        unused), count (the (1,) int32 device count), the count read back (None with
+        "defer"), and the capacity used first.
     """
     b, m, n, _ = x4.shape
     num_segments = b * m * max(n - 1, 0)
@@ -231,27 +279,32 @@ def _broad_phase(x4, cutoff, capacity, skip_root_segments, on_overflow, max_pair
     requested = min(requested, cap)
     device = x4.device
     if num_segments == 0 or m < 2:
-        return torch.zeros(0, 2, dtype=torch.int32, device=device), 0, False, requested
+        return (torch.zeros(0, 2, dtype=torch.int32, device=device), torch.zeros(1, dtype=torch.int32, device=device),
+                0, requested)
 
     x_flat = x4.detach().reshape(-1, 3)
-    # Host read 1: the grid's scale. Two segments closer than the cutoff have midpoints at most
-    # cutoff + (l_i + l_j) / 2 apart; the float32 midpoints add up to |coordinate| * 2^-24 each.
-    lengths = (x4[:, :, 1:] - x4[:, :, :-1]).norm(dim=-1)
-    mean_len, max_len, max_coord = torch.stack([lengths.mean(), lengths.max(), x_flat.abs().max()]).tolist()
-    absolute_slack = 4.0 * max_coord * 2.0**-23
-    # Segments longer than _LONG_FACTOR x the mean are "long": their pairs are found from their
-    # own (wider) queries, so the others query within cutoff + their length / 2 + H only. Cells
-    # as wide as a typical query radius. Sizing both by the longest segment made every query
-    # pay for it: an L-BFGS trial point with one segment stretched to 72 mm took 0.6-1.2 s
-    # (docs/contact.md).
-    long_half = 0.5 * min(max_len, _LONG_FACTOR * mean_len)
-    cell_width = (cutoff + 2.0 * long_half) * _CELL_FACTOR * (1.0 + _RADIUS_SLACK) + absolute_slack
-
+    params = _grid_params(x4, cutoff)
     wp_device = _warp.warp_device(device)
     midpoints = torch.empty(num_segments, 3, dtype=torch.float32, device=device)
     half_lengths = torch.empty(num_segments, dtype=torch.float32, device=device)
     groups = torch.empty(num_segments, dtype=torch.int32, device=device)
+    slots = torch.empty(num_segments, dtype=torch.int32, device=device)
+    slot_start = torch.zeros(b * _GRID_SLOTS, dtype=torch.int32, device=device)
+    slot_end = torch.zeros(b * _GRID_SLOTS, dtype=torch.int32, device=device)
     count = torch.zeros(1, dtype=torch.int32, device=device)
+    x_wp = _warp.as_warp(x_flat, vec3=True)
+    params_wp = _warp.as_warp(params)
+    with _warp.launch_scope(device):
+        mid_wp = wp.from_torch(midpoints, dtype=wp.vec3)
+        half_wp = _warp.as_warp(half_lengths)
+        group_wp = _warp.as_warp(groups)
+        wp.launch(hh_kernels.segment_cells_kernel, dim=num_segments, inputs=[x_wp, n, m, params_wp],
+                  outputs=[mid_wp, half_wp, group_wp, _warp.as_warp(slots)], device=wp_device)
+    sorted_slots, order = torch.sort(slots)
+    with _warp.launch_scope(device):
+        wp.launch(hh_kernels.grid_ranges_kernel, dim=num_segments, inputs=[_warp.as_warp(sorted_slots), num_segments],
+                  outputs=[_warp.as_warp(slot_start), _warp.as_warp(slot_end)], device=wp_device)
+    order_wp = _warp.as_warp(order)
 
     def run(room):
         count.zero_()
@@ -260,46 +313,20 @@ def _broad_phase(x4, cutoff, capacity, skip_root_segments, on_overflow, max_pair
             wp.launch(
                 hh_kernels.hair_hair_pairs_kernel,
                 dim=num_segments,
-                inputs=[
-                    wp.uint64(grid.id),
-                    x_wp,
-                    mid_wp,
-                    half_wp,
-                    group_wp,
-                    n,
-                    skip_root_segments,
-                    float(cutoff),
-                    float(long_half),
-                    _RADIUS_SLACK,
-                    float(absolute_slack),
-                    _warp.scalar(cutoff, x4.dtype),
-                    room,
-                ],
+                inputs=[x_wp, mid_wp, half_wp, group_wp, order_wp, _warp.as_warp(slot_start),
+                        _warp.as_warp(slot_end), params_wp, n, skip_root_segments, float(cutoff), _RADIUS_SLACK,
+                        _warp.scalar(cutoff, x4.dtype), room],
                 outputs=[_warp.as_warp(count), _warp.as_warp(pairs)],
                 device=wp_device,
             )
-        # Host read 2: the pair count.
-        return pairs, int(count.item())
+        return pairs
 
-    with _warp.launch_scope(device):
-        x_wp = _warp.as_warp(x_flat, vec3=True)
-        mid_wp = wp.from_torch(midpoints, dtype=wp.vec3)
-        half_wp = _warp.as_warp(half_lengths)
-        group_wp = _warp.as_warp(groups)
-        wp.launch(
-            hh_kernels.segment_midpoints_kernel,
-            dim=num_segments,
-            inputs=[x_wp, n, m],
-            outputs=[mid_wp, half_wp, group_wp],
-            device=wp_device,
-        )
-        grid = _hash_grid(wp_device)
-        grid.build(mid_wp, float(cell_width), groups=group_wp)
-
-    pairs, found = run(requested)
-    overflow = found > requested
+    pairs = run(requested)
+    if on_overflow == "defer":
+        return pairs[:requested], count, None, requested
+    found = int(count.item())  # the one host read of an eager call
     kept = found
-    if overflow:
+    if found > requested:
         if on_overflow == "raise":
             raise HairHairCapacityError(found, requested)
         if on_overflow == "grow" and found > cap:
@@ -309,7 +336,8 @@ def _broad_phase(x4, cutoff, capacity, skip_root_segments, on_overflow, max_pair
                 learned = max(_learned_capacity.get(num_segments, 0), found + found // 4)
                 _learned_capacity[num_segments] = learned
             # The same positions give the same pairs: one rerun with exactly enough room.
-            pairs, again = run(found)
+            pairs = run(found)
+            again = int(count.item())
             if again != found:
                 raise RuntimeError(f"hair-hair broad phase: rerun found {again} pairs, first run {found}")
         else:
@@ -320,12 +348,12 @@ def _broad_phase(x4, cutoff, capacity, skip_root_segments, on_overflow, max_pair
                 RuntimeWarning,
                 stacklevel=3,
             )
-    return pairs[:kept], found, overflow, requested
+    return pairs[:kept], count, found, requested
 
 
 class _HairHairContactEnergy(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, x4, pairs, xi, dhat, bp, weight, variant_id):
+    def forward(ctx, x4, pairs, count, xi, dhat, bp, weight, variant_id):
         b, m, n, _ = x4.shape
         energy = torch.zeros(b, dtype=torch.float64, device=x4.device)  # float64 sum: see the kernel
         gradient = torch.zeros_like(x4)
@@ -338,6 +366,8 @@ class _HairHairContactEnergy(torch.autograd.Function):
                     inputs=[
                         _warp.as_warp(x4, vec3=True),
                         _warp.as_warp(pairs),
+                        _warp.as_warp(count),
+                        num_pairs,
                         n,
                         m,
                         _warp.scalar(xi, x4.dtype),
@@ -356,7 +386,7 @@ class _HairHairContactEnergy(torch.autograd.Function):
     @once_differentiable
     def backward(ctx, grad_energy):
         (gradient,) = ctx.saved_tensors
-        return grad_energy[:, None, None, None] * gradient, None, None, None, None, None, None
+        return grad_energy[:, None, None, None] * gradient, None, None, None, None, None, None, None
 
 
 def hair_hair_contact_pairs(
@@ -400,10 +430,13 @@ def hair_hair_contact_pairs(
     x4 = _check_hair(x)
     xi, dhat, _ = check_barrier_parameters(xi, dhat, 0.5)
     _check_options(capacity, skip_root_segments, on_overflow, max_pairs)
+    if on_overflow == "defer":
+        raise ValueError("on_overflow: 'defer' is for the energy (a CUDA graph); the pair list needs the count")
     x4 = x4.detach().contiguous()
-    pairs, found, overflow, requested = _broad_phase(
+    pairs, _, found, requested = _broad_phase(
         x4, xi + dhat, capacity, skip_root_segments, on_overflow, max_pairs
     )
+    overflow = found > requested
     pairs = pairs.long()
     if pairs.shape[0] > 1:
         # Deterministic order (GPU atomics write in any order): lexicographic by (i, j).
@@ -444,7 +477,9 @@ def hair_hair_contact_energy(
             call with as many segments had to grow to, if larger (`default_capacity`).
         skip_root_segments: segments with index below this along each strand take no part.
         on_overflow: "grow" (default: rerun with enough room, the energy is complete), "raise"
-            (`HairHairCapacityError`) or "warn" (RuntimeWarning; energy over the pairs kept).
+            (`HairHairCapacityError`), "warn" (RuntimeWarning; energy over the pairs kept) or
+            "defer" (no host read at all, for CUDA graphs: the energy sums the first `capacity`
+            pairs, and `info.check()` raises afterwards if more were found).
         max_pairs: cap on the pair buffer [pairs], 8 bytes each; None =
             `DEFAULT_MAX_PAIRS_PER_SEGMENT` (64) per segment. `capacity` is clamped to it, and
             "grow" never grows past it: more pairs than that raise `HairHairCapacityError`
@@ -467,13 +502,13 @@ def hair_hair_contact_energy(
     variant_id = barrier_variant_id(variant)
     _check_options(capacity, skip_root_segments, on_overflow, max_pairs)
     x4c = x4.contiguous()
-    pairs, found, overflow, requested = _broad_phase(
+    pairs, count, found, requested = _broad_phase(
         x4c.detach(), xi + dhat, capacity, skip_root_segments, on_overflow, max_pairs
     )
-    energy = _HairHairContactEnergy.apply(x4c, pairs.contiguous(), xi, dhat, bp, weight, variant_id)
+    energy = _HairHairContactEnergy.apply(x4c, pairs.contiguous(), count, xi, dhat, bp, weight, variant_id)
     if x.dim() == 3:
         energy = energy[0]
-    return energy, HairHairContactInfo(found, overflow, requested)
+    return energy, HairHairContactInfo(count if found is None else found, requested)
 
 
 __all__ = [

@@ -52,6 +52,9 @@ class DirectOptimizationConfig:
         lbfgs_restart: clear the L-BFGS memory after this many iterations without a decrease
             (0: never). A stale curvature pair after a contact switches on or off can leave the
             strong-Wolfe line search stepping nowhere; a fresh memory starts from the gradient.
+        cuda_graph: on CUDA, evaluate the energy and its gradient by replaying a CUDA graph
+            (`hairwarp.energy.CapturedEnergy`; captured again at the current point if the hair-hair
+            pairs outgrow its buffer). No effect on the CPU.
         divergence_factor: the run counts as diverged when the loss exceeds the initial loss
             by more than this factor times max(|initial loss|, 1) (an absurd step size sends
             the hair kilometres away long before float32 overflows).
@@ -69,6 +72,7 @@ class DirectOptimizationConfig:
     record_every: int = 0
     divergence_factor: float = 1e6
     lbfgs_restart: int = 5
+    cuda_graph: bool = True
 
     def __post_init__(self):
         if self.method not in ("adam", "lbfgs"):
@@ -175,6 +179,27 @@ def optimize_drape(
             line_search_fn="strong_wolfe",
         )
 
+    captured = None
+    if solver.cuda_graph and x0.device.type == "cuda":
+        from hairwarp.energy import CapturedEnergy
+
+        captured = CapturedEnergy(x0.detach(), inputs, energy_config, dynamic=dynamic)
+
+    def energy_and_gradient(free_part):
+        """(loss, d loss / d free_part) at free_part."""
+        nonlocal captured
+        if captured is None:
+            part = free_part.detach().requires_grad_(True)
+            loss = total_energy(assemble(part), inputs, energy_config, dynamic=dynamic).total.sum()
+            (grad,) = torch.autograd.grad(loss, part)
+            return loss.detach(), grad
+        x = assemble(free_part.detach())
+        energy, gradient = captured(x)
+        if captured.overflowed():  # more hair-hair pairs than its buffer: capture again here
+            captured = CapturedEnergy(x, inputs, energy_config, dynamic=dynamic)
+            energy, gradient = captured(x)
+        return energy.sum(), gradient[:, :, NUM_FIXED_VERTICES:]
+
     cache: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []
     use_cache = solver.method == "lbfgs"
     evaluations = 0
@@ -186,9 +211,11 @@ def optimize_drape(
                 if torch.equal(point, free):  # the very iterate a line search ended on
                     free.grad.copy_(grad)
                     return value
-        opt.zero_grad(set_to_none=False)
-        loss = total_energy(assemble(free), inputs, energy_config, dynamic=dynamic).total.sum()
-        loss.backward()
+        loss, grad = energy_and_gradient(free)
+        if free.grad is None:
+            free.grad = grad.clone()
+        else:
+            free.grad.copy_(grad)
         evaluations += 1
         if use_cache:
             cache.append((free.detach().clone(), loss.detach(), free.grad.detach().clone()))

@@ -54,5 +54,5 @@ def total_energy(x: torch.Tensor, inputs: EnergyInputs, config: EnergyConfig | N
                                                 config.barrier_variant, method="grid")
         result.total = result.total + e
         result.terms["hair_hair_contact"] = e.detach()
-        result.hair_hair_pairs = int(pairs.shape[0])
+        result.hair_hair_info = int(pairs.shape[0])
     return result

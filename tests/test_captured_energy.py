@@ -1,0 +1,75 @@
+"""`hairwarp.energy.CapturedEnergy`: the total energy and its gradient for one shape, replayed
+from a CUDA graph on the GPU (eager, same results, on the CPU), and the graph-safe energy it
+captures (`total_energy(graph_safe=True)`: nothing read back to the host)."""
+
+import pytest
+import torch
+
+from hairwarp.energy import CapturedEnergy, total_energy
+from hairwarp.ops.hair_hair_contact import HairHairCapacityError
+from hairwarp.scene.scene import default_scene
+
+
+def _small_inputs(device, batch=2):
+    """A default-scene drape at 1/16 of the strands and 30 vertices, jittered off the rigid placement."""
+    scene = default_scene("long_straight", "head_turn", strand_stride=4, num_vertices=30)
+    idx = torch.linspace(0, scene.num_frames - 1, batch).round().long()
+    frames = scene.frames(idx, device=device)
+    g = torch.Generator().manual_seed(0)
+    rigid = frames.rigid.positions
+    jitter = (torch.randn(rigid.shape, generator=g, dtype=rigid.dtype) * 3e-3).to(device)
+    jitter[:, :, :2] = 0
+    from dataclasses import replace
+
+    inputs = replace(frames.inputs, prev=(rigid + 0.5 * jitter).detach(), prev2=rigid.detach())
+    return (rigid + jitter).detach(), inputs
+
+
+def _eager(x, inputs, **kw):
+    xe = x.detach().clone().requires_grad_(True)
+    result = total_energy(xe, inputs, dynamic=True, **kw)
+    result.total.sum().backward()
+    return result, xe.grad
+
+
+def test_graph_safe_energy_equals_eager_on_the_cpu():
+    x, inputs = _small_inputs("cpu")
+    eager, g_eager = _eager(x, inputs)
+    safe, g_safe = _eager(x, inputs, graph_safe=True, hair_hair_capacity=10 * eager.hair_hair_pairs)
+    assert eager.hair_hair_pairs > 0 and safe.hair_hair_pairs == eager.hair_hair_pairs
+    torch.testing.assert_close(safe.total, eager.total, rtol=1e-6, atol=0)
+    torch.testing.assert_close(g_safe, g_eager, rtol=1e-6, atol=1e-9)
+
+
+def test_captured_energy_on_the_cpu_equals_total_energy_and_flags_overflow():
+    x, inputs = _small_inputs("cpu")
+    captured = CapturedEnergy(x, inputs, dynamic=True)
+    assert not captured.captured  # no graph on the CPU: same object, eager
+    eager, g_eager = _eager(x, inputs)
+    energy, gradient = captured(x)
+    torch.testing.assert_close(energy, eager.total.detach(), rtol=1e-6, atol=0)
+    torch.testing.assert_close(gradient, g_eager, rtol=1e-6, atol=1e-9)
+    assert captured.hair_hair_capacity >= 2 * eager.hair_hair_pairs
+    captured.check()
+    # Hair piled into a ball: far more pairs than the buffer holds; the call says so on check().
+    piled = x.clone()
+    piled[:, :, 2:] = x[:, :1, 2:2 + 1].mean(dim=1, keepdim=True) + 0.01 * (piled[:, :, 2:] - x[:, :, 2:])
+    captured(piled)
+    with pytest.raises(HairHairCapacityError, match="capacity"):
+        captured.check()
+    with pytest.raises(ValueError, match="x: expected"):
+        captured(x[:1])
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device; this machine has none")
+def test_cuda_graph_energy_equals_eager():
+    x, inputs = _small_inputs("cuda")
+    captured = CapturedEnergy(x, inputs, dynamic=True)
+    assert captured.captured
+    for scale in (1.0, 0.5):  # a replay on new positions, not only the captured ones
+        xs = inputs.rigid + scale * (x - inputs.rigid)
+        eager, g_eager = _eager(xs, inputs)
+        energy, gradient = captured(xs)
+        torch.testing.assert_close(energy, eager.total.detach(), rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(gradient, g_eager, rtol=1e-4, atol=1e-4)
+    captured.check()
