@@ -87,10 +87,13 @@ def launch_scope(device: torch.device):
     On CPU there is no stream; on CUDA this keeps Warp and torch work ordered without a
     host synchronisation. `device` "cuda" without an index means torch's current device (set
     per rank by `torch.cuda.set_device`); the stream and Warp's device scope both follow it.
+    Entering makes the stream wait for Warp's previous one (e.g. a body mesh built there),
+    except while torch captures a CUDA graph: a capture may not depend on uncaptured work (the
+    graph's inputs were made before the capture began).
     """
     init()
     if device.type == "cuda":
-        return wp.ScopedStream(wp.stream_from_torch(device))
+        return wp.ScopedStream(wp.stream_from_torch(device), sync_enter=not torch.cuda.is_current_stream_capturing())
     return contextlib.nullcontext()
 
 

@@ -33,17 +33,12 @@ INDEX_DTYPES = (torch.int32, torch.int64)
 _ZERO_DISTANCE = {torch.float32: 1.0e-6, torch.float64: 1.0e-12}
 
 # Kernel choice. The per-strand walk skips most mesh queries: it wins on the single-threaded
-# CPU backend (1024 x 100 hair on a 27k-triangle body: ~40 ms against ~350 ms per-vertex), and
-# on the GPU once there are enough strands to fill it. Below that the per-vertex kernel wins on
-# the GPU. Measured on an H200 (same scene, forward + backward): per-vertex 0.76 ms at batch 1,
-# 5.6 ms at 16, 10.7 ms at 32; per-strand 8.7-9.1 ms from batch 1 to 32.
-_CUDA_STRAND_WALK_MIN_STRANDS = 26_000
-
-
+# CPU backend (1024 x 100 hair on a 27k-triangle body: ~40 ms against ~350 ms per-vertex). On
+# the GPU one thread per vertex wins at every batch: on an H100, 1024 x 100 hair at batch 32,
+# the per-strand kernel took 21.7 ms (one thread walking 100 vertices, 32k threads: the GPU
+# is a tenth full); benchmarks/bm_captured_energy.py --profile.
 def _strategy(device: torch.device, num_strands: int) -> str:
-    if device.type == "cuda" and num_strands < _CUDA_STRAND_WALK_MIN_STRANDS:
-        return "vertex"
-    return "strand"
+    return "vertex" if device.type == "cuda" else "strand"
 
 
 def _check_mesh(vertices: torch.Tensor, faces: torch.Tensor, *, require_watertight: bool) -> None:
