@@ -6,7 +6,8 @@ Eq. 6 (inertia included). "eager" is `total_energy` + backward as a user calls i
 of the hair-hair pair count); "graph" is `hairwarp.energy.CapturedEnergy` (the graph-safe energy
 captured once, replayed). Then the L-BFGS baseline (`optimize_drape`) on the full-size table1
 scene, with and without the graph. With `--profile`, a torch profile of one eager step per batch
-(the ten costliest device kernels).
+(the ten costliest device kernels); with `--probe-kernels`, the contact kernels alone (hair-hair
+at cell widths 0.5-1.5 x the query radius, hair-body one thread per vertex vs per strand).
 
     python benchmarks/bm_captured_energy.py --device cuda --out OUT
 
@@ -71,6 +72,50 @@ def _energy_rows(device, batches, profile: bool) -> tuple[list, dict]:
     return rows, profiles
 
 
+def _kernel_probe(device, batches) -> dict:
+    """Hair-hair at several cell widths and hair-body per vertex vs per strand, each alone."""
+    import importlib
+
+    from hairwarp import set_finite_checks
+    from hairwarp.bench.energy import build_energy_inputs
+    from hairwarp.config import EnergyConfig
+    from hairwarp.ops import hair_hair_contact_energy
+    from hairwarp.ops.barrier import barrier_variant_id
+
+    hh = importlib.import_module("hairwarp.ops.hair_hair_contact")
+    hb = importlib.import_module("hairwarp.ops.hair_body_contact")
+    c, out = EnergyConfig(), {}
+    previous, chosen = set_finite_checks(False), dict(hh._CELL_FACTOR)
+    try:
+        for batch in batches:
+            x, inputs, _, _ = build_energy_inputs(batch, device)
+            x = x.detach().requires_grad_(True)
+            for factor in (0.5, 0.75, 1.0, 1.5):
+                hh._CELL_FACTOR[device.type] = factor
+
+                def hair_hair():
+                    x.grad = None
+                    hair_hair_contact_energy(x, c.hair_diameter, c.hair_hair_dhat, c.barrier_join_fraction,
+                                             weight=c.hair_hair_weight)[0].sum().backward()
+
+                out[f"hair_hair B={batch} cell={factor}"] = time_ms(hair_hair, device, warmup=2, repeats=10,
+                                                                     min_time_s=0.2)
+            for strategy in ("vertex", "strand"):
+                def hair_body():
+                    x.grad = None
+                    hb._HairBodyContactEnergy.apply(x, inputs.body, c.hair_body_xi, c.hair_body_dhat,
+                                                    c.barrier_join_fraction, c.hair_body_weight,
+                                                    barrier_variant_id(c.barrier_variant), strategy).sum().backward()
+
+                out[f"hair_body B={batch} {strategy}"] = time_ms(hair_body, device, warmup=2, repeats=10, min_time_s=0.2)
+            for key in [k for k in out if f"B={batch} " in k]:
+                print(f"  {key:<32s} {out[key]:8.3f} ms", flush=True)
+    finally:
+        hh._CELL_FACTOR.update(chosen)
+        set_finite_checks(previous)
+    return out
+
+
 def _lbfgs_rows(device, iterations: int) -> list:
     from hairwarp.evaluation.scenes import comparison_scene
     from hairwarp.metrics import length_change_percent, penetration_percent
@@ -100,14 +145,18 @@ def main(argv=None):
     parser.add_argument("--batch", default="1,32", help="comma-separated batch sizes")
     parser.add_argument("--lbfgs-iterations", type=int, default=300, help="0: skip the L-BFGS rows")
     parser.add_argument("--profile", action="store_true", help="torch profile of one eager step per batch")
+    parser.add_argument("--probe-kernels", action="store_true",
+                        help="also time the contact kernels alone: hair-hair cell widths, hair-body per vertex/strand")
     parser.add_argument("--out", default="hairwarp-out")
     args = parser.parse_args(argv)
     device = torch.device(args.device)
     os.makedirs(args.out, exist_ok=True)
     rows, profiles = _energy_rows(device, [int(b) for b in args.batch.split(",")], args.profile)
+    batches = [int(b) for b in args.batch.split(",")]
+    probe = _kernel_probe(device, batches) if args.probe_kernels else {}
     lbfgs = _lbfgs_rows(device, args.lbfgs_iterations) if args.lbfgs_iterations else []
     record = {"machine": machine_name(device), "device": str(device), "energy": rows, "profiles": profiles,
-              "lbfgs": lbfgs, "command": "python benchmarks/bm_captured_energy.py " + " ".join(argv or [])}
+              "kernel_probe": probe, "lbfgs": lbfgs, "command": "python benchmarks/bm_captured_energy.py " + " ".join(argv or [])}
     with open(os.path.join(args.out, "captured_energy.json"), "w") as f:
         json.dump(record, f, indent=1)
     print(f"\n{record['machine']}\n\n| batch | eager fwd+bwd (ms) | graph replay (ms) |\n|---:|---:|---:|")
