@@ -116,8 +116,8 @@ def grid_ranges_kernel(
 def hair_hair_pairs_kernel(
     # In:
     x_in: wp.array(dtype=Any),
-    midpoint_in: wp.array(dtype=wp.vec3),
-    half_length_in: wp.array(dtype=float),
+    sorted_midpoints: wp.array(dtype=wp.vec3),
+    sorted_half_lengths: wp.array(dtype=float),
     group_in: wp.array(dtype=wp.int32),
     sorted_ids: wp.array(dtype=wp.int64),
     slot_start: wp.array(dtype=wp.int32),
@@ -148,7 +148,9 @@ def hair_hair_pairs_kernel(
     (the ownership tests need none: both threads read the same float32 half lengths). H, the
     cell width and the slack are device values: the launch needs nothing from the host.
     """
-    i = wp.tid()
+    # Threads and candidates in slot order: neighbours in space are neighbours in memory.
+    rank = wp.tid()
+    i = int(sorted_ids[rank])
     segs_per_strand = num_vertices - 1
     if i % segs_per_strand < skip_root_segments:
         return
@@ -159,8 +161,8 @@ def hair_hair_pairs_kernel(
     vi = strand_i * num_vertices + i % segs_per_strand
     p0 = x_in[vi]
     p1 = x_in[vi + 1]
-    mi = midpoint_in[i]
-    half_i = half_length_in[i]
+    mi = sorted_midpoints[rank]
+    half_i = sorted_half_lengths[rank]
     long_i = half_i > long_half_length
     reach_i = cutoff32 + half_i
     radius = (reach_i + wp.max(half_i, long_half_length)) * (1.0 + relative_slack) + absolute_slack
@@ -175,12 +177,11 @@ def hair_hair_pairs_kernel(
             for cz in range(lo[2], hi[2] + 1):
                 slot = grid_slot(cx, cy, cz, group_i)
                 for k in range(slot_start[slot], slot_end[slot]):
+                    # Every segment of the slot is of batch item group_i: the item is in the slot.
                     j = int(sorted_ids[k])
-                    if group_in[j] != group_i:
-                        continue  # cannot happen (the group is in the slot); kept as a guard
                     if not long_i and j <= i:
                         continue  # a short-short pair is the lower id's; this also drops j == i
-                    half_j = half_length_in[j]
+                    half_j = sorted_half_lengths[k]
                     if long_i:
                         # Short partners, and long ones that are shorter (ties: the lower id).
                         if half_j > half_i or (half_j == half_i and j <= i):
@@ -188,7 +189,7 @@ def hair_hair_pairs_kernel(
                     elif half_j > long_half_length:
                         continue  # the long segment's query finds this pair
                     bound = (reach_i + half_j) * (1.0 + relative_slack) + absolute_slack
-                    e = midpoint_in[j] - mi
+                    e = sorted_midpoints[k] - mi
                     if wp.dot(e, e) > bound * bound:
                         continue
                     strand_j = j // segs_per_strand

@@ -62,11 +62,11 @@ _GRID_SLOTS = 64**3
 # The grid works on float32 midpoints; this relative slack on the query radius covers their
 # rounding, so no pair within the cutoff is missed (the exact test uses the input precision).
 _RADIUS_SLACK = 1e-4
-# Broad-phase shape, measured on the CPU (docs/contact.md): a segment longer than _LONG_FACTOR
+# Broad-phase shape, measured on the CPU and an H100 (docs/contact.md): a segment longer than _LONG_FACTOR
 # times the mean is "long" (found from its own query), and grid cells are _CELL_FACTOR times
 # a typical query's radius (fewer, fuller cells: each visited cell costs a lookup).
 _LONG_FACTOR = 1.5
-_CELL_FACTOR = {"cpu": 1.5, "cuda": 1.0}
+_CELL_FACTOR = {"cpu": 1.0, "cuda": 1.0}
 
 
 class HairHairCapacityError(RuntimeError):
@@ -302,6 +302,8 @@ def _broad_phase(x4, cutoff, capacity, skip_root_segments, on_overflow, max_pair
         wp.launch(hh_kernels.segment_cells_kernel, dim=num_segments, inputs=[x_wp, n, m, params_wp],
                   outputs=[mid_wp, half_wp, group_wp, _warp.as_warp(slots)], device=wp_device)
     sorted_slots, order = torch.sort(slots)
+    sorted_midpoints = midpoints[order]
+    sorted_half_lengths = half_lengths[order]
     with _warp.launch_scope(device):
         wp.launch(hh_kernels.grid_ranges_kernel, dim=num_segments, inputs=[_warp.as_warp(sorted_slots), num_segments],
                   outputs=[_warp.as_warp(slot_start), _warp.as_warp(slot_end)], device=wp_device)
@@ -314,7 +316,8 @@ def _broad_phase(x4, cutoff, capacity, skip_root_segments, on_overflow, max_pair
             wp.launch(
                 hh_kernels.hair_hair_pairs_kernel,
                 dim=num_segments,
-                inputs=[x_wp, mid_wp, half_wp, group_wp, order_wp, _warp.as_warp(slot_start),
+                inputs=[x_wp, wp.from_torch(sorted_midpoints, dtype=wp.vec3), _warp.as_warp(sorted_half_lengths),
+                        group_wp, order_wp, _warp.as_warp(slot_start),
                         _warp.as_warp(slot_end), params_wp, n, skip_root_segments, float(cutoff), _RADIUS_SLACK,
                         _warp.scalar(cutoff, x4.dtype), room],
                 outputs=[_warp.as_warp(count), _warp.as_warp(pairs)],
