@@ -5,6 +5,12 @@ to the hair's reach), batch 1 and 32 (B different frames of a head-turn motion).
 
 Writes {"device", "machine", "sizes", "results": [{"name", "warp_ms", "torch_ms", ...}]},
 a result named "total" included (Eq. 6 without L_func_reg: every term, inertia too).
+
+With `torch_compile` (default), each plain-torch energy is also timed wrapped in
+`torch.compile` (inductor; the backward through AOTAutograd), after a first call that compiles
+it: fields `torch_compile_ms`, `torch_compile_first_ms` (compile included), `speedup_vs_compile`
+and `compile_rel_diff` (|compiled - eager| / |eager| of the energy). A term whose peer does not
+compile (the contact peers' data-dependent searches may not) records None and `compile_note`.
 The plain-torch hair-hair peer runs one batch item at a time (`torch_hair_hair_by_item`): at
 batch 32 in one call it needs ~35 GB on the CPU.
 """
@@ -23,15 +29,20 @@ STRAND_TERM_NAMES = ("stretch", "bending", "auxiliary", "smoothness", "gravity",
 
 
 def build_energy_inputs(batch: int, device: torch.device, *, hairstyle: str = "long_straight",
-                        noise: float = 1e-3, seed: int = 0):
+                        noise: float = 1e-3, seed: int = 0, strand_stride: int = 1, num_vertices: int = 100):
     """Hair positions near the rigid placement of `batch` frames of the default scene.
+
+    Args:
+        batch, device: frames of the head turn, and where.
+        hairstyle, noise, seed: the hair and its jitter [m] off the rigid placement.
+        strand_stride, num_vertices: every k-th strand, N vertices (1, 100: the paper's size).
 
     Returns:
         (x (B, M, N, 3) requiring grad, EnergyInputs with prev/prev2, scene, frames).
     """
     from hairwarp.scene.scene import default_scene
 
-    scene = default_scene(hairstyle, "head_turn")
+    scene = default_scene(hairstyle, "head_turn", strand_stride=strand_stride, num_vertices=num_vertices)
     idx = torch.linspace(0, scene.num_frames - 1, batch).round().long()
     frames = scene.frames(idx, device=device)
     g = torch.Generator(device="cpu").manual_seed(seed)
@@ -115,8 +126,17 @@ def _closures(x, inputs, config: EnergyConfig):
     return out
 
 
+def _compiled_peer(torch_fn):
+    """`torch_fn` through torch.compile, or (None, reason) when torch.compile is not usable."""
+    try:
+        return torch.compile(torch_fn, dynamic=False), None
+    except Exception as exc:  # e.g. no C++ compiler for inductor on the CPU
+        return None, f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
+
+
 def run_energy_benchmark(device: torch.device, batches=(1, 32), *, config: EnergyConfig | None = None,
-                         names=None, skip_torch_above_ms: float = 60_000.0, progress: bool = True) -> dict:
+                         names=None, skip_torch_above_ms: float = 60_000.0, progress: bool = True,
+                         torch_compile: bool = True, strand_stride: int = 1, num_vertices: int = 100) -> dict:
     """Time forward + backward of every term and the total, Warp vs plain torch.
 
     Args:
@@ -127,6 +147,8 @@ def run_energy_benchmark(device: torch.device, batches=(1, 32), *, config: Energ
         skip_torch_above_ms: after one untimed call slower than this, the torch path of that
             term is timed once, not repeated (the CPU's brute-force peers can take minutes).
         progress: print each row as it is measured.
+        torch_compile: also time each plain-torch energy through `torch.compile`.
+        strand_stride, num_vertices: hair size (see `build_energy_inputs`; 1, 100: the paper's).
 
     Returns:
         The benchmark record (see the module docstring).
@@ -141,7 +163,8 @@ def run_energy_benchmark(device: torch.device, batches=(1, 32), *, config: Energ
     previous_checks = set_finite_checks(False)  # the inputs are ours: no NaN scans in the timed loop
     try:
         for batch in batches:
-            x, inputs, scene, frames = build_energy_inputs(batch, device)
+            x, inputs, scene, frames = build_energy_inputs(batch, device, strand_stride=strand_stride,
+                                                           num_vertices=num_vertices)
             sizes = {"strands": int(x.shape[1]), "vertices_per_strand": int(x.shape[2]),
                      "body_vertices": scene.body.num_vertices, "body_faces": scene.body.num_faces,
                      "body_faces_after_crop": int(frames.body_mesh.num_faces), "batches": list(batches)}
@@ -168,24 +191,63 @@ def run_energy_benchmark(device: torch.device, batches=(1, 32), *, config: Energ
                        "speedup": torch_ms / warp_ms if warp_ms > 0 else None}
                 if torch_note:
                     row["note"] = torch_note
+                if torch_compile:
+                    row.update(_time_compiled(torch_fn, step, device, first, skip_torch_above_ms))
+                    if row["torch_compile_ms"] is not None and warp_ms > 0:
+                        row["speedup_vs_compile"] = row["torch_compile_ms"] / warp_ms
+                    torch._dynamo.reset()  # one term's graphs and guards do not pile up on the next
                 results.append(row)
                 if progress:
+                    compiled = row.get("torch_compile_ms")
+                    extra = f"   compile {compiled:10.3f} ms" if compiled is not None else ""
                     print(f"  B={batch:<3d} {name:<18s} warp {warp_ms:10.3f} ms   torch {torch_ms:10.3f} ms   "
-                          f"x{row['speedup']:.1f}", flush=True)
+                          f"x{row['speedup']:.1f}{extra}", flush=True)
     finally:
         set_finite_checks(previous_checks)
     return {"device": str(device), "machine": machine_name(device), "sizes": sizes,
             "config": {k: v for k, v in vars(config).items()}, "results": results}
 
 
+def _time_compiled(torch_fn, step, device, eager_first_ms: float, skip_above_ms: float) -> dict:
+    """The torch.compile columns of one row (see the module docstring)."""
+    import time
+
+    compiled, note = _compiled_peer(torch_fn)
+    out = {"torch_compile_ms": None, "torch_compile_first_ms": None, "speedup_vs_compile": None}
+    if compiled is None:
+        return {**out, "compile_note": note}
+    try:
+        t0 = time.perf_counter()
+        step(compiled)()
+        out["torch_compile_first_ms"] = (time.perf_counter() - t0) * 1e3
+        with torch.no_grad():
+            eager_value, compiled_value = torch_fn().double(), compiled().double()
+        out["compile_rel_diff"] = float(((compiled_value - eager_value).abs() / eager_value.abs().clamp_min(1e-30)).max())
+        if eager_first_ms > skip_above_ms:
+            t0 = time.perf_counter()
+            step(compiled)()
+            out["torch_compile_ms"] = (time.perf_counter() - t0) * 1e3
+        else:
+            out["torch_compile_ms"] = time_ms(step(compiled), device, warmup=1, repeats=3, min_time_s=0.2)
+    except Exception as exc:  # a peer that does not compile (graph breaks are fine; errors are not)
+        return {**out, "compile_note": f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"}
+    return out
+
+
 def markdown_table(record: dict) -> str:
     """The benchmark as a markdown table (one row per term and batch)."""
     lines = [f"Device: {record['machine']}; sizes: {record['sizes']}", "",
-             "| term | batch | Warp fwd+bwd (ms) | plain torch fwd+bwd (ms) | speed-up |",
-             "|---|---:|---:|---:|---:|"]
+             "| term | batch | Warp fwd+bwd (ms) | plain torch fwd+bwd (ms) | speed-up | torch.compile fwd+bwd (ms) "
+             "| vs compile |",
+             "|---|---:|---:|---:|---:|---:|---:|"]
+
+    def cell(value, fmt):
+        return "n/a" if value is None else format(value, fmt)
+
     for r in record["results"]:
         lines.append(f"| {r['name']} | {r['batch']} | {r['warp_ms']:.3f} | {r['torch_ms']:.3f} | "
-                     f"{r['speedup']:.1f}x |")
+                     f"{r['speedup']:.1f}x | {cell(r.get('torch_compile_ms'), '.3f')} | "
+                     f"{cell(r.get('speedup_vs_compile'), '.1f')}{'' if r.get('speedup_vs_compile') is None else 'x'} |")
     return "\n".join(lines)
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import os
 
 
@@ -18,6 +19,12 @@ def add_parser(subparsers) -> None:
     e.add_argument("--json", default=None, help="write the results JSON here (default: OUT/bench_energy.json)")
     e.add_argument("--batch", default="1,32", help="comma-separated batch sizes (default: 1,32)")
     e.add_argument("--terms", default=None, help="comma-separated subset of terms (default: all, and total)")
+    e.add_argument("--torch-compile", action=argparse.BooleanOptionalAction, default=True,
+                   help="also time each plain-torch energy through torch.compile (inductor; on the CPU it needs a "
+                        "C++ compiler, and compiling takes seconds per term)")
+    e.add_argument("--strand-stride", type=int, default=1,
+                   help="keep every k-th strand (1: the paper's 1024)")
+    e.add_argument("--vertices", type=int, default=100, help="vertices per strand (100: the paper's)")
     e.set_defaults(run=run_energy)
 
 
@@ -36,7 +43,12 @@ def run_energy(args) -> int:
     if any(b < 1 for b in batches):
         raise ValueError(f"--batch: batch sizes must be >= 1, got {args.batch!r}")
     names = None if args.terms is None else set(args.terms.split(","))
-    record = run_energy_benchmark(device, batches, names=names)
+    if args.strand_stride < 1:
+        raise ValueError(f"--strand-stride: expected a positive int, got {args.strand_stride}")
+    if args.vertices < 3:
+        raise ValueError(f"--vertices: expected >= 3, got {args.vertices}")
+    record = run_energy_benchmark(device, batches, names=names, torch_compile=args.torch_compile,
+                                  strand_stride=args.strand_stride, num_vertices=args.vertices)
     path = args.json or os.path.join(args.out, "bench_energy.json")
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     write_json(record, path)
