@@ -206,7 +206,7 @@ class CapturedEnergy:
         self.inputs, self.config, self.dynamic, self.terms = inputs, config or EnergyConfig(), dynamic, terms
         self.shape, self.dtype, self.device = tuple(x.shape), x.dtype, x.device
         # Eager warm-up: checks the inputs, compiles the kernels, and sizes the pair buffer.
-        probe = self._evaluate(x, graph_safe=False)
+        probe = self._evaluate(x, graph_safe=False, capacity=None)
         segments = x.shape[0] * x.shape[1] * (x.shape[2] - 1)
         found = 0 if probe[2] is None else probe[2].pair_count
         self.hair_hair_capacity = max(2 * found, segments, 1)
@@ -216,7 +216,7 @@ class CapturedEnergy:
             from hairwarp.runtime import CapturedCall
 
             def step(x_static):
-                energy, gradient, info = self._evaluate(x_static, graph_safe=True)
+                energy, gradient, info = self._evaluate(x_static, graph_safe=True, capacity=self.hair_hair_capacity)
                 self._graph_info = info
                 return energy, gradient
 
@@ -228,12 +228,11 @@ class CapturedEnergy:
         """Whether calls replay a CUDA graph."""
         return self._graph is not None
 
-    def _evaluate(self, x: torch.Tensor, graph_safe: bool):
+    def _evaluate(self, x: torch.Tensor, graph_safe: bool, capacity: int | None):
         xg = x.detach().requires_grad_(True)
         with torch.enable_grad():
             result = total_energy(xg, self.inputs, self.config, dynamic=self.dynamic, terms=self.terms,
-                                  graph_safe=graph_safe,
-                                  hair_hair_capacity=getattr(self, "hair_hair_capacity", None) if graph_safe else None)
+                                  graph_safe=graph_safe, hair_hair_capacity=capacity)
             (gradient,) = torch.autograd.grad(result.total.sum(), xg)
         return result.total.detach(), gradient, result.hair_hair_info
 
@@ -243,7 +242,7 @@ class CapturedEnergy:
                              f"got {tuple(x.shape)} {x.dtype} on {x.device}")
         if self._graph is not None:
             return self._graph(x)
-        energy, gradient, self._info = self._evaluate(x, graph_safe=True)
+        energy, gradient, self._info = self._evaluate(x, graph_safe=True, capacity=self.hair_hair_capacity)
         return energy, gradient
 
     def overflowed(self) -> bool:
