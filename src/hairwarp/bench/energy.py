@@ -6,11 +6,19 @@ to the hair's reach), batch 1 and 32 (B different frames of a head-turn motion).
 Writes {"device", "machine", "sizes", "results": [{"name", "warp_ms", "torch_ms", ...}]},
 a result named "total" included (Eq. 6 without L_func_reg: every term, inertia too).
 
-With `torch_compile` (default), each plain-torch energy is also timed wrapped in
-`torch.compile` (inductor; the backward through AOTAutograd), after a first call that compiles
-it: fields `torch_compile_ms`, `torch_compile_first_ms` (compile included), `speedup_vs_compile`
-and `compile_rel_diff` (|compiled - eager| / |eager| of the energy). A term whose peer does not
-compile (the contact peers' data-dependent searches may not) records None and `compile_note`.
+Each row: `warp_ms` and `torch_ms` (forward + backward, after untimed warm-up calls), `speedup`
+(torch_ms / warp_ms) and `warp_rel_diff` (max |warp - torch| / |torch| of the (B,) energies, from
+the first calls). It is float32 round-off except for hair_body_contact and total: their torch
+peer takes the distance from the nearest body vertex (the neural simulators' query), Warp's is
+exact (2e-2 and 6e-3 apart at 128 strands x 12 vertices, batch 1).
+
+With `torch_compile` (default), each plain-torch energy function (the forward only: the backward
+goes through AOTAutograd) is also timed wrapped in `torch.compile(dynamic=False)` (inductor; on
+the CPU it needs a C++ compiler), after a first call that compiles it: fields `torch_compile_ms`,
+`torch_compile_first_ms` (that first call, compile included), `speedup_vs_compile`
+(torch_compile_ms / warp_ms) and `compile_rel_diff` (|compiled - eager| / |eager| of the energy).
+A term whose peer does not compile (no C++ compiler; the contact peers' data-dependent searches
+may not) records None in those fields and the exception's first line in `compile_note`.
 The plain-torch hair-hair peer runs one batch item at a time (`torch_hair_hair_by_item`): at
 batch 32 in one call it needs ~35 GB on the CPU.
 """
@@ -22,7 +30,7 @@ from dataclasses import replace
 
 import torch
 
-from hairwarp.runtime import machine_name, time_ms
+from hairwarp.runtime import machine_name, synchronize, time_ms
 from hairwarp.config import EnergyConfig
 
 STRAND_TERM_NAMES = ("stretch", "bending", "auxiliary", "smoothness", "gravity", "root_alignment", "inertia")
@@ -130,8 +138,8 @@ def _compiled_peer(torch_fn):
     """`torch_fn` through torch.compile, or (None, reason) when torch.compile is not usable."""
     try:
         return torch.compile(torch_fn, dynamic=False), None
-    except Exception as exc:  # e.g. no C++ compiler for inductor on the CPU
-        return None, f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
+    except Exception as exc:  # torch.compile itself unusable (a missing C++ compiler fails later, at the first call)
+        return None, _exception_line(exc)
 
 
 def run_energy_benchmark(device: torch.device, batches=(1, 32), *, config: EnergyConfig | None = None,
@@ -153,13 +161,12 @@ def run_energy_benchmark(device: torch.device, batches=(1, 32), *, config: Energ
     Returns:
         The benchmark record (see the module docstring).
     """
-    import time
-
     from hairwarp import set_finite_checks
 
     config = config or EnergyConfig()
     results = []
     sizes = {}
+    compile_notes_printed = set()
     previous_checks = set_finite_checks(False)  # the inputs are ours: no NaN scans in the timed loop
     try:
         for batch in batches:
@@ -179,20 +186,20 @@ def run_energy_benchmark(device: torch.device, batches=(1, 32), *, config: Energ
                     return run
 
                 warp_ms = time_ms(step(warp_fn), device, warmup=2, repeats=5, min_time_s=0.2)
-                t0 = time.perf_counter()
-                step(torch_fn)()
-                first = (time.perf_counter() - t0) * 1e3
+                _, warp_value = _first_call(warp_fn, x)
+                first, eager_value = _first_call(torch_fn, x)
                 if first > skip_torch_above_ms:
                     torch_ms, torch_note = first, "timed once"
                 else:
                     torch_ms = time_ms(step(torch_fn), device, warmup=1, repeats=3, min_time_s=0.2)
                     torch_note = ""
                 row = {"name": name, "batch": batch, "warp_ms": warp_ms, "torch_ms": torch_ms,
-                       "speedup": torch_ms / warp_ms if warp_ms > 0 else None}
+                       "speedup": torch_ms / warp_ms if warp_ms > 0 else None,
+                       "warp_rel_diff": _rel_diff(warp_value, eager_value)}
                 if torch_note:
                     row["note"] = torch_note
                 if torch_compile:
-                    row.update(_time_compiled(torch_fn, step, device, first, skip_torch_above_ms))
+                    row.update(_time_compiled(torch_fn, x, step, device, eager_value, first, skip_torch_above_ms))
                     if row["torch_compile_ms"] is not None and warp_ms > 0:
                         row["speedup_vs_compile"] = row["torch_compile_ms"] / warp_ms
                     torch._dynamo.reset()  # one term's graphs and guards do not pile up on the next
@@ -202,35 +209,60 @@ def run_energy_benchmark(device: torch.device, batches=(1, 32), *, config: Energ
                     extra = f"   compile {compiled:10.3f} ms" if compiled is not None else ""
                     print(f"  B={batch:<3d} {name:<18s} warp {warp_ms:10.3f} ms   torch {torch_ms:10.3f} ms   "
                           f"x{row['speedup']:.1f}{extra}", flush=True)
+                    note = row.get("compile_note")
+                    if note and note not in compile_notes_printed:  # no C++ compiler: one line, not one per row
+                        print(f"  torch.compile unusable for {name} (column n/a): {note}", flush=True)
+                        compile_notes_printed.add(note)
     finally:
         set_finite_checks(previous_checks)
     return {"device": str(device), "machine": machine_name(device), "sizes": sizes,
             "config": {k: v for k, v in vars(config).items()}, "results": results}
 
 
-def _time_compiled(torch_fn, step, device, eager_first_ms: float, skip_above_ms: float) -> dict:
-    """The torch.compile columns of one row (see the module docstring)."""
+def _first_call(fn, x) -> tuple[float, torch.Tensor]:
+    """One untimed forward + backward of `fn`: (its time [ms], its (B,) energy detached in float64)."""
     import time
 
+    x.grad = None
+    t0 = time.perf_counter()
+    value = fn()
+    value.sum().backward()
+    synchronize(x.device)  # a row "timed once" takes this time as its timing
+    return (time.perf_counter() - t0) * 1e3, value.detach().double()
+
+
+def _rel_diff(value: torch.Tensor, reference: torch.Tensor) -> float:
+    """The largest |value - reference| / |reference| over the batch (0 where both are 0)."""
+    return float(((value - reference).abs() / reference.abs().clamp_min(1e-30)).max())
+
+
+def _exception_line(exc: Exception) -> str:
+    """`Type: first line of the message`, for a row's note."""
+    text = str(exc).strip()
+    return f"{type(exc).__name__}: {text.splitlines()[0] if text else ''}"
+
+
+def _time_compiled(torch_fn, x, step, device, eager_value: torch.Tensor, eager_first_ms: float,
+                   skip_above_ms: float) -> dict:
+    """The torch.compile columns of one row (see the module docstring).
+
+    The first call compiles (forward and, through AOTAutograd, backward); its energy is checked
+    against `eager_value`, and the timing that follows excludes the compile. Exceptions from
+    compiling or running the compiled peer are recorded in `compile_note`, never raised.
+    """
     compiled, note = _compiled_peer(torch_fn)
     out = {"torch_compile_ms": None, "torch_compile_first_ms": None, "speedup_vs_compile": None}
     if compiled is None:
         return {**out, "compile_note": note}
     try:
-        t0 = time.perf_counter()
-        step(compiled)()
-        out["torch_compile_first_ms"] = (time.perf_counter() - t0) * 1e3
-        with torch.no_grad():
-            eager_value, compiled_value = torch_fn().double(), compiled().double()
-        out["compile_rel_diff"] = float(((compiled_value - eager_value).abs() / eager_value.abs().clamp_min(1e-30)).max())
+        out["torch_compile_first_ms"], compiled_value = _first_call(compiled, x)
+        out["compile_rel_diff"] = _rel_diff(compiled_value, eager_value)
         if eager_first_ms > skip_above_ms:
-            t0 = time.perf_counter()
-            step(compiled)()
-            out["torch_compile_ms"] = (time.perf_counter() - t0) * 1e3
+            out["torch_compile_ms"] = _first_call(compiled, x)[0]
         else:
             out["torch_compile_ms"] = time_ms(step(compiled), device, warmup=1, repeats=3, min_time_s=0.2)
     except Exception as exc:  # a peer that does not compile (graph breaks are fine; errors are not)
-        return {**out, "compile_note": f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"}
+        return {**out, "compile_note": _exception_line(exc)}
     return out
 
 

@@ -20,8 +20,9 @@ def add_parser(subparsers) -> None:
     e.add_argument("--batch", default="1,32", help="comma-separated batch sizes (default: 1,32)")
     e.add_argument("--terms", default=None, help="comma-separated subset of terms (default: all, and total)")
     e.add_argument("--torch-compile", action=argparse.BooleanOptionalAction, default=True,
-                   help="also time each plain-torch energy through torch.compile (inductor; on the CPU it needs a "
-                        "C++ compiler, and compiling takes seconds per term)")
+                   help="also time each plain-torch energy through torch.compile (inductor, dynamic=False; on the "
+                        "CPU it needs a C++ compiler, and compiling takes seconds per term; a term that does not "
+                        "compile shows n/a and its reason in the JSON) (default: on)")
     e.add_argument("--strand-stride", type=int, default=1,
                    help="keep every k-th strand (1: the paper's 1024)")
     e.add_argument("--vertices", type=int, default=100, help="vertices per strand (100: the paper's)")
