@@ -85,13 +85,13 @@ def _kernel_probe(device, batches) -> dict:
     hh = importlib.import_module("hairwarp.ops.hair_hair_contact")
     hb = importlib.import_module("hairwarp.ops.hair_body_contact")
     c, out = EnergyConfig(), {}
-    previous, chosen = set_finite_checks(False), dict(hh._CELL_FACTOR)
+    previous, chosen = set_finite_checks(False), hh._CELL_FACTOR
     try:
         for batch in batches:
             x, inputs, _, _ = build_energy_inputs(batch, device)
             x = x.detach().requires_grad_(True)
             for factor in (0.5, 0.75, 1.0, 1.5):
-                hh._CELL_FACTOR[device.type] = factor
+                hh._CELL_FACTOR = factor
 
                 def hair_hair():
                     x.grad = None
@@ -111,7 +111,7 @@ def _kernel_probe(device, batches) -> dict:
             for key in [k for k in out if f"B={batch} " in k]:
                 print(f"  {key:<32s} {out[key]:8.3f} ms", flush=True)
     finally:
-        hh._CELL_FACTOR.update(chosen)
+        hh._CELL_FACTOR = chosen
         set_finite_checks(previous)
     return out
 

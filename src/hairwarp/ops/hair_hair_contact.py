@@ -66,7 +66,7 @@ _RADIUS_SLACK = 1e-4
 # times the mean is "long" (found from its own query), and grid cells are _CELL_FACTOR times
 # a typical query's radius (fewer, fuller cells: each visited cell costs a lookup).
 _LONG_FACTOR = 1.5
-_CELL_FACTOR = {"cpu": 1.0, "cuda": 1.0}
+_CELL_FACTOR = 1.0
 
 
 class HairHairCapacityError(RuntimeError):
@@ -258,8 +258,7 @@ def _grid_params(x4: torch.Tensor, cutoff: float) -> torch.Tensor:
     lengths = (x4[:, :, 1:] - x4[:, :, :-1]).norm(dim=-1)
     long_half = 0.5 * torch.minimum(lengths.max(), _LONG_FACTOR * lengths.mean())
     absolute_slack = 4.0 * x4.abs().max() * 2.0**-23
-    cell_factor = _CELL_FACTOR[x4.device.type]
-    cell_width = (cutoff + 2.0 * long_half) * cell_factor * (1.0 + _RADIUS_SLACK) + absolute_slack
+    cell_width = (cutoff + 2.0 * long_half) * _CELL_FACTOR * (1.0 + _RADIUS_SLACK) + absolute_slack
     return torch.stack([cell_width, long_half, absolute_slack]).to(torch.float32)
 
 
