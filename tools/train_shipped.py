@@ -123,6 +123,16 @@ def _finish(trainer, args, kind: str, info: dict, start: float) -> None:
     print(json.dumps(info, indent=1))
 
 
+def _number_or_text(value: str):
+    """An int, else a float, else the text itself (a `--model` field may be a name)."""
+    for cast in (int, float):
+        try:
+            return cast(value)
+        except ValueError:
+            pass
+    return value.strip()
+
+
 def _overrides(flag: str, items, cast=float) -> dict:
     out = {}
     for item in items:
@@ -149,7 +159,7 @@ def train_static(args) -> None:
                                     phase3_hairstyles=PHASE3_HAIRSTYLES, batch_size=args.batch,
                                     bp_schedule=args.bp_schedule, learning_rate=args.lr, bp_start=args.bp_start,
                                     loss_normalization=args.loss_normalization, energy=_overrides("--energy", args.energy),
-                                    model=_overrides("--model", args.model, int), checkpoint_every=0,
+                                    model=_overrides("--model", args.model, _number_or_text), checkpoint_every=0,
                                     data=data_config(args.long_hair_fraction), curve_every=0)
 
     from hairwarp.evaluation.scenes import comparison_scene
@@ -237,8 +247,9 @@ def main(argv=None) -> None:
                         help="static/quaffure: b_p at the first step (0.9 in the paper; 0.01 = constant)")
     parser.add_argument("--energy", action="append", default=[], metavar="FIELD=VALUE",
                         help="override an EnergyConfig field in the training loss (repeatable), e.g. stretch_weight=1e10")
-    parser.add_argument("--model", action="append", default=[], metavar="FIELD=INT",
-                        help="static: override a network size field (repeatable), e.g. grid_height=16 grid_width=16")
+    parser.add_argument("--model", action="append", default=[], metavar="FIELD=VALUE",
+                        help="static: override a network config field (repeatable), e.g. grid_height=16 "
+                             "grid_width=16 length_projection=follow_the_leader")
     parser.add_argument("--long-hair-fraction", type=float, default=0.0,
                         help="static: share of phase-2/3 samples drawn from the pool's long hairstyles (>= 0.4 m)")
     parser.add_argument("--lr", type=float, default=StaticTrainingConfig.learning_rate, help="Adam step size")

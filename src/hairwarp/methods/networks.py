@@ -145,7 +145,8 @@ class HairFormerSimulator:
                                     poses.to(device=rigid.device, dtype=dtype)[None], motion)
         maps = out.deformation_map.reshape(t, *out.deformation_map.shape[2:])
         root_uv = hairstyle.root_uv.to(rigid.device)
-        return apply_deformation(rigid.to(dtype), maps, root_uv).to(rigid.dtype)
+        projection = self.dynamic.config.static.length_projection
+        return apply_deformation(rigid.to(dtype), maps, root_uv, projection).to(rigid.dtype)
 
     def simulate(self, frames) -> torch.Tensor:
         """Dynamic simulation over consecutive frames of the scene's motion: (T, M, N, 3)."""

@@ -18,7 +18,13 @@ from hairwarp.models.config import (
     QuaffureConfig,
     StaticConfig,
 )
-from hairwarp.models.deformation import apply_deformation, nearest_cell, sample_deformation, taper_weights
+from hairwarp.models.deformation import (
+    apply_deformation,
+    length_projection_of,
+    nearest_cell,
+    sample_deformation,
+    taper_weights,
+)
 from hairwarp.models.dynamic import DynamicNetwork, DynamicOutput
 from hairwarp.models.quaffure import QuaffureNetwork
 from hairwarp.models.static import StaticNetwork
@@ -37,6 +43,7 @@ __all__ = [
     "StaticConfig",
     "StaticNetwork",
     "apply_deformation",
+    "length_projection_of",
     "load_checkpoint",
     "nearest_cell",
     "parameter_count",

@@ -18,10 +18,22 @@ FUSION_LAYERNORM_CONCAT = "layernorm_concat"  # ablation (1): LayerNorm both, co
 FUSION_LORA = "lora"  # ablation (2): I_sd blocks, frozen static head + LoRA instead of Eq. 4
 FUSIONS = (FUSION_CROSS_ATTENTION, FUSION_LAYERNORM_CONCAT, FUSION_LORA)
 
+# What follows the tapered deformation of Eq. 2 (`hairwarp.models.deformation.apply_deformation`):
+# nothing (the paper), or the follow-the-leader projection onto the rest segment lengths
+# (`hairwarp.ops.follow_the_leader`), which makes the drape inextensible by construction.
+LENGTH_PROJECTION_NONE = "none"
+LENGTH_PROJECTION_FOLLOW_THE_LEADER = "follow_the_leader"
+LENGTH_PROJECTIONS = (LENGTH_PROJECTION_NONE, LENGTH_PROJECTION_FOLLOW_THE_LEADER)
+
 
 def _check_positive_int(owner: str, name: str, value) -> None:
     if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
         raise ValueError(f"{owner}.{name}: expected a positive int, got {value!r}")
+
+
+def _check_length_projection(owner: str, value) -> None:
+    if value not in LENGTH_PROJECTIONS:
+        raise ValueError(f"{owner}.length_projection: expected one of {list(LENGTH_PROJECTIONS)}, got {value!r}")
 
 
 def _check_non_negative(owner: str, name: str, value, *, upper: float | None = None) -> None:
@@ -86,6 +98,9 @@ class StaticConfig(_DictConfig):
             about a millimetre (the paper: "randomly initialized and clipped at 0.01").
         deformation_clip: the clip the paper applies to the deformations early in static
             training [m]; the networks' `forward(..., clip=...)` applies it when asked.
+        length_projection: "none" (the paper: positions = rigid + tapered map) or
+            "follow_the_leader" (those positions projected onto the rest segment lengths, so a
+            drape never stretches a strand; beyond the paper).
     """
 
     latent_dim: int = 512
@@ -105,9 +120,11 @@ class StaticConfig(_DictConfig):
     dropout: float = 0.0
     head_init_gain: float = 1e-3
     deformation_clip: float = 0.01
+    length_projection: str = LENGTH_PROJECTION_NONE
 
     def __post_init__(self):
         owner = type(self).__name__
+        _check_length_projection(owner, self.length_projection)
         for name in (
             "latent_dim", "model_dim", "grid_height", "grid_width", "shape_dim", "pose_dim",
             "num_heads", "num_encoder_layers", "num_hair_body_layers", "ffn_dim",
@@ -233,6 +250,7 @@ class QuaffureConfig(_DictConfig):
             so the deformation map is base_size * 8 per side (32, the scalp grid).
         head_init_gain: as in StaticConfig: small last layer, millimetre initial deformations.
         deformation_clip: as in StaticConfig [m].
+        length_projection: as in StaticConfig.
     """
 
     latent_dim: int = 512
@@ -243,9 +261,11 @@ class QuaffureConfig(_DictConfig):
     base_size: int = 4
     head_init_gain: float = 1e-3
     deformation_clip: float = 0.01
+    length_projection: str = LENGTH_PROJECTION_NONE
 
     def __post_init__(self):
         owner = type(self).__name__
+        _check_length_projection(owner, self.length_projection)
         for name in ("latent_dim", "shape_dim", "pose_dim", "num_vertices", "base_size"):
             _check_positive_int(owner, name, getattr(self, name))
         self.channels = tuple(self.channels)

@@ -24,6 +24,8 @@ import torch
 
 from hairwarp._validate import FLOAT_DTYPES, check_tensor
 from hairwarp.config import NUM_FIXED_VERTICES
+from hairwarp.ops.strand_projection import follow_the_leader
+from hairwarp.models.config import LENGTH_PROJECTION_FOLLOW_THE_LEADER, LENGTH_PROJECTIONS
 
 
 def taper_weights(
@@ -99,19 +101,37 @@ def sample_deformation(deformation_map: torch.Tensor, root_uv: torch.Tensor) -> 
     return flat[batch_index, cells if cells.dim() == 2 else cells[None, :]]
 
 
-def apply_deformation(rigid: torch.Tensor, deformation_map: torch.Tensor, root_uv: torch.Tensor) -> torch.Tensor:
+def length_projection_of(model) -> str:
+    """The `length_projection` a network's drapes use (a DDP wrapper, a dynamic network's static
+    settings and a config without the field, "none", are all understood).
+    """
+    model = getattr(model, "module", model)
+    config = model.config
+    config = getattr(config, "static", config)
+    return getattr(config, "length_projection", "none")
+
+
+def apply_deformation(
+    rigid: torch.Tensor, deformation_map: torch.Tensor, root_uv: torch.Tensor, length_projection: str = "none"
+) -> torch.Tensor:
     """Hair positions from the rigid placement and a deformation map (Eq. 2 with Section 4.2.3).
 
     p[b, s, v] = rigid[b, s, v] + D[b, cell(uv_s)][v] * taper(v), where cell is the nearest
     lookup and taper is `taper_weights` (0 for vertices 0 and 1, which stay exactly fixed).
+    With `length_projection="follow_the_leader"` these positions are then projected onto the
+    rigid placement's segment lengths (`hairwarp.ops.follow_the_leader`): the map only bends
+    strands, never stretches them.
 
     Args:
         rigid: (B, M, N, 3) rigidly posed hair P_rigid [m] (Eq. 1), float32 or float64.
         deformation_map: (B, M_H0, M_W0, N, 3) network output [m], same dtype and device.
         root_uv: (M, 2) or (B, M, 2) root UVs in [0, 1]^2.
+        length_projection: "none" (Eq. 2 as the paper) or "follow_the_leader"
+            (`StaticConfig.length_projection`).
 
     Returns:
-        (B, M, N, 3) deformed hair positions [m], differentiable w.r.t. `rigid` and the map.
+        (B, M, N, 3) deformed hair positions [m], differentiable w.r.t. the map (and `rigid`
+        without a projection).
 
     Raises:
         ValueError: on a wrong shape, dtype, device, N < 3, mismatched sizes, NaN or Inf.
@@ -129,5 +149,10 @@ def apply_deformation(rigid: torch.Tensor, deformation_map: torch.Tensor, root_u
     _check_root_uv(root_uv, b, rigid.device)
     if root_uv.shape[-2] != m:
         raise ValueError(f"root_uv: expected {m} strands like rigid, got shape {tuple(root_uv.shape)}")
+    if length_projection not in LENGTH_PROJECTIONS:
+        raise ValueError(f"length_projection: expected one of {list(LENGTH_PROJECTIONS)}, got {length_projection!r}")
     taper = taper_weights(n, dtype=rigid.dtype, device=rigid.device)
-    return rigid + sample_deformation(deformation_map, root_uv) * taper[:, None]
+    positions = rigid + sample_deformation(deformation_map, root_uv) * taper[:, None]
+    if length_projection == LENGTH_PROJECTION_FOLLOW_THE_LEADER:
+        positions = follow_the_leader(rigid, positions)
+    return positions

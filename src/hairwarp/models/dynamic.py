@@ -397,7 +397,7 @@ class DynamicNetwork(nn.Module):
             ((B, M, N, 3) positions [m], (B, d_m) C_dyn(t)).
         """
         out = self.forward(z, beta, theta, motion, hidden, clip)
-        return apply_deformation(rigid, out.deformation_map, root_uv), out.hidden
+        return apply_deformation(rigid, out.deformation_map, root_uv, self.config.static.length_projection), out.hidden
 
 
 def _copy_head(head: PredictionHead) -> PredictionHead:

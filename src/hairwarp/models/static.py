@@ -173,4 +173,4 @@ class StaticNetwork(nn.Module):
             (B, M, N, 3) positions [m]; vertices 0 and 1 equal `rigid` exactly.
         """
         check_tensor("rigid", rigid, shape=[None, None, self.config.num_vertices, 3], dtypes=None)
-        return apply_deformation(rigid, self.forward(z, beta, theta, clip), root_uv)
+        return apply_deformation(rigid, self.forward(z, beta, theta, clip), root_uv, self.config.length_projection)

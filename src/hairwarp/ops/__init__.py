@@ -9,6 +9,7 @@ from hairwarp.ops.hair_body_contact import (
     point_mesh_signed_distance,
 )
 from hairwarp.ops.hair_hair_contact import hair_hair_contact_energy, hair_hair_contact_pairs
+from hairwarp.ops.strand_projection import follow_the_leader
 from hairwarp.ops.strand_energies import (
     auxiliary_energy,
     bending_energy,
@@ -23,6 +24,7 @@ from hairwarp.ops.strand_energies import (
 
 __all__ = [
     "barrier",
+    "follow_the_leader",
     "edge_edge_distance",
     "point_triangle_distance",
     "hair_hair_contact_energy",

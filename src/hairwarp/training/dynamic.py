@@ -26,7 +26,7 @@ import dataclasses
 import torch
 
 from hairwarp.energy import total_energy
-from hairwarp.models import DynamicConfig, DynamicNetwork, apply_deformation
+from hairwarp.models import DynamicConfig, DynamicNetwork, apply_deformation, length_projection_of
 from hairwarp.training import distributed
 from hairwarp.training._common import (
     DTYPES,
@@ -85,13 +85,14 @@ def dynamic_loss(model: DynamicNetwork, batch: SequenceBatch, energy, clip: floa
     b, w, r = batch.batch_size, batch.warmup_frames, batch.rollout_frames
     m, n = batch.rollout.rigid.shape[1], batch.rollout.rigid.shape[2]
     root_uv = batch.rollout.root_uv
+    projection = length_projection_of(model)
     with torch.no_grad():
         warm = model.simulate(batch.z, batch.betas, batch.poses[:, :w], batch.motion[:, :w], None, clip)
         warm_maps = warm.deformation_map.reshape(b * w, *warm.deformation_map.shape[2:])
-        warm_positions = apply_deformation(batch.warmup.rigid, warm_maps, root_uv).reshape(b, w, m, n, 3)
+        warm_positions = apply_deformation(batch.warmup.rigid, warm_maps, root_uv, projection).reshape(b, w, m, n, 3)
     out = model.simulate(batch.z, batch.betas, batch.poses[:, w:], batch.motion[:, w:], warm.hidden, clip)
     maps = out.deformation_map.reshape(b * r, *out.deformation_map.shape[2:])
-    positions = apply_deformation(batch.rollout.rigid, maps, root_uv)  # (B * R, M, N, 3)
+    positions = apply_deformation(batch.rollout.rigid, maps, root_uv, projection)  # (B * R, M, N, 3)
     prev, prev2 = inertia_history(warm_positions, positions.reshape(b, r, m, n, 3))
     inputs = dataclasses.replace(batch.rollout.inputs, prev=prev.reshape(b * r, m, n, 3),
                                  prev2=prev2.reshape(b * r, m, n, 3))

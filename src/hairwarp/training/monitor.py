@@ -31,7 +31,7 @@ import torch
 
 from hairwarp.config import ALL_TERMS
 from hairwarp.energy import total_energy
-from hairwarp.models import apply_deformation
+from hairwarp.models import apply_deformation, length_projection_of
 
 CURVE_NAME = "learning_curve.json"
 CURVE_FIGURE = "learning_curve.png"
@@ -44,13 +44,15 @@ def _terms(energy) -> list[str]:
     return [t for t in ALL_TERMS if t not in _STATIC_SKIP and weights.get(t, 0.0) != 0.0]
 
 
-def term_gradients(deformation: torch.Tensor, rigid: torch.Tensor, root_uv: torch.Tensor, inputs, energy) -> dict:
+def term_gradients(deformation: torch.Tensor, rigid: torch.Tensor, root_uv: torch.Tensor, inputs, energy,
+                   length_projection: str = "none") -> dict:
     """Gradient norms of each term of the batch-mean static energy with respect to the map D.
 
     Args:
         deformation: (B, H, W, N, 3) the predicted map (detached here).
         rigid, root_uv, inputs: the batch's rigid placement, root UVs and energy inputs.
         energy: the `EnergyConfig` of the step (its b_p).
+        length_projection: the network's (`length_projection_of`).
 
     Returns:
         {"norm": {term: |dE/dD|}, "cosine_with_total": {term: cos}, "total_norm": float,
@@ -60,7 +62,8 @@ def term_gradients(deformation: torch.Tensor, rigid: torch.Tensor, root_uv: torc
     d = deformation.detach().clone().requires_grad_(True)
     grads = {}
     for term in _terms(energy):
-        value = total_energy(apply_deformation(rigid, d, root_uv), inputs, energy, terms=(term,)).total.mean()
+        x = apply_deformation(rigid, d, root_uv, length_projection)
+        value = total_energy(x, inputs, energy, terms=(term,)).total.mean()
         (g,) = torch.autograd.grad(value, d, allow_unused=True)
         grads[term] = torch.zeros_like(d) if g is None else g.detach()
     total = sum(grads.values())
@@ -169,7 +172,7 @@ class HeldOutScenes:
                 for item in self.scenes:
                     rigid = item["frames"].rigid.positions
                     dmap = model(item["z"], item["betas"], item["poses"], clip=clip)
-                    x = apply_deformation(rigid, dmap, item["root_uv"])
+                    x = apply_deformation(rigid, dmap, item["root_uv"], length_projection_of(model))
                     scores = self._scores(x, item, item["reference_energy"])
                     scores["displacement_by_vertex_mm"] = displacement_by_vertex(x, rigid)
                     out[item["name"]] = scores
@@ -247,11 +250,11 @@ class LearningCurve:
         try:
             with torch.no_grad():
                 dmap = model(batch.z, batch.betas, batch.poses, clip=s["clip"])
-                x = apply_deformation(batch.rigid, dmap, batch.root_uv)
+                x = apply_deformation(batch.rigid, dmap, batch.root_uv, length_projection_of(model))
                 loss = total_energy(x, batch.inputs, energy)
         finally:
             model.train(was_training)
-        grads = term_gradients(dmap, batch.rigid, batch.root_uv, batch.inputs, energy)
+        grads = term_gradients(dmap, batch.rigid, batch.root_uv, batch.inputs, energy, length_projection_of(model))
         train = {
             "bp": s["bp"], "phase": s["phase"], "loss": float(loss.total.mean()),
             "terms": {k: float(v.mean()) for k, v in loss.terms.items()},

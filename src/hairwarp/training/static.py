@@ -23,7 +23,14 @@ import torch
 from torch import nn
 
 from hairwarp.energy import total_energy
-from hairwarp.models import QuaffureConfig, QuaffureNetwork, StaticConfig, StaticNetwork, apply_deformation
+from hairwarp.models import (
+    QuaffureConfig,
+    QuaffureNetwork,
+    StaticConfig,
+    StaticNetwork,
+    apply_deformation,
+    length_projection_of,
+)
 from hairwarp.training import distributed
 from hairwarp.training._common import (
     DTYPES,
@@ -136,7 +143,7 @@ def static_loss(model: nn.Module, batch: HairBatch, energy, clip: float | None =
         (loss () tensor, terms {name: batch-mean float}, positions (B, M, N, 3)).
     """
     deformation = model(batch.z, batch.betas, batch.poses, clip=clip)
-    positions = apply_deformation(batch.rigid, deformation, batch.root_uv)
+    positions = apply_deformation(batch.rigid, deformation, batch.root_uv, length_projection_of(model))
     result = total_energy(positions, batch.inputs, energy)
     if normalization == "rigid":
         with torch.no_grad():

@@ -1,0 +1,101 @@
+"""Torch bridge of the follow-the-leader length projection; device code in
+`hairwarp.kernels.strand_projection`.
+
+A deformation added to the rigid placement (Eq. 2) stretches strands unless the network learns
+to rotate every segment exactly; projecting the deformed strand back to its rest lengths makes
+length preservation hold by construction, so the stretch term no longer fights the contact
+terms in training (`StaticConfig.length_projection = "follow_the_leader"`).
+"""
+
+from __future__ import annotations
+
+import torch
+import warp as wp
+from torch.autograd.function import once_differentiable
+
+from hairwarp import _warp
+from hairwarp._validate import check_tensor
+from hairwarp.config import NUM_FIXED_VERTICES
+from hairwarp.kernels import strand_projection as kernels
+
+# Below this leader-to-target distance [m] the rigid segment direction is kept (no gradient).
+FOLLOW_THE_LEADER_EPS = 1e-9
+
+_concrete: dict = {}
+
+
+def _kernel(kernel, dtype: torch.dtype):
+    """The float32/float64 instance of a generic kernel (resolved once, not per launch)."""
+    key = (kernel.key, dtype)
+    if key not in _concrete:
+        vec = wp.array(dtype=_warp._VEC3[dtype])
+        types = {arg.label: (vec if hasattr(arg.type, "dtype") else
+                             wp.int32 if arg.type in (int, wp.int32) else _warp.scalar_type(dtype))
+                 for arg in kernel.adj.args}
+        _concrete[key] = wp.overload(kernel, types)
+    return _concrete[key]
+
+
+def _launch(kernel, strands: int, device: torch.device, inputs, outputs) -> None:
+    if strands == 0:
+        return
+    with _warp.launch_scope(device):
+        wp.launch(kernel, dim=strands, inputs=inputs, outputs=outputs, device=_warp.warp_device(device))
+
+
+class _FollowTheLeader(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, rigid, target):
+        n = rigid.shape[-2]
+        rigid, target = rigid.contiguous(), target.contiguous()
+        out = torch.empty_like(target)
+        eps = _warp.scalar(FOLLOW_THE_LEADER_EPS, target.dtype)
+        _launch(_kernel(kernels.follow_the_leader_kernel, target.dtype), target.numel() // (3 * n), target.device,
+                [_warp.as_warp(rigid, vec3=True), _warp.as_warp(target, vec3=True), n, eps],
+                [_warp.as_warp(out, vec3=True)])
+        ctx.save_for_backward(rigid, target, out)
+        return out
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_out):
+        rigid, target, out = ctx.saved_tensors
+        n = rigid.shape[-2]
+        grad_target = torch.empty_like(target)
+        eps = _warp.scalar(FOLLOW_THE_LEADER_EPS, target.dtype)
+        _launch(_kernel(kernels.follow_the_leader_adjoint_kernel, target.dtype), target.numel() // (3 * n),
+                target.device,
+                [_warp.as_warp(rigid, vec3=True), _warp.as_warp(target, vec3=True), _warp.as_warp(out, vec3=True),
+                 _warp.as_warp(grad_out.contiguous(), vec3=True), n, eps],
+                [_warp.as_warp(grad_target, vec3=True)])
+        return None, grad_target
+
+
+def follow_the_leader(rigid: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Project target strands onto the rest segment lengths of the rigid placement.
+
+    x_k = target_k for the fixed vertices k < 2; then x_i = x_{i-1} + l_i * unit(target_i -
+    x_{i-1}) with l_i = |rigid_i - rigid_{i-1}|: every segment of the result has its rest length,
+    and each vertex lies on the ray from its (projected) predecessor towards its target.
+
+    Args:
+        rigid: (..., M, N, 3) strands whose segment lengths are the rest lengths [m] (the
+            rigid placement, Eq. 1); treated as constant (no gradient).
+        target: (..., M, N, 3) wanted positions [m], same shape, dtype and device.
+
+    Returns:
+        (..., M, N, 3) projected positions [m], differentiable w.r.t. `target`.
+
+    Raises:
+        ValueError: on a wrong shape, dtype or device, fewer than 3 vertices, NaN or Inf.
+    """
+    check_tensor("rigid", rigid, shape=["...", None, 3])
+    check_tensor("target", target, dtypes=(rigid.dtype,), device=rigid.device)
+    if target.shape != rigid.shape:
+        raise ValueError(f"target: expected shape {tuple(rigid.shape)} like rigid, got {tuple(target.shape)}")
+    if rigid.dim() < 3 or rigid.shape[-2] <= NUM_FIXED_VERTICES:
+        raise ValueError(f"rigid: expected (..., M, N, 3) with N > {NUM_FIXED_VERTICES}, got {tuple(rigid.shape)}")
+    return _FollowTheLeader.apply(rigid.detach(), target)
+
+
+__all__ = ["FOLLOW_THE_LEADER_EPS", "follow_the_leader"]

@@ -1,0 +1,101 @@
+"""Follow-the-leader length projection (`hairwarp.ops.follow_the_leader`): a numpy float64
+reference written from the recurrence, finite differences, rest lengths kept, degenerate
+targets, bad input, and the network option that uses it (`StaticConfig.length_projection`)."""
+
+import numpy as np
+import pytest
+import torch
+
+from hairwarp.models import StaticConfig, StaticNetwork, apply_deformation
+from hairwarp.ops import follow_the_leader
+
+
+def reference_follow_the_leader(rigid: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """x_0 = q_0, x_1 = q_1, x_i = x_{i-1} + |r_i - r_{i-1}| (q_i - x_{i-1}) / |q_i - x_{i-1}|."""
+    x = target.copy()
+    for i in range(2, rigid.shape[-2]):
+        rest = np.linalg.norm(rigid[..., i, :] - rigid[..., i - 1, :], axis=-1, keepdims=True)
+        d = target[..., i, :] - x[..., i - 1, :]
+        x[..., i, :] = x[..., i - 1, :] + rest * d / np.linalg.norm(d, axis=-1, keepdims=True)
+    return x
+
+
+def make_pair(seed: int, batch=2, strands=5, vertices=9, dtype=torch.float64):
+    g = np.random.default_rng(seed)
+    rigid = np.cumsum(g.normal(scale=0.01, size=(batch, strands, vertices, 3)), axis=-2)
+    target = rigid + g.normal(scale=0.01, size=rigid.shape)
+    target[..., :2, :] = rigid[..., :2, :]
+    return torch.tensor(rigid, dtype=dtype), torch.tensor(target, dtype=dtype)
+
+
+@pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+def test_matches_float64_reference_and_keeps_rest_lengths(dtype, tol):
+    rigid, target = make_pair(0, dtype=dtype)
+    x = follow_the_leader(rigid, target)
+    expected = reference_follow_the_leader(rigid.double().numpy(), target.double().numpy())
+    assert np.abs(x.double().numpy() - expected).max() < tol
+    seg = (x[..., 1:, :] - x[..., :-1, :]).norm(dim=-1)
+    rest = (rigid[..., 1:, :] - rigid[..., :-1, :]).norm(dim=-1)
+    assert float((seg - rest).abs().max()) < tol
+    assert torch.equal(x[..., :2, :], target[..., :2, :])
+
+
+def test_gradient_matches_central_differences():
+    rigid, target = make_pair(1, batch=1, strands=3, vertices=7)
+    target.requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda t: follow_the_leader(rigid, t), (target,), eps=1e-7, atol=1e-7)
+
+
+def test_a_rigid_target_is_left_where_it_is():
+    rigid, _ = make_pair(2)
+    assert torch.allclose(follow_the_leader(rigid, rigid), rigid, atol=1e-14, rtol=0)
+
+
+def test_target_on_its_leader_keeps_the_rigid_direction_with_a_finite_gradient():
+    rigid, target = make_pair(3, batch=1, strands=1, vertices=5)
+    target[0, 0, 2] = target[0, 0, 1]  # q_2 on top of x_1: no direction to follow
+    target.requires_grad_(True)
+    x = follow_the_leader(rigid, target)
+    assert torch.allclose(x[0, 0, 2] - x[0, 0, 1], rigid[0, 0, 2] - rigid[0, 0, 1], atol=1e-14)
+    (g,) = torch.autograd.grad(x.sum(), target)
+    assert torch.isfinite(g).all() and float(g[0, 0, 2].abs().max()) == 0.0
+
+
+def test_bad_input_names_the_argument():
+    rigid, target = make_pair(4)
+    with pytest.raises(ValueError, match="target: expected shape"):
+        follow_the_leader(rigid, target[:, :3])
+    with pytest.raises(ValueError, match="target: expected dtype"):
+        follow_the_leader(rigid, target.float())
+    with pytest.raises(ValueError, match="rigid: expected"):
+        follow_the_leader(rigid[..., :2, :], target[..., :2, :])
+    bad = target.clone()
+    bad[0, 0, 3, 0] = float("nan")
+    with pytest.raises(ValueError, match="target: contains NaN"):
+        follow_the_leader(rigid, bad)
+    with pytest.raises(ValueError, match="length_projection"):
+        apply_deformation(rigid, torch.zeros(2, 8, 8, 9, 3, dtype=rigid.dtype), torch.rand(5, 2, dtype=rigid.dtype),
+                          "stretchy")
+    with pytest.raises(ValueError, match="length_projection"):
+        StaticConfig(length_projection="stretchy")
+
+
+def test_network_with_the_projection_drapes_inextensibly():
+    """A tiny static network whose (large, random) map would stretch strands keeps every rest
+    length when its config asks for the projection, and trains through it (finite gradient)."""
+    torch.manual_seed(0)
+    cfg = StaticConfig.tiny()
+    cfg.head_init_gain = 1.0  # decimetre deformations: stretch without the projection
+    rigid, _ = make_pair(5, batch=2, strands=6, vertices=cfg.num_vertices, dtype=torch.float32)
+    root_uv = torch.rand(6, 2)
+    z, beta, theta = torch.randn(2, cfg.latent_dim), torch.randn(2, 16), torch.randn(2, 66) * 0.1
+    rest = (rigid[..., 1:, :] - rigid[..., :-1, :]).norm(dim=-1)
+    for projection, stretched in (("none", True), ("follow_the_leader", False)):
+        net = StaticNetwork(StaticConfig(**{**cfg.to_dict(), "length_projection": projection}))
+        x = net.drape(z, beta, theta, rigid, root_uv)
+        change = float(((x[..., 1:, :] - x[..., :-1, :]).norm(dim=-1) - rest).abs().max().detach())
+        assert (change > 1e-2) == stretched, (projection, change)
+    x.square().sum().backward()
+    grads = [p.grad for p in net.parameters() if p.grad is not None]
+    assert grads and all(torch.isfinite(g).all() for g in grads)
+    assert any(float(g.abs().max()) > 0 for g in grads)
