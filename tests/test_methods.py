@@ -251,3 +251,22 @@ def test_cuda_graph_drape_equals_eager(checkpoints):
     assert any(g is not None for g in sim._graphs.values())  # a graph was captured, not the eager fallback
     torch.testing.assert_close(graphed, eager, rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(again, eager, rtol=1e-5, atol=1e-6)
+
+
+def test_a_network_with_contact_features_and_the_length_projection_drapes(tmp_path, poses_scene):
+    """The options beyond the paper travel through a checkpoint into the method: the drape reads
+    the scene's body (contact features) and keeps every segment at its rest length."""
+    torch.manual_seed(0)
+    cfg = dataclasses.replace(StaticConfig.tiny(), latent_dim=512, num_vertices=TINY_N, contact_samples=4,
+                              length_projection="follow_the_leader", head_init_gain=0.5)
+    path = str(tmp_path / "contact.pt")
+    save_checkpoint(path, StaticNetwork(cfg))
+    frames = poses_scene.frames()
+    result = make("static", MethodOptions(checkpoint=path)).drape(frames)
+    rigid = frames.rigid.positions
+    assert (result.positions - rigid).abs().max() > 1e-3
+    seg = (result.positions[..., 1:, :] - result.positions[..., :-1, :]).norm(dim=-1)
+    rest = (rigid[..., 1:, :] - rigid[..., :-1, :]).norm(dim=-1)
+    assert float((seg - rest).abs().max()) < 1e-5
+    with pytest.raises(ValueError, match="contact features"):
+        DynamicNetwork.from_static(StaticNetwork(cfg))

@@ -96,20 +96,28 @@ class HairFormerSimulator:
         z = self.latent(style, rigid.device, dtype).expand(rigid.shape[0], -1)
         root_uv = style.root_uv.to(rigid.device)
         inputs = (z, frames.betas.to(dtype), frames.poses.to(dtype), rigid.to(dtype), root_uv)
+        reader = getattr(self.static, "contact_features", None)
+        contact = None if reader is None else reader(inputs[3], root_uv, frames.body_mesh)
+        if contact is not None:  # the body query runs eagerly; the network replays with its result
+            inputs = (*inputs, contact)
         return self._one_shot(*inputs).to(rigid.dtype)
+
+    def _drape_with_contact(self, z, beta, theta, rigid, root_uv, contact):
+        return self.static.drape(z, beta, theta, rigid, root_uv, None, contact)
 
     def _one_shot(self, *inputs: torch.Tensor) -> torch.Tensor:
         """The static (or Quaffure) drape, replayed from a CUDA graph where one can be captured."""
+        fn = self.static.drape if len(inputs) == 5 else self._drape_with_contact
         if not (inputs[0].is_cuda and self.use_cuda_graphs):
-            return self.static.drape(*inputs)
+            return fn(*inputs)
         key = tuple((tuple(t.shape), t.dtype, str(t.device)) for t in inputs)
         if key not in self._graphs:
             try:
-                self._graphs[key] = CapturedCall(self.static.drape, *inputs)
+                self._graphs[key] = CapturedCall(fn, *inputs)
             except RuntimeError:  # an op that cannot be captured: stay eager for these shapes
                 self._graphs[key] = None
         graph = self._graphs[key]
-        return self.static.drape(*inputs) if graph is None else graph(*inputs)
+        return fn(*inputs) if graph is None else graph(*inputs)
 
     @torch.no_grad()
     def simulate_poses(self, hairstyle, poses: torch.Tensor, betas: torch.Tensor, rigid: torch.Tensor,

@@ -101,6 +101,10 @@ class StaticConfig(_DictConfig):
         length_projection: "none" (the paper: positions = rigid + tapered map) or
             "follow_the_leader" (those positions projected onto the rest segment lengths, so a
             drape never stretches a strand; beyond the paper).
+        contact_samples: K > 0 gives the network, per map cell, K sampled vertices of the rigid
+            placement against the body (signed distance, push-out vector, offset from the root;
+            `hairwarp.models.contact_features`) as an extra token input; 0 is the paper's
+            network, which sees the body only through (beta, Theta).
     """
 
     latent_dim: int = 512
@@ -121,10 +125,13 @@ class StaticConfig(_DictConfig):
     head_init_gain: float = 1e-3
     deformation_clip: float = 0.01
     length_projection: str = LENGTH_PROJECTION_NONE
+    contact_samples: int = 0
 
     def __post_init__(self):
         owner = type(self).__name__
         _check_length_projection(owner, self.length_projection)
+        if not isinstance(self.contact_samples, int) or isinstance(self.contact_samples, bool) or self.contact_samples < 0:
+            raise ValueError(f"{owner}.contact_samples: expected a non-negative int, got {self.contact_samples!r}")
         for name in (
             "latent_dim", "model_dim", "grid_height", "grid_width", "shape_dim", "pose_dim",
             "num_heads", "num_encoder_layers", "num_hair_body_layers", "ffn_dim",

@@ -102,6 +102,9 @@ class DynamicNetwork(nn.Module):
             static = StaticNetwork(config.static)
         if not isinstance(static, StaticNetwork):
             raise ValueError(f"static: expected a StaticNetwork, got {type(static).__name__}")
+        if static.config.contact_samples > 0:
+            raise ValueError("static: a dynamic network around a static network with contact features "
+                             "(contact_samples > 0) is not supported; use a static network without them")
         if static.config != config.static:
             raise ValueError("config: config.static differs from the static network's config")
         self.config = config

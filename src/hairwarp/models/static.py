@@ -11,6 +11,7 @@ import torch
 from torch import nn
 
 from hairwarp.models.config import StaticConfig
+from hairwarp.models.contact_features import FEATURES_PER_SAMPLE, contact_features
 from hairwarp.models.deformation import apply_deformation
 from hairwarp.models.layers import (
     CrossAttentionBlock,
@@ -82,10 +83,37 @@ class StaticNetwork(nn.Module):
             CrossAttentionBlock(d, cfg.num_heads, cfg.ffn_dim, cfg.dropout) for _ in range(cfg.num_hair_body_layers)
         )
         self.head = PredictionHead(d, cfg.head_hidden_dim, cfg.head_layers, cfg.num_vertices, cfg.head_init_gain)
+        # Beyond the paper (config.contact_samples > 0): each hair token also reads its cell's
+        # rigid placement against the body, so the network need not infer contact from the pose.
+        self.contact_encoder = (mlp([cfg.contact_samples * FEATURES_PER_SAMPLE, d, d])
+                                if cfg.contact_samples > 0 else None)
+
+    @property
+    def contact_dim(self) -> int:
+        """Numbers per cell of the contact features this network reads (0: none, the paper)."""
+        return self.config.contact_samples * FEATURES_PER_SAMPLE
+
+    def contact_features(self, rigid: torch.Tensor, root_uv: torch.Tensor, body) -> torch.Tensor | None:
+        """The contact features of a batch (None for the paper's network, which reads none).
+
+        Args:
+            rigid: (B, M, N, 3) rigidly placed hair [m]; root_uv: (M, 2) or (B, M, 2).
+            body: the posed `hairwarp.ops.BodyMesh` (batch 1 or B).
+
+        Returns:
+            (B, L, contact_dim) in the network's dtype, or None.
+        """
+        cfg = self.config
+        if cfg.contact_samples == 0:
+            return None
+        dtype = next(self.parameters()).dtype
+        return contact_features(rigid, root_uv, body, cfg.grid_height, cfg.grid_width, cfg.contact_samples).to(dtype)
 
     # -- pieces (unchecked; the public methods check their inputs once) -------------------------
-    def _features(self, z, beta, theta):
+    def _features(self, z, beta, theta, contact=None):
         hair = self.hair_encoder(z)
+        if self.contact_encoder is not None:
+            hair = hair + self.contact_encoder(contact)
         body = self.body_encoder(torch.cat([beta, theta], dim=-1))[:, None, :]
         for block in self.hair_body_blocks:
             hair = block(hair, body)
@@ -96,20 +124,28 @@ class StaticNetwork(nn.Module):
         flat = clip_deformation(self.head(features), clip)
         return reshape_map(flat, cfg.grid_height, cfg.grid_width, cfg.num_vertices)
 
-    def _check(self, z, beta, theta) -> int:
+    def _check(self, z, beta, theta, contact=None) -> int:
         cfg = self.config
-        return check_batch(
-            self, z=(z, [cfg.latent_dim]), beta=(beta, [cfg.shape_dim]), theta=(theta, [cfg.pose_dim])
-        )
+        inputs = {"z": (z, [cfg.latent_dim]), "beta": (beta, [cfg.shape_dim]), "theta": (theta, [cfg.pose_dim])}
+        if self.contact_encoder is not None:
+            if contact is None:
+                raise ValueError("contact: this network reads contact features (config.contact_samples > 0); "
+                                 "pass contact=network.contact_features(rigid, root_uv, body)")
+            inputs["contact"] = (contact, [cfg.num_cells, self.contact_dim])
+        elif contact is not None:
+            raise ValueError("contact: this network reads no contact features (config.contact_samples = 0)")
+        return check_batch(self, **inputs)
 
     # -- public -----------------------------------------------------------------------------------
-    def features(self, z: torch.Tensor, beta: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+    def features(self, z: torch.Tensor, beta: torch.Tensor, theta: torch.Tensor,
+                 contact: torch.Tensor | None = None) -> torch.Tensor:
         """Body-aware hair tokens H_static = I_hb*(E_hair(z), E_body([beta, Theta])).
 
         Args:
             z: (B, d_z) hair latents.
             beta: (B, 16) body shapes.
             theta: (B, 66) body poses, axis-angle [rad] (22 SMPL joints).
+            contact: (B, L, contact_dim) from `contact_features`, for a network that reads them.
 
         Returns:
             (B, L, d_m) features, L = M_H0 * M_W0, token l = row * M_W0 + col.
@@ -117,8 +153,8 @@ class StaticNetwork(nn.Module):
         Raises:
             ValueError: naming the argument of wrong shape, dtype, device, or with NaN/Inf.
         """
-        self._check(z, beta, theta)
-        return self._features(z, beta, theta)
+        self._check(z, beta, theta, contact)
+        return self._features(z, beta, theta, contact)
 
     def predict(self, features: torch.Tensor, clip: float | None = None) -> torch.Tensor:
         """F_pred_static and the reshape of Eq. 3: features (B, L, d_m) -> (B, M_H0, M_W0, N, 3) [m].
@@ -133,7 +169,8 @@ class StaticNetwork(nn.Module):
         return self._predict(features, clip)
 
     def forward(
-        self, z: torch.Tensor, beta: torch.Tensor, theta: torch.Tensor, clip: float | None = None
+        self, z: torch.Tensor, beta: torch.Tensor, theta: torch.Tensor, clip: float | None = None,
+        contact: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """The deformation map D_static(z, beta, Theta) of Eq. 3.
 
@@ -142,6 +179,7 @@ class StaticNetwork(nn.Module):
             beta: (B, 16) body shapes.
             theta: (B, 66) body poses, axis-angle [rad].
             clip: optional clamp of each deformation component [m] (see `predict`).
+            contact: (B, L, contact_dim) from `contact_features` (networks that read them only).
 
         Returns:
             (B, M_H0, M_W0, N, 3) deformations [m] in the network's dtype, on its device.
@@ -149,8 +187,8 @@ class StaticNetwork(nn.Module):
         Raises:
             ValueError: naming the argument of wrong shape, dtype, device, or with NaN/Inf.
         """
-        self._check(z, beta, theta)
-        return self._predict(self._features(z, beta, theta), clip)
+        self._check(z, beta, theta, contact)
+        return self._predict(self._features(z, beta, theta, contact), clip)
 
     def drape(
         self,
@@ -160,17 +198,21 @@ class StaticNetwork(nn.Module):
         rigid: torch.Tensor,
         root_uv: torch.Tensor,
         clip: float | None = None,
+        contact: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        """Static hair positions P_static of Eq. 2: rigid + tapered nearest-cell deformations.
+        """Static hair positions P_static of Eq. 2: rigid + tapered nearest-cell deformations
+        (projected onto the rest lengths when `config.length_projection` asks for it).
 
         Args:
             z, beta, theta: as in `forward`.
             rigid: (B, M, N, 3) rigidly posed hair [m] (Eq. 1).
             root_uv: (M, 2) or (B, M, 2) root UVs in [0, 1]^2.
             clip: as in `forward`.
+            contact: as in `forward`.
 
         Returns:
             (B, M, N, 3) positions [m]; vertices 0 and 1 equal `rigid` exactly.
         """
         check_tensor("rigid", rigid, shape=[None, None, self.config.num_vertices, 3], dtypes=None)
-        return apply_deformation(rigid, self.forward(z, beta, theta, clip), root_uv, self.config.length_projection)
+        deformation = self.forward(z, beta, theta, clip, contact)
+        return apply_deformation(rigid, deformation, root_uv, self.config.length_projection)

@@ -6,6 +6,7 @@ from hairwarp.ops.hair_body_contact import (
     BodyMesh,
     hair_body_contact_energy,
     hair_body_signed_distance,
+    hair_body_signed_distance_and_normal,
     point_mesh_signed_distance,
 )
 from hairwarp.ops.hair_hair_contact import hair_hair_contact_energy, hair_hair_contact_pairs
@@ -32,6 +33,7 @@ __all__ = [
     "BodyMesh",
     "hair_body_contact_energy",
     "hair_body_signed_distance",
+    "hair_body_signed_distance_and_normal",
     "point_mesh_signed_distance",
     "auxiliary_energy",
     "bending_energy",

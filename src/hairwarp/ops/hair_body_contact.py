@@ -555,6 +555,30 @@ def hair_body_signed_distance(x: torch.Tensor, body: BodyMesh) -> torch.Tensor:
     return _SignedDistance.apply(points, body, per_batch).reshape(x.shape[:-1])
 
 
+@torch.no_grad()
+def hair_body_signed_distance_and_normal(x: torch.Tensor, body: BodyMesh) -> tuple[torch.Tensor, torch.Tensor]:
+    """Signed distance of every hair vertex to the body and the outward unit direction there.
+
+    The direction is the distance's gradient: from the closest surface point towards the vertex
+    (outside), the other way inside; the face normal on the surface. No autograd (features).
+
+    Args:
+        x: (M, N, 3) or (B, M, N, 3) hair vertices [m], float32/float64.
+        body: the posed body; batch size 1 (shared by every hair batch item) or B.
+
+    Returns:
+        (distance (..., M, N) [m], negative inside; direction (..., M, N, 3) unit vectors).
+
+    Raises:
+        ValueError: as `hair_body_signed_distance`.
+    """
+    _check_body(body)
+    _check_hair(x, body)
+    points = x.contiguous().reshape(-1, 3)
+    distance, direction = _signed_distance_forward(points, body, x.shape[-3] * x.shape[-2])
+    return distance.reshape(x.shape[:-1]), direction.reshape(x.shape)
+
+
 def _energy_forward(x, body, xi, dhat, bp, weight, variant_id, strategy):
     """(B, M, N, 3) hair -> (B,) energy, (B, M, N, 3) gradient, query counts (no autograd)."""
     batch, num_strands, num_vertices = x.shape[:3]

@@ -32,6 +32,7 @@ import torch
 from hairwarp.config import ALL_TERMS
 from hairwarp.energy import total_energy
 from hairwarp.models import apply_deformation, length_projection_of
+from hairwarp.models.contact_features import network_deformation
 
 CURVE_NAME = "learning_curve.json"
 CURVE_FIGURE = "learning_curve.png"
@@ -171,7 +172,8 @@ class HeldOutScenes:
             with torch.no_grad():
                 for item in self.scenes:
                     rigid = item["frames"].rigid.positions
-                    dmap = model(item["z"], item["betas"], item["poses"], clip=clip)
+                    dmap = network_deformation(model, item["z"], item["betas"], item["poses"], rigid,
+                                               item["root_uv"], item["frames"].inputs.body, clip)
                     x = apply_deformation(rigid, dmap, item["root_uv"], length_projection_of(model))
                     scores = self._scores(x, item, item["reference_energy"])
                     scores["displacement_by_vertex_mm"] = displacement_by_vertex(x, rigid)
@@ -249,7 +251,8 @@ class LearningCurve:
         model.eval()
         try:
             with torch.no_grad():
-                dmap = model(batch.z, batch.betas, batch.poses, clip=s["clip"])
+                dmap = network_deformation(model, batch.z, batch.betas, batch.poses, batch.rigid, batch.root_uv,
+                                           batch.inputs.body, s["clip"])
                 x = apply_deformation(batch.rigid, dmap, batch.root_uv, length_projection_of(model))
                 loss = total_energy(x, batch.inputs, energy)
         finally:

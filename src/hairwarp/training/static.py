@@ -31,6 +31,7 @@ from hairwarp.models import (
     apply_deformation,
     length_projection_of,
 )
+from hairwarp.models.contact_features import network_deformation
 from hairwarp.training import distributed
 from hairwarp.training._common import (
     DTYPES,
@@ -142,7 +143,8 @@ def static_loss(model: nn.Module, batch: HairBatch, energy, clip: float | None =
     Returns:
         (loss () tensor, terms {name: batch-mean float}, positions (B, M, N, 3)).
     """
-    deformation = model(batch.z, batch.betas, batch.poses, clip=clip)
+    deformation = network_deformation(model, batch.z, batch.betas, batch.poses, batch.rigid, batch.root_uv,
+                                      batch.inputs.body, clip)
     positions = apply_deformation(batch.rigid, deformation, batch.root_uv, length_projection_of(model))
     result = total_energy(positions, batch.inputs, energy)
     if normalization == "rigid":
