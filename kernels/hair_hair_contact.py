@@ -206,6 +206,212 @@ def hair_hair_pairs_kernel(
 
 
 @wp.func
+def _write_pair_if_close(
+    x_in: wp.array(dtype=Any),
+    i: int,
+    j: int,
+    strand_i: int,
+    p0: Any,
+    p1: Any,
+    num_vertices: int,
+    skip_root_segments: int,
+    cutoff2: Any,
+    capacity: int,
+    count_out: wp.array(dtype=wp.int32),
+    pairs_out: wp.array(dtype=wp.int32),
+):
+    """Write (min(i, j), max(i, j)) if segment j is of another strand, past the root segments,
+    and closer than sqrt(cutoff2) to segment i = (p0, p1) (the exact test, input precision).
+    """
+    segs_per_strand = num_vertices - 1
+    strand_j = j // segs_per_strand
+    if strand_j == strand_i or j % segs_per_strand < skip_root_segments:
+        return
+    vj = strand_j * num_vertices + j % segs_per_strand
+    s, t, dist2 = edge_edge_closest_parameters(p0, p1, x_in[vj], x_in[vj + 1])
+    if dist2 < cutoff2:
+        n = wp.atomic_add(count_out, 0, 1)
+        if n < capacity:
+            pairs_out[2 * n] = wp.min(i, j)
+            pairs_out[2 * n + 1] = wp.max(i, j)
+
+
+@wp.func
+def dense_cell(p: wp.vec3, origin: wp.vec3, inv_width: float, dims: wp.vec3i):
+    """Cell of point p in a dense grid of dims cells of width 1 / inv_width [m] from `origin`, clamped to it."""
+    return wp.vec3i(wp.clamp(int(wp.floor((p[0] - origin[0]) * inv_width)), 0, dims[0] - 1),
+                    wp.clamp(int(wp.floor((p[1] - origin[1]) * inv_width)), 0, dims[1] - 1),
+                    wp.clamp(int(wp.floor((p[2] - origin[2]) * inv_width)), 0, dims[2] - 1))
+
+
+@wp.func
+def dense_key(cx: int, cy: int, cz: int, group: int, dims: wp.vec3i):
+    """Row-major key of cell (cx, cy, cz) of batch item `group`: a z row of cells is a key range."""
+    return ((group * dims[0] + cx) * dims[1] + cy) * dims[2] + cz
+
+
+@wp.kernel
+def segment_keys_kernel(
+    # In:
+    x_in: wp.array(dtype=Any),
+    num_vertices: int,
+    num_strands: int,
+    origin: wp.vec3,
+    inv_width: float,
+    dims: wp.vec3i,
+    # Out:
+    bounds_out: wp.array(dtype=wp.vec4),
+    key_out: wp.array(dtype=wp.int32),
+):
+    """Midpoint and half length (float32, packed: x, y, z, half length) and dense-grid key of each segment."""
+    seg = wp.tid()
+    strand = seg // (num_vertices - 1)
+    v0 = strand * num_vertices + seg % (num_vertices - 1)
+    m = wp.vec3((x_in[v0] + x_in[v0 + 1]) * type(x_in[v0][0])(0.5))
+    bounds_out[seg] = wp.vec4(m[0], m[1], m[2], wp.float32(wp.length(x_in[v0 + 1] - x_in[v0])) * 0.5)
+    c = dense_cell(m, origin, inv_width, dims)
+    key_out[seg] = dense_key(c[0], c[1], c[2], strand // num_strands, dims)
+
+
+@wp.kernel
+def hair_hair_pairs_cpu_kernel(
+    # In:
+    x_in: wp.array(dtype=Any),
+    sorted_bounds: wp.array(dtype=wp.vec4),
+    sorted_ids: wp.array(dtype=wp.int32),
+    cell_start: wp.array(dtype=wp.int32),
+    origin: wp.vec3,
+    inv_width: float,
+    dims: wp.vec3i,
+    query_ranks: wp.array(dtype=wp.int32),
+    queried_by_rank: wp.array(dtype=wp.int32),
+    all_queried: int,
+    grid_params: wp.array(dtype=float),
+    num_vertices: int,
+    num_strands: int,
+    skip_root_segments: int,
+    cutoff32: float,
+    relative_slack: float,
+    cutoff: Any,
+    capacity: int,
+    # Out:
+    count_out: wp.array(dtype=wp.int32),
+    pairs_out: wp.array(dtype=wp.int32),
+):
+    """The pairs of `hair_hair_pairs_kernel` (same query radii, bounds and ownership of long
+    segments, so the same pairs), shaped for Warp's CPU backend, where threads run one after
+    another and the cost is the candidates each query walks:
+        - a dense grid (not periodic) of cells finer than the query radius, segments sorted by
+          cell key (row-major, z fastest), so the cells of one z row of the query box are one
+          contiguous range (`cell_start[key]` .. `cell_start[key + 1]`): one lookup per row,
+          and fewer candidates outside the query sphere than whole coarse cells bring;
+        - a short-short pair is found by the query of the lower *rank* (position in the sorted
+          order) rather than the lower id: a query walks only the part of each range past its
+          own rank, without a per-candidate branch;
+        - a candidate's midpoint and half length are one packed read (`sorted_bounds`).
+
+    Only the segments at `query_ranks` query (thread t queries rank query_ranks[t]). With
+    `all_queried` = 1 every segment queries (query_ranks lists all ranks); otherwise
+    `queried_by_rank[rank]` says which do, and a query also takes every pair with a segment
+    that does not query (the caller guarantees those are short: every long segment queries),
+    so each pair with at least one querying segment is found once, and pairs between two
+    segments that do not query are not found at all (the caller has them from elsewhere).
+    """
+    rank = query_ranks[wp.tid()]
+    i = sorted_ids[rank]
+    segs_per_strand = num_vertices - 1
+    if i % segs_per_strand < skip_root_segments:
+        return
+    long_half_length = grid_params[1]
+    absolute_slack = grid_params[2]
+    strand_i = i // segs_per_strand
+    group_i = strand_i // num_strands
+    vi = strand_i * num_vertices + i % segs_per_strand
+    p0 = x_in[vi]
+    p1 = x_in[vi + 1]
+    bounds_i = sorted_bounds[rank]
+    mi = wp.vec3(bounds_i[0], bounds_i[1], bounds_i[2])
+    half_i = bounds_i[3]
+    long_i = half_i > long_half_length
+    reach_i = cutoff32 + half_i
+    radius = (reach_i + wp.max(half_i, long_half_length)) * (1.0 + relative_slack) + absolute_slack
+    cutoff2 = cutoff * cutoff
+    lo = dense_cell(mi - wp.vec3(radius), origin, inv_width, dims)
+    hi = dense_cell(mi + wp.vec3(radius), origin, inv_width, dims)
+    for cx in range(lo[0], hi[0] + 1):
+        for cy in range(lo[1], hi[1] + 1):
+            start = cell_start[dense_key(cx, cy, lo[2], group_i, dims)]
+            end = cell_start[dense_key(cx, cy, hi[2], group_i, dims) + 1]
+            if long_i:
+                for k in range(start, end):
+                    j = sorted_ids[k]
+                    bounds_j = sorted_bounds[k]
+                    half_j = bounds_j[3]
+                    if all_queried != 0 or queried_by_rank[k] != 0:
+                        # Short partners, and long ones that are shorter (ties: the lower id).
+                        if half_j > half_i or (half_j == half_i and j <= i):
+                            continue
+                    bound = (reach_i + half_j) * (1.0 + relative_slack) + absolute_slack
+                    e = wp.vec3(bounds_j[0], bounds_j[1], bounds_j[2]) - mi
+                    if wp.dot(e, e) > bound * bound:
+                        continue
+                    _write_pair_if_close(x_in, i, j, strand_i, p0, p1, num_vertices, skip_root_segments, cutoff2,
+                                         capacity, count_out, pairs_out)
+            else:
+                if all_queried == 0:
+                    # Below our rank: only the segments that do not query (short by the caller's rule).
+                    for k in range(start, wp.min(end, rank)):
+                        if queried_by_rank[k] != 0:
+                            continue
+                        bounds_j = sorted_bounds[k]
+                        bound = (reach_i + bounds_j[3]) * (1.0 + relative_slack) + absolute_slack
+                        e = wp.vec3(bounds_j[0], bounds_j[1], bounds_j[2]) - mi
+                        if wp.dot(e, e) > bound * bound:
+                            continue
+                        _write_pair_if_close(x_in, i, sorted_ids[k], strand_i, p0, p1, num_vertices,
+                                             skip_root_segments, cutoff2, capacity, count_out, pairs_out)
+                for k in range(wp.max(start, rank + 1), end):
+                    bounds_j = sorted_bounds[k]
+                    half_j = bounds_j[3]
+                    if half_j > long_half_length:
+                        continue  # the long segment's query finds this pair
+                    bound = (reach_i + half_j) * (1.0 + relative_slack) + absolute_slack
+                    e = wp.vec3(bounds_j[0], bounds_j[1], bounds_j[2]) - mi
+                    if wp.dot(e, e) > bound * bound:
+                        continue
+                    _write_pair_if_close(x_in, i, sorted_ids[k], strand_i, p0, p1, num_vertices,
+                                         skip_root_segments, cutoff2, capacity, count_out, pairs_out)
+
+
+@wp.kernel
+def hair_hair_candidates_kernel(
+    # In:
+    x_in: wp.array(dtype=Any),
+    candidates_in: wp.array(dtype=wp.int32),
+    queried_in: wp.array(dtype=wp.int32),
+    num_vertices: int,
+    cutoff: Any,
+    capacity: int,
+    # Out:
+    count_out: wp.array(dtype=wp.int32),
+    pairs_out: wp.array(dtype=wp.int32),
+):
+    """Of candidate pairs (i < j, different strands, past the root segments: a reused pair list),
+    write those closer than the cutoff, except pairs with a segment that queried this call
+    (`queried_in`: `hair_hair_pairs_cpu_kernel` found those).
+    """
+    k = wp.tid()
+    i = candidates_in[2 * k]
+    j = candidates_in[2 * k + 1]
+    if queried_in[i] != 0 or queried_in[j] != 0:
+        return
+    segs_per_strand = num_vertices - 1
+    vi = (i // segs_per_strand) * num_vertices + i % segs_per_strand
+    _write_pair_if_close(x_in, i, j, i // segs_per_strand, x_in[vi], x_in[vi + 1], num_vertices, 0, cutoff * cutoff,
+                         capacity, count_out, pairs_out)
+
+
+@wp.func
 def _add_vertex_gradient(gradient_out: wp.array(dtype=Any), v: int, num_vertices: int, g: Any):
     if v % num_vertices >= NUM_FIXED_VERTICES:
         wp.atomic_add(gradient_out, v, g)

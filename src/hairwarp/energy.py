@@ -85,6 +85,7 @@ def total_energy(
     terms: tuple[str, ...] | None = None,
     graph_safe: bool = False,
     hair_hair_capacity: int | None = None,
+    hair_hair_cache=None,
 ) -> EnergyResult:
     """The total energy of hair positions `x`: Eq. 5, or Eq. 6 (without L_func_reg) when `dynamic`.
 
@@ -100,6 +101,9 @@ def total_energy(
             and `result.hair_hair_info.check()` says so afterwards (see `CapturedEnergy`).
         hair_hair_capacity: pair-buffer capacity [pairs] for the whole batch; None:
             `config.hair_hair_capacity_per_segment` per segment.
+        hair_hair_cache: a `hairwarp.ops.hair_hair_contact.HairHairPairCache` that keeps the
+            hair-hair pair list across calls (CPU only, not with `graph_safe`): the same
+            energy, cheaper for an optimizer's evaluations of slowly moving hair.
 
     Returns:
         EnergyResult with `total` of shape (B,) ((1,) for an unbatched `x`).
@@ -108,6 +112,8 @@ def total_energy(
 
     config = config or EnergyConfig()
     xb = _as_batched(x)
+    if hair_hair_cache is not None and graph_safe:
+        raise ValueError("hair_hair_cache: not with graph_safe=True (a captured call keeps no host state)")
     wanted = set(ALL_TERMS if terms is None else terms)
     unknown = wanted - set(ALL_TERMS)
     if unknown:
@@ -157,6 +163,7 @@ def total_energy(
             variant=config.barrier_variant,
             capacity=hair_hair_capacity,
             on_overflow="defer" if graph_safe else "grow",
+            pair_cache=hair_hair_cache,
         )
         result.total = result.total + e_hh
         result.terms["hair_hair_contact"] = e_hh.detach()

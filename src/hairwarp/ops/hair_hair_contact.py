@@ -67,6 +67,11 @@ _RADIUS_SLACK = 1e-4
 # a typical query's radius (fewer, fuller cells: each visited cell costs a lookup).
 _LONG_FACTOR = 1.5
 _CELL_FACTOR = 1.0
+# The CPU grid (`_CpuGrid`): cells of _CPU_CELL_FACTOR x the device path's width (a query walks
+# one contiguous range per z row, so finer cells cost little and bring fewer candidates), at
+# most _CPU_MAX_CELLS_PER_SEGMENT cells per segment (4 bytes each).
+_CPU_CELL_FACTOR = 0.5
+_CPU_MAX_CELLS_PER_SEGMENT = 8
 
 
 class HairHairCapacityError(RuntimeError):
@@ -262,6 +267,94 @@ def _grid_params(x4: torch.Tensor, cutoff: float) -> torch.Tensor:
     return torch.stack([cell_width, long_half, absolute_slack]).to(torch.float32)
 
 
+class _CpuGrid:
+    """The broad phase's grid on the CPU, for `hair_hair_pairs_cpu_kernel`: a dense grid over
+    the hair's bounding box (cells `_CPU_CELL_FACTOR` x the device path's width, at most
+    `_CPU_MAX_CELLS_PER_SEGMENT` per segment: wider cells past that), the segments sorted by
+    cell key with their midpoints and half lengths packed (x, y, z, half length), and each
+    key's first index (`cell_start`, one past the end at key + 1).
+
+    Same query radii, bounds and long-segment rule as the device path (`_broad_phase`), so the
+    same pairs. The bounding box is read back to size the grid: there is no graph to capture
+    on the CPU.
+    """
+
+    def __init__(self, x4: torch.Tensor, cutoff: float):
+        b, m, n, _ = x4.shape
+        self.shape = (b, m, n)
+        self.num_segments = b * m * (n - 1)
+        self.params = _grid_params(x4, cutoff)
+        flat = x4.detach().reshape(-1, 3)
+        low = flat.min(dim=0).values.to(torch.float32)
+        extent = (flat.max(dim=0).values.to(torch.float32) - low).tolist()
+        width = float(self.params[0]) * _CPU_CELL_FACTOR
+        max_cells = max(_CPU_MAX_CELLS_PER_SEGMENT * self.num_segments, 4096)
+        while True:
+            dims = [int(e / width) + 1 for e in extent]
+            if b * dims[0] * dims[1] * dims[2] <= max_cells:
+                break
+            width *= 1.25  # wider cells: more candidates per query, never a missed pair
+        self.origin = wp.vec3(*low.tolist())
+        self.inv_width = 1.0 / width
+        self.dims = wp.vec3i(*dims)
+        num_cells = b * dims[0] * dims[1] * dims[2]
+        bounds = torch.empty(self.num_segments, 4, dtype=torch.float32)
+        keys = torch.empty(self.num_segments, dtype=torch.int32)
+        self.x_wp = _warp.as_warp(flat, vec3=True)
+        self.params_wp = _warp.as_warp(self.params)
+        wp.launch(hh_kernels.segment_keys_kernel, dim=self.num_segments,
+                  inputs=[self.x_wp, n, m, self.origin, self.inv_width, self.dims],
+                  outputs=[wp.from_torch(bounds, dtype=wp.vec4), _warp.as_warp(keys)], device="cpu")
+        _, order = torch.sort(keys)
+        self.ids = order.to(torch.int32)
+        self.half_lengths = bounds[:, 3]
+        self.bounds = bounds[order]
+        self.cell_start = torch.zeros(num_cells + 1, dtype=torch.int32)
+        torch.cumsum(torch.bincount(keys, minlength=num_cells), dim=0, out=self.cell_start[1:])
+
+    def long_segments(self) -> torch.Tensor:
+        """(S,) bool by segment id: half length above the grid's long threshold H (as the kernel decides)."""
+        return self.half_lengths > self.params[1]
+
+    def pairs(self, x4, skip_root_segments, cutoff, queried, count, pairs, room) -> None:
+        """Launch `hair_hair_pairs_cpu_kernel`: every segment queries (`queried` None), or those
+        with queried[id] != 0 (int32 by id), adding to `count` and `pairs` (room for `room`).
+        """
+        b, m, n = self.shape
+        if queried is None:
+            ranks = _arange_int32(self.num_segments)
+            by_rank = ranks[:1]
+            all_queried = 1
+        else:
+            by_rank = queried[self.ids]
+            ranks = torch.nonzero(by_rank).reshape(-1).to(torch.int32)
+            all_queried = 0
+        if ranks.shape[0] == 0:
+            return
+        wp.launch(
+            hh_kernels.hair_hair_pairs_cpu_kernel,
+            dim=ranks.shape[0],
+            inputs=[self.x_wp, wp.from_torch(self.bounds, dtype=wp.vec4), _warp.as_warp(self.ids),
+                    _warp.as_warp(self.cell_start), self.origin, self.inv_width, self.dims, _warp.as_warp(ranks),
+                    _warp.as_warp(by_rank), all_queried, self.params_wp, n, m, skip_root_segments, float(cutoff),
+                    _RADIUS_SLACK, _warp.scalar(cutoff, x4.dtype), room],
+            outputs=[_warp.as_warp(count), _warp.as_warp(pairs)],
+            device="cpu",
+        )
+
+
+_aranges: dict[int, torch.Tensor] = {}
+
+
+def _arange_int32(n: int) -> torch.Tensor:
+    """0..n-1 as int32 on the CPU, kept per n (every call of one hair size needs the same)."""
+    r = _aranges.get(n)
+    if r is None:
+        _aranges.clear()
+        r = _aranges[n] = torch.arange(n, dtype=torch.int32)
+    return r
+
+
 def _broad_phase(x4, cutoff, capacity, skip_root_segments, on_overflow, max_pairs=None):
     """Broad phase on (B, M, N, 3) contiguous detached hair.
 
@@ -283,6 +376,18 @@ def _broad_phase(x4, cutoff, capacity, skip_root_segments, on_overflow, max_pair
                 0, requested)
 
     x_flat = x4.detach().reshape(-1, 3)
+    if device.type == "cpu":
+        grid = _CpuGrid(x4, cutoff)
+        count = torch.zeros(1, dtype=torch.int32, device=device)
+
+        def run(room):
+            count.zero_()
+            pairs = _pair_buffer(device, room, cap)
+            grid.pairs(x4, skip_root_segments, cutoff, None, count, pairs, room)
+            return pairs
+
+        return _collect(run, count, requested, cap, capacity, num_segments, on_overflow)
+
     params = _grid_params(x4, cutoff)
     wp_device = _warp.warp_device(device)
     midpoints = torch.empty(num_segments, 3, dtype=torch.float32, device=device)
@@ -324,6 +429,13 @@ def _broad_phase(x4, cutoff, capacity, skip_root_segments, on_overflow, max_pair
             )
         return pairs
 
+    return _collect(run, count, requested, cap, capacity, num_segments, on_overflow)
+
+
+def _collect(run, count, requested, cap, capacity, num_segments, on_overflow):
+    """Run the pairs kernel (`run(room)` fills the pair buffer and `count`) and apply the
+    overflow policy; returns what `_broad_phase` returns.
+    """
     pairs = run(requested)
     if on_overflow == "defer":
         return pairs[:requested], count, None, requested
@@ -349,9 +461,137 @@ def _broad_phase(x4, cutoff, capacity, skip_root_segments, on_overflow, max_pair
                 f"hair-hair contact: {found} segment pairs found but capacity is {requested}; "
                 f"{found - requested} pairs dropped from the energy. Pass capacity >= {found}.",
                 RuntimeWarning,
-                stacklevel=3,
+                stacklevel=4,
             )
     return pairs[:kept], count, found, requested
+
+
+class HairHairPairCache:
+    """A hair-hair pair list kept across calls on the CPU, for an optimizer's many evaluations
+    of slowly changing hair (a Verlet list, requeried per segment).
+
+    A build stores the positions x_ref and every pair closer than cutoff + `skin` there. At a
+    later call, a segment "moved" if one of its vertices is more than `skin` * 0.45 from x_ref.
+    Two segments that did not move are closer now than cutoff only if they were closer than
+    cutoff + 0.9 `skin` at x_ref (a segment distance changes by at most the two segments'
+    largest vertex displacements), so their pairs are the stored list's, filtered by the exact
+    distance. The segments that moved (and every long one, see `hair_hair_pairs_cpu_kernel`)
+    query the grid at the current positions for all their pairs. So the result is exactly the
+    pairs a fresh broad phase finds, at any positions; only the cost depends on the motion.
+    The list is rebuilt when more than `rebuild_fraction` of the segments moved, or when the
+    shape, dtype, cutoff or root-segment rule change.
+
+    Why per segment: in L-BFGS on a drape the free hair ends move by centimetres on a line
+    search's trial points while ~70 % of the segments (resting on the body, near the roots)
+    move by micrometres; a list rebuilt whenever any vertex moved more than half the skin was
+    rebuilt at 44 of 45 evaluations (docs/contact.md).
+
+    Args:
+        skin: margin of the stored list [m], > 0.
+        rebuild_fraction: rebuild when more than this share of the segments moved, in (0, 1].
+
+    Attributes:
+        builds: lists built so far.
+        calls: calls served.
+        requeried: segments that queried the grid at the last call (0 after a build).
+    """
+
+    def __init__(self, skin: float = 2e-3, rebuild_fraction: float = 0.5):
+        self.skin = check_positive("skin", skin)
+        if not 0.0 < float(rebuild_fraction) <= 1.0:
+            raise ValueError(f"rebuild_fraction: expected a number in (0, 1], got {rebuild_fraction!r}")
+        self.rebuild_fraction = float(rebuild_fraction)
+        self.builds = 0
+        self.calls = 0
+        self.requeried = 0
+        self._key = None
+        self._reference = None
+        self._candidates = None
+        self._room = 0  # pair-buffer rows for the next call: 1.25 x the last call's pairs
+
+    def reset(self) -> None:
+        """Forget the stored list (the next call builds one)."""
+        self._key = self._reference = self._candidates = None
+
+    def __repr__(self) -> str:
+        stored = 0 if self._candidates is None else self._candidates.shape[0]
+        return (f"HairHairPairCache(skin={self.skin}, rebuild_fraction={self.rebuild_fraction}, builds={self.builds}, "
+                f"calls={self.calls}, stored_pairs={stored})")
+
+
+def _moved_segments(x4: torch.Tensor, reference: torch.Tensor, threshold: float) -> torch.Tensor:
+    """(S,) bool by flat segment id: a vertex of the segment is more than `threshold` [m] from `reference`."""
+    d = (x4 - reference).square().sum(dim=-1)
+    seg = torch.maximum(d[..., 1:], d[..., :-1])
+    return (seg > threshold * threshold).reshape(-1)
+
+
+def _cached_broad_phase(x4, cutoff, skip_root_segments, max_pairs, cache: HairHairPairCache):
+    """`_broad_phase` ("grow") on the CPU through `cache` (see `HairHairPairCache`): the same pairs."""
+    b, m, n, _ = x4.shape
+    num_segments = b * m * max(n - 1, 0)
+    cap = default_max_pairs(num_segments) if max_pairs is None else max_pairs
+    device = x4.device
+    cache.calls += 1
+    if num_segments == 0 or m < 2:
+        return (torch.zeros(0, 2, dtype=torch.int32, device=device), torch.zeros(1, dtype=torch.int32, device=device),
+                0, 0)
+    key = (tuple(x4.shape), x4.dtype, float(cutoff), skip_root_segments)
+    moved = None
+    if cache._key == key:
+        moved = _moved_segments(x4, cache._reference, 0.45 * cache.skin)
+        if int(moved.sum()) > cache.rebuild_fraction * num_segments:
+            moved = None
+    if moved is None:
+        # Build: every pair within cutoff + skin here, from a grid sized for that reach.
+        wide = cutoff + cache.skin
+        grid = _CpuGrid(x4, wide)
+        count = torch.zeros(1, dtype=torch.int32)
+        room = max(4 * num_segments, 1) if cache._candidates is None else cache._candidates.shape[0] * 5 // 4 + 1
+        for _ in range(2):
+            candidates = torch.empty(room, 2, dtype=torch.int32)
+            count.zero_()
+            grid.pairs(x4, skip_root_segments, wide, None, count, candidates, room)
+            stored = int(count.item())
+            if stored <= room or stored > cap:
+                break
+            room = stored
+        if stored > cap:
+            # A pile far denser than a drape: no list kept (its memory stays within max_pairs).
+            cache.reset()
+            return _broad_phase(x4, cutoff, None, skip_root_segments, "grow", max_pairs)
+        cache._candidates = candidates[:stored].clone()
+        cache._reference = x4.detach().clone()
+        cache._key = key
+        cache.builds += 1
+        queried = torch.zeros(num_segments, dtype=torch.int32)
+        grid = None
+    else:
+        grid = _CpuGrid(x4, cutoff)
+        queried = (moved | grid.long_segments()).to(torch.int32)
+    cache.requeried = int(queried.sum())
+    candidates = cache._candidates
+    count = torch.zeros(1, dtype=torch.int32)
+    x_wp = _warp.as_warp(x4.reshape(-1, 3), vec3=True)
+
+    def run(room):
+        count.zero_()
+        pairs = _pair_buffer(device, room, cap)
+        if grid is not None and cache.requeried > 0:
+            grid.pairs(x4, skip_root_segments, cutoff, queried, count, pairs, room)
+        if candidates.shape[0] > 0:
+            wp.launch(hh_kernels.hair_hair_candidates_kernel, dim=candidates.shape[0],
+                      inputs=[x_wp, _warp.as_warp(candidates), _warp.as_warp(queried), n,
+                              _warp.scalar(cutoff, x4.dtype), room],
+                      outputs=[_warp.as_warp(count), _warp.as_warp(pairs)], device="cpu")
+        return pairs
+
+    # Room for the config's pairs per segment, or 1.25 x the last call's count: no rerun as the
+    # count jumps on a line search's trial point (pages never written cost nothing on the CPU).
+    requested = min(max(cache._room, default_capacity(num_segments), 1), cap)
+    pairs, count, found, requested = _collect(run, count, requested, cap, requested, num_segments, "grow")
+    cache._room = max(found + found // 4, 1)
+    return pairs, count, found, requested
 
 
 class _HairHairContactEnergy(torch.autograd.Function):
@@ -460,6 +700,7 @@ def hair_hair_contact_energy(
     skip_root_segments: int = DEFAULT_SKIP_ROOT_SEGMENTS,
     on_overflow: str = "grow",
     max_pairs: int | None = None,
+    pair_cache: HairHairPairCache | None = None,
 ) -> tuple[torch.Tensor, HairHairContactInfo]:
     """Hair-hair contact energy L_hh of HairFormer Eq. 12, differentiable w.r.t. `x`.
 
@@ -487,6 +728,10 @@ def hair_hair_contact_energy(
             `DEFAULT_MAX_PAIRS_PER_SEGMENT` (64) per segment. `capacity` is clamped to it, and
             "grow" never grows past it: more pairs than that raise `HairHairCapacityError`
             naming `max_pairs`.
+        pair_cache: a `HairHairPairCache` to keep the pair list across calls (CPU only, with
+            `on_overflow="grow"`; `capacity` is then ignored: the buffer follows the last
+            call's count). The pairs, so the energy and gradient, are those of a call without
+            it; calls on slowly moving hair (an optimizer's iterations) cost less.
 
     Returns:
         (energy, info): energy of shape (B,) for batched input, () for (M, N, 3), dtype and
@@ -505,9 +750,20 @@ def hair_hair_contact_energy(
     variant_id = barrier_variant_id(variant)
     _check_options(capacity, skip_root_segments, on_overflow, max_pairs)
     x4c = x4.contiguous()
-    pairs, count, found, requested = _broad_phase(
-        x4c.detach(), xi + dhat, capacity, skip_root_segments, on_overflow, max_pairs
-    )
+    if pair_cache is not None:
+        if not isinstance(pair_cache, HairHairPairCache):
+            raise ValueError(f"pair_cache: expected None or a HairHairPairCache, got {type(pair_cache).__name__}")
+        if x4c.device.type != "cpu":
+            raise ValueError(f"pair_cache: CPU only (x is on {x4c.device}); on CUDA use CapturedEnergy")
+        if on_overflow != "grow":
+            raise ValueError(f"pair_cache: needs on_overflow='grow', got {on_overflow!r}")
+        pairs, count, found, requested = _cached_broad_phase(
+            x4c.detach(), xi + dhat, skip_root_segments, max_pairs, pair_cache
+        )
+    else:
+        pairs, count, found, requested = _broad_phase(
+            x4c.detach(), xi + dhat, capacity, skip_root_segments, on_overflow, max_pairs
+        )
     energy = _HairHairContactEnergy.apply(x4c, pairs.contiguous(), count, xi, dhat, bp, weight, variant_id)
     if x.dim() == 3:
         energy = energy[0]
@@ -517,6 +773,7 @@ def hair_hair_contact_energy(
 __all__ = [
     "HairHairCapacityError",
     "HairHairContactInfo",
+    "HairHairPairCache",
     "HairHairPairs",
     "hair_hair_contact_energy",
     "hair_hair_contact_pairs",

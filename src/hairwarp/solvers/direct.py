@@ -55,6 +55,9 @@ class DirectOptimizationConfig:
         cuda_graph: on CUDA, evaluate the energy and its gradient by replaying a CUDA graph
             (`hairwarp.energy.CapturedEnergy`; captured again at the current point if the hair-hair
             pairs outgrow its buffer). No effect on the CPU.
+        pair_cache: on the CPU, keep the hair-hair pair list across the energy evaluations
+            (`hairwarp.ops.hair_hair_contact.HairHairPairCache`: the same energy and gradient,
+            fewer grid queries). No effect on CUDA.
         divergence_factor: the run counts as diverged when the loss exceeds the initial loss
             by more than this factor times max(|initial loss|, 1) (an absurd step size sends
             the hair kilometres away long before float32 overflows).
@@ -73,6 +76,7 @@ class DirectOptimizationConfig:
     divergence_factor: float = 1e6
     lbfgs_restart: int = 5
     cuda_graph: bool = True
+    pair_cache: bool = True
 
     def __post_init__(self):
         if self.method not in ("adam", "lbfgs"):
@@ -185,12 +189,19 @@ def optimize_drape(
 
         captured = CapturedEnergy(x0.detach(), inputs, energy_config, dynamic=dynamic)
 
+    pair_cache = None
+    if captured is None and solver.pair_cache and x0.device.type == "cpu" and energy_config.hair_hair_weight != 0.0:
+        from hairwarp.ops.hair_hair_contact import HairHairPairCache
+
+        pair_cache = HairHairPairCache()
+
     def energy_and_gradient(free_part):
         """(loss, d loss / d free_part) at free_part."""
         nonlocal captured
         if captured is None:
             part = free_part.detach().requires_grad_(True)
-            loss = total_energy(assemble(part), inputs, energy_config, dynamic=dynamic).total.sum()
+            loss = total_energy(assemble(part), inputs, energy_config, dynamic=dynamic,
+                                hair_hair_cache=pair_cache).total.sum()
             (grad,) = torch.autograd.grad(loss, part)
             return loss.detach(), grad
         x = assemble(free_part.detach())
