@@ -173,11 +173,14 @@ class StaticConfig(_DictConfig):
 
         About 4.4 M parameters (8.4 MiB in half precision); with `DynamicConfig.shipped()` the
         dynamic checkpoint (static network inside) holds about 7.1 M: 13.5 MiB in half
-        precision, under a 16 MiB budget. The hair latent stays 512-d.
+        precision, under a 16 MiB budget. The hair latent stays 512-d. Its drapes are
+        projected onto the rest lengths (`length_projection="follow_the_leader"`): trained
+        without it, the networks kept the rigid placement (docs/training_diagnosis.md).
         """
         return cls(
             model_dim=256, num_heads=8, num_encoder_layers=3, num_hair_body_layers=3,
             ffn_dim=768, body_hidden_dim=256, head_hidden_dim=256,
+            length_projection=LENGTH_PROJECTION_FOLLOW_THE_LEADER,
         )
 
 
