@@ -130,7 +130,7 @@ def add_method_arguments(p: argparse.ArgumentParser, *, max_iterations: int, def
     g.add_argument("--patience", type=int, default=50,
                    help="adam/lbfgs: stop after this many iterations without decrease (default: 50)")
     g.add_argument("--no-hair-hair", action="store_true",
-                   help="leave hair-hair contact out of the energy (3-4x faster evaluations on a CPU)")
+                   help="leave hair-hair contact out of the energy (about 2x faster L-BFGS on a CPU)")
     g.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
