@@ -35,7 +35,7 @@ from hairwarp.scene.motion import DEFAULT_FPS, list_motions
 MODEL_PRESETS = ("paper", "shipped", "tiny")
 STATIC_MODEL_KINDS = ("static", "quaffure")
 BP_SCHEDULES = ("linear", "geometric")
-LOSS_NORMALIZATIONS = ("none", "rigid")
+LOSS_NORMALIZATIONS = ("none", "rigid", "inverse")
 # Energy added to the rigid placement's before dividing by it ("rigid" normalization): keeps
 # samples that start at rest (energy near its minimum) from being magnified.
 LOSS_NORMALIZATION_FLOOR = 1.0
@@ -320,7 +320,10 @@ class StaticTrainingConfig(_TrainingConfig):
             each sample's energy divided by its rigid placement's at the step's b_p (plus
             `LOSS_NORMALIZATION_FLOOR`), so a sample whose tips start 10 cm inside the body
             (contact gradients ~1e5 times gravity's, tools/diagnose_one_scene.py) does not
-            drown the others in Adam's second moment.
+            drown the others in Adam's second moment; or "inverse": each sample's energy
+            weighted by 1 / (1 + |E|) of its current value (detached), the gradient of
+            log(1 + E): a sample deep inside the body pulls with the relative, not the absolute,
+            size of its contact gradient, and the weights return to ~1 as the drapes settle.
         checkpoint_every: write `checkpoint.pt` every this many steps (0: only at the end).
         dtype: "float32" (training) or "float64" (checks).
         curve_every: record the learning curve (`hairwarp.training.monitor`: per-term gradient

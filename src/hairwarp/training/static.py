@@ -138,7 +138,7 @@ def static_loss(model: nn.Module, batch: HairBatch, energy, clip: float | None =
         batch: the samples (latents, shapes, poses, rigid placement, energy inputs).
         energy: the `EnergyConfig` (b_p of this step inside).
         clip: optional clamp of each deformation component [m].
-        normalization: "none" or "rigid" (`StaticTrainingConfig.loss_normalization`).
+        normalization: "none", "rigid" or "inverse" (`StaticTrainingConfig.loss_normalization`).
 
     Returns:
         (loss () tensor, terms {name: batch-mean float}, positions (B, M, N, 3)).
@@ -147,6 +147,9 @@ def static_loss(model: nn.Module, batch: HairBatch, energy, clip: float | None =
                                       batch.inputs.body, clip)
     positions = apply_deformation(batch.rigid, deformation, batch.root_uv, length_projection_of(model))
     result = total_energy(positions, batch.inputs, energy)
+    if normalization == "inverse":
+        weight = 1.0 / (1.0 + result.total.detach().abs())
+        return (result.total * weight).mean(), term_means(result.terms), positions
     if normalization == "rigid":
         with torch.no_grad():
             scale = total_energy(batch.rigid, batch.inputs, energy).total.abs() + LOSS_NORMALIZATION_FLOOR
