@@ -18,7 +18,7 @@ from hairwarp.methods import MethodOptions, available, make
 from hairwarp.methods.networks import HOLD_FRAMES, HairFormerSimulator, load_simulator
 from hairwarp.metrics import penetration_percent
 from hairwarp.models import DynamicConfig, DynamicNetwork, QuaffureConfig, QuaffureNetwork, StaticConfig, StaticNetwork
-from hairwarp.models.checkpoint import save_checkpoint
+from hairwarp.models.checkpoint import load_checkpoint, save_checkpoint
 
 # Tiny networks read the 512-d hair latent of the shipped basis.
 TINY_N = 12
@@ -268,5 +268,16 @@ def test_a_network_with_contact_features_and_the_length_projection_drapes(tmp_pa
     seg = (result.positions[..., 1:, :] - result.positions[..., :-1, :]).norm(dim=-1)
     rest = (rigid[..., 1:, :] - rigid[..., :-1, :]).norm(dim=-1)
     assert float((seg - rest).abs().max()) < 1e-5
-    with pytest.raises(ValueError, match="contact features"):
-        DynamicNetwork.from_static(StaticNetwork(cfg))
+    # The dynamic network around it reads each frame's features too: held poses and a motion.
+    dyn_path = str(tmp_path / "contact_dynamic.pt")
+    static = load_checkpoint(path).model
+    save_checkpoint(dyn_path, DynamicNetwork.from_static(static, dataclasses.replace(
+        DynamicConfig.tiny(motion_dim=132), static=static.config)))
+    held = make("dynamic", MethodOptions(checkpoint=dyn_path)).drape(frames)
+    assert held.positions.shape == rigid.shape and torch.isfinite(held.positions).all()
+    motion = comparison_scene("whiplash", strand_stride=16, num_vertices=TINY_N)
+    sim = make("dynamic", MethodOptions(checkpoint=dyn_path)).simulate(motion.frames(list(range(4))))
+    moved = sim.positions
+    seg = (moved[..., 1:, :] - moved[..., :-1, :]).norm(dim=-1)
+    base = motion.frames(list(range(4))).rigid.positions
+    assert float((seg - (base[..., 1:, :] - base[..., :-1, :]).norm(dim=-1)).abs().max()) < 1e-5

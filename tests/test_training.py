@@ -572,3 +572,34 @@ def test_dataclass_configs_validate():
     paper = (dyn.window, dyn.subsample_min, dyn.subsample_max, dyn.dynamic_candidates, dyn.dynamic_quantile)
     assert paper == (10, 2, 5, 500, 0.5)
     assert dataclasses.asdict(cfg)["data"]["num_vertices"] == 100 and cfg.data.num_strands == 1024
+
+
+def test_networks_beyond_the_paper_train_static_then_dynamic(tmp_path, static_config, sampler):
+    """Contact features, the length projection and the inverse-energy weighting through both
+    trainings: the static loss falls, the dynamic network reads every frame's contact features
+    (warm-up frames' bodies built), and its drapes keep the rest lengths."""
+    cfg = static_config.replace(phase_steps=(2, 2, 0, 0), learning_rate=_STEP_LR, loss_normalization="inverse",
+                                model={"contact_samples": 3, "length_projection": "follow_the_leader"})
+    static = StaticTrainer(cfg, out=tmp_path / "static", sampler=sampler)
+    assert static.model.contact_encoder is not None
+    batch = static.next_batch(0)
+    before, _ = static.evaluate(batch, 0)
+    static.train_step(batch)
+    after, _ = static.evaluate(batch, 0)
+    assert after < before
+    static.train(progress=False)
+    static.close()
+    dyn_cfg = DynamicTrainingConfig.tiny(str(tmp_path / "static" / "checkpoint.pt")).replace(
+        data=static_config.data, steps=1)
+    dynamic = DynamicTrainer(dyn_cfg, sampler=sampler)
+    seq = dynamic.next_batch(0)
+    assert seq.warmup.inputs.body is not None  # the contact features of the warm-up frames need it
+    loss, terms, positions = dynamic_loss(dynamic.model, seq, EnergyConfig(barrier_join_fraction=0.01))
+    assert torch.isfinite(loss) and positions.requires_grad
+    rigid = seq.rollout.rigid.reshape(positions.shape)
+    seg = (positions[..., 1:, :] - positions[..., :-1, :]).norm(dim=-1)
+    rest = (rigid[..., 1:, :] - rigid[..., :-1, :]).norm(dim=-1)
+    assert float((seg - rest).abs().max().detach()) < 1e-5
+    dynamic.train_step(seq)
+    with pytest.raises(ValueError, match="contact: this network reads contact features"):
+        dynamic.model.simulate(seq.z, seq.betas, seq.poses, seq.motion)

@@ -121,7 +121,7 @@ class HairFormerSimulator:
 
     @torch.no_grad()
     def simulate_poses(self, hairstyle, poses: torch.Tensor, betas: torch.Tensor, rigid: torch.Tensor,
-                       fps: float) -> torch.Tensor:
+                       fps: float, body=None, contact: torch.Tensor | None = None) -> torch.Tensor:
         """Dynamic simulation of a hairstyle over a pose sequence.
 
         Args:
@@ -130,6 +130,9 @@ class HairFormerSimulator:
             betas: (1, 16) or (16,) body shape.
             rigid: (T, M, N, 3) rigid placement of each frame [m] (Eq. 1).
             fps: frame rate of the sequence [1/s].
+            body: the frames' posed `BodyMesh` (T meshes, or one), for a network that reads
+                contact features.
+            contact: (T, L, F) those features computed already (instead of `body`).
 
         Returns:
             (T, M, N, 3) positions [m].
@@ -149,10 +152,13 @@ class HairFormerSimulator:
         motion = motion_descriptor_windows(poses.detach().cpu().double(), betas[0].detach().cpu().double(),
                                            1.0 / fps, window, include_betas=False)
         motion = motion.to(device=rigid.device, dtype=dtype)[None]
-        out = self.dynamic.simulate(z, betas.to(device=rigid.device, dtype=dtype),
-                                    poses.to(device=rigid.device, dtype=dtype)[None], motion)
-        maps = out.deformation_map.reshape(t, *out.deformation_map.shape[2:])
         root_uv = hairstyle.root_uv.to(rigid.device)
+        if contact is None and self.dynamic.config.static.contact_samples > 0:
+            contact = self.dynamic.contact_features(rigid.to(dtype), root_uv, body)
+        out = self.dynamic.simulate(z, betas.to(device=rigid.device, dtype=dtype),
+                                    poses.to(device=rigid.device, dtype=dtype)[None], motion,
+                                    contact=None if contact is None else contact[None])
+        maps = out.deformation_map.reshape(t, *out.deformation_map.shape[2:])
         projection = self.dynamic.config.static.length_projection
         return apply_deformation(rigid.to(dtype), maps, root_uv, projection).to(rigid.dtype)
 
@@ -161,7 +167,7 @@ class HairFormerSimulator:
         scene = frames.scene
         poses = scene.motion.poses[frames.frame_indices.cpu()]
         return self.simulate_poses(scene.hairstyle, poses, frames.betas[:1], frames.rigid.positions,
-                                   fps=float(scene.motion.fps))
+                                   fps=float(scene.motion.fps), body=frames.body_mesh)
 
 
 def load_simulator(name: str, checkpoint: str | None, device: torch.device) -> HairFormerSimulator:
@@ -241,10 +247,13 @@ class NetworkMethod(Method):
         # Each pose held still for HOLD_FRAMES frames from a zero state; the last frame kept.
         out, total = [], 0.0
         style, fps = frames.scene.hairstyle, float(frames.scene.motion.fps)
+        contact = sim.dynamic.contact_features(frames.rigid.positions, style.root_uv.to(device), frames.body_mesh)
         for b in range(frames.rigid.positions.shape[0]):
             poses = frames.poses[b].detach().cpu().expand(HOLD_FRAMES, -1)
             rigid = frames.rigid.positions[b].expand(HOLD_FRAMES, -1, -1, -1)
-            positions, seconds = timed(lambda: sim.simulate_poses(style, poses, frames.betas[b], rigid, fps), device)
+            held = None if contact is None else contact[b].expand(HOLD_FRAMES, -1, -1)
+            positions, seconds = timed(
+                lambda: sim.simulate_poses(style, poses, frames.betas[b], rigid, fps, contact=held), device)
             out.append(positions[-1])
             total += seconds
         positions = torch.stack(out)

@@ -102,9 +102,6 @@ class DynamicNetwork(nn.Module):
             static = StaticNetwork(config.static)
         if not isinstance(static, StaticNetwork):
             raise ValueError(f"static: expected a StaticNetwork, got {type(static).__name__}")
-        if static.config.contact_samples > 0:
-            raise ValueError("static: a dynamic network around a static network with contact features "
-                             "(contact_samples > 0) is not supported; use a static network without them")
         if static.config != config.static:
             raise ValueError("config: config.static differs from the static network's config")
         self.config = config
@@ -177,9 +174,31 @@ class DynamicNetwork(nn.Module):
         return self.config.fusion != FUSION_LORA
 
     # -- pieces (unchecked) -----------------------------------------------------------------------
-    def _static_features(self, z, beta, theta):
+    def _static_features(self, z, beta, theta, contact=None):
         with torch.no_grad():
-            return self.static._features(z, beta, theta)
+            return self.static._features(z, beta, theta, contact)
+
+    def _check_contact(self, contact, batch, frames=None):
+        """Check a contact-feature input: (B, L, F), or (B, T, L, F) with `frames`."""
+        scfg = self.config.static
+        if scfg.contact_samples == 0:
+            if contact is not None:
+                raise ValueError("contact: this network reads no contact features (contact_samples = 0)")
+            return
+        if contact is None:
+            raise ValueError("contact: this network reads contact features (contact_samples > 0); pass "
+                             "contact=network.contact_features(rigid, root_uv, body)")
+        trailing = [scfg.num_cells, self.static.contact_dim]
+        check_batch(self, batch, contact=(contact, trailing if frames is None else [frames, *trailing]))
+
+    def contact_features(self, rigid: torch.Tensor, root_uv: torch.Tensor, body) -> torch.Tensor | None:
+        """The contact features of frames (B, L, F), as the static network inside reads them (None: none)."""
+        return self.static.contact_features(rigid, root_uv, body)
+
+    def frame_contact_features(self, rigid: torch.Tensor, root_uv: torch.Tensor, body, batch: int):
+        """`contact_features` of B sequences of T frames held as (B * T, M, N, 3), as (B, T, L, F)."""
+        contact = self.contact_features(rigid, root_uv, body)
+        return None if contact is None else contact.reshape(batch, -1, *contact.shape[1:])
 
     def _encode_motion(self, motion, beta, hidden):
         frames = torch.cat([motion, beta[:, None, :].expand(-1, motion.shape[1], -1)], dim=-1)
@@ -289,6 +308,7 @@ class DynamicNetwork(nn.Module):
         motion: torch.Tensor,
         hidden: torch.Tensor | None = None,
         clip: float | None = None,
+        contact: torch.Tensor | None = None,
     ) -> DynamicOutput:
         """One time step: D_dyn(t) and C_dyn(t) from frame t's pose and motion window.
 
@@ -299,6 +319,7 @@ class DynamicNetwork(nn.Module):
             motion: (B, T_w, D) motion descriptors of the window ending at frame t.
             hidden: (B, d_m) C_dyn(t-1) from the previous step; None: zeros (first frame).
             clip: optional clamp of each deformation component [m].
+            contact: (B, L, F) frame t's contact features, for a static network that reads them.
 
         Returns:
             DynamicOutput(deformation_map (B, M_H0, M_W0, N, 3) [m], hidden (B, d_m),
@@ -314,8 +335,9 @@ class DynamicNetwork(nn.Module):
             motion=(motion, [cfg.window, cfg.motion_dim]),
         )
         self._check_hidden(hidden, batch)
+        self._check_contact(contact, batch)
         hidden = self._zero_hidden(batch, z) if hidden is None else hidden
-        static_features = self._static_features(z, beta, theta)
+        static_features = self._static_features(z, beta, theta, contact)
         c_dyn = self._encode_motion(motion, beta, hidden)
         deformation = self._predict(self._fuse(static_features, c_dyn), clip)
         return DynamicOutput(deformation, c_dyn, static_features)
@@ -328,6 +350,7 @@ class DynamicNetwork(nn.Module):
         motion: torch.Tensor,
         hidden: torch.Tensor | None = None,
         clip: float | None = None,
+        contact: torch.Tensor | None = None,
     ) -> DynamicOutput:
         """Run a whole sequence frame by frame, carrying C_dyn through the GRU, batched.
 
@@ -342,6 +365,8 @@ class DynamicNetwork(nn.Module):
             motion: (B, T, T_w, D) the motion-descriptor window ending at each frame.
             hidden: (B, d_m) C_dyn before the first frame; None: zeros.
             clip: optional clamp of each deformation component [m].
+            contact: (B, T, L, F) contact features of each frame, for a static network that
+                reads them (`frame_contact_features`).
 
         Returns:
             DynamicOutput(deformation_map (B, T, M_H0, M_W0, N, 3) [m], hidden (B, d_m) after
@@ -359,6 +384,7 @@ class DynamicNetwork(nn.Module):
         if motion.shape[1] != frames:
             raise ValueError(f"motion: expected {frames} frames like poses, got {motion.shape[1]}")
         self._check_hidden(hidden, batch)
+        self._check_contact(contact, batch, frames)
         hidden = self._zero_hidden(batch, z) if hidden is None else hidden
 
         codes = []
@@ -370,7 +396,9 @@ class DynamicNetwork(nn.Module):
         def per_frame(x):
             return x[:, None].expand(batch, frames, *x.shape[1:]).reshape(batch * frames, *x.shape[1:])
 
-        static_features = self._static_features(per_frame(z), per_frame(beta), poses.reshape(batch * frames, -1))
+        flat_contact = None if contact is None else contact.reshape(batch * frames, *contact.shape[2:])
+        static_features = self._static_features(per_frame(z), per_frame(beta), poses.reshape(batch * frames, -1),
+                                                flat_contact)
         deformation = self._predict(self._fuse(static_features, c_dyn), clip)
         return DynamicOutput(
             deformation.reshape(batch, frames, *deformation.shape[1:]),
@@ -388,18 +416,19 @@ class DynamicNetwork(nn.Module):
         root_uv: torch.Tensor,
         hidden: torch.Tensor | None = None,
         clip: float | None = None,
+        contact: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """One step's hair positions (Eq. 2 with D_dyn) and the next hidden state.
 
         Args:
-            z, beta, theta, motion, hidden, clip: as in `forward`.
+            z, beta, theta, motion, hidden, clip, contact: as in `forward`.
             rigid: (B, M, N, 3) rigidly posed hair of frame t [m].
             root_uv: (M, 2) or (B, M, 2) root UVs in [0, 1]^2.
 
         Returns:
             ((B, M, N, 3) positions [m], (B, d_m) C_dyn(t)).
         """
-        out = self.forward(z, beta, theta, motion, hidden, clip)
+        out = self.forward(z, beta, theta, motion, hidden, clip, contact)
         return apply_deformation(rigid, out.deformation_map, root_uv, self.config.static.length_projection), out.hidden
 
 

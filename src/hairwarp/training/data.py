@@ -679,6 +679,7 @@ class TrainingSampler:
         dynamic_filter: bool = True,
         candidates: int = 500,
         quantile: float = 0.5,
+        warmup_bodies: bool = False,
     ) -> SequenceBatch:
         """The batch of a dynamic-training step (Section 4.2.2).
 
@@ -698,6 +699,8 @@ class TrainingSampler:
             dynamic_filter: apply the dynamic-score filter.
             candidates: clips whose scores set the threshold.
             quantile: threshold quantile (0.5: the median).
+            warmup_bodies: also build the warm-up frames' body meshes (a network that reads
+                contact features needs them; the loss never does).
 
         Returns:
             SequenceBatch of this rank's sequences (all of them in a single process).
@@ -779,7 +782,7 @@ class TrainingSampler:
 
         return SequenceBatch(
             z=z, betas=betas, poses=poses, motion=motion,
-            warmup=part(0, warmup_frames, False), rollout=part(warmup_frames, frames, True),
+            warmup=part(0, warmup_frames, warmup_bodies), rollout=part(warmup_frames, frames, True),
             intervals=[c[1] for c in clips], info=info, share=share,
         )
 

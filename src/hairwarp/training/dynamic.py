@@ -86,11 +86,15 @@ def dynamic_loss(model: DynamicNetwork, batch: SequenceBatch, energy, clip: floa
     m, n = batch.rollout.rigid.shape[1], batch.rollout.rigid.shape[2]
     root_uv = batch.rollout.root_uv
     projection = length_projection_of(model)
+    warm_contact = model.frame_contact_features(batch.warmup.rigid, root_uv, batch.warmup.inputs.body, b)
+    contact = model.frame_contact_features(batch.rollout.rigid, root_uv, batch.rollout.inputs.body, b)
     with torch.no_grad():
-        warm = model.simulate(batch.z, batch.betas, batch.poses[:, :w], batch.motion[:, :w], None, clip)
+        warm = model.simulate(batch.z, batch.betas, batch.poses[:, :w], batch.motion[:, :w], None, clip,
+                              contact=warm_contact)
         warm_maps = warm.deformation_map.reshape(b * w, *warm.deformation_map.shape[2:])
         warm_positions = apply_deformation(batch.warmup.rigid, warm_maps, root_uv, projection).reshape(b, w, m, n, 3)
-    out = model.simulate(batch.z, batch.betas, batch.poses[:, w:], batch.motion[:, w:], warm.hidden, clip)
+    out = model.simulate(batch.z, batch.betas, batch.poses[:, w:], batch.motion[:, w:], warm.hidden, clip,
+                         contact=contact)
     maps = out.deformation_map.reshape(b * r, *out.deformation_map.shape[2:])
     positions = apply_deformation(batch.rollout.rigid, maps, root_uv, projection)  # (B * R, M, N, 3)
     prev, prev2 = inertia_history(warm_positions, positions.reshape(b, r, m, n, 3))
@@ -224,7 +228,7 @@ class DynamicTrainer(Trainer):
             step, cfg.batch_size, cfg.warmup_frames, cfg.rollout_frames, num_hairstyles=cfg.hairstyles,
             subsample=(cfg.subsample_min, cfg.subsample_max), window=cfg.window,
             dynamic_filter=cfg.dynamic_filter, candidates=cfg.dynamic_candidates,
-            quantile=cfg.dynamic_quantile,
+            quantile=cfg.dynamic_quantile, warmup_bodies=self.model.static.config.contact_samples > 0,
         )
 
     def compute_loss(self, batch: SequenceBatch, step: int, model: DynamicNetwork | None = None):
