@@ -32,6 +32,14 @@ import torch
 STRAND_STRIDE = 2
 PHASE2_HAIRSTYLES = 128
 PHASE3_HAIRSTYLES = 512
+# Defaults of the flags per --recipe ("lr": static/quaffure, dynamic). "shipped" made the shipped
+# checkpoint (docs/training_diagnosis.md, "What made the networks drape"); "paper" is Section 4.2.
+RECIPES = {
+    "shipped": {"bp_start": 0.1, "loss_normalization": "inverse", "grad_clip_norm": 1.0, "lr": (2e-4, 3e-5),
+                "long_hair_fraction": 0.3, "model": {"length_projection": "follow_the_leader", "contact_samples": 16}},
+    "paper": {"bp_start": 0.9, "loss_normalization": "none", "grad_clip_norm": 0.0, "lr": (1e-4, 1e-4),
+              "long_hair_fraction": 0.0, "model": {"length_projection": "none", "contact_samples": 0}},
+}
 # Step cap of a dynamic run given only a time budget (the budget ends it first).
 DYNAMIC_OPEN_STEPS = 100_000
 # Share of the steps in each curriculum phase (0: rest, 1: head rotations, 2: one subject, 3: all).
@@ -157,7 +165,8 @@ def train_static(args) -> None:
     print(f"encoded {PHASE3_HAIRSTYLES} corpus latents in {enc_s:.1f} s", flush=True)
 
     def config(steps):
-        return StaticTrainingConfig(model_kind=args.kind, model_preset="shipped", phase_steps=steps, phase2_hairstyles=PHASE2_HAIRSTYLES,
+        return StaticTrainingConfig(model_kind=args.kind, model_preset="shipped", phase_steps=steps,
+                                    phase2_hairstyles=PHASE2_HAIRSTYLES,
                                     phase3_hairstyles=PHASE3_HAIRSTYLES, batch_size=args.batch,
                                     bp_schedule=args.bp_schedule, learning_rate=args.lr, bp_start=args.bp_start,
                                     loss_normalization=args.loss_normalization, grad_clip_norm=args.grad_clip_norm,
@@ -242,25 +251,32 @@ def main(argv=None) -> None:
     parser.add_argument("--bp-schedule", default=StaticTrainingConfig.bp_schedule, choices=BP_SCHEDULES,
                         help="static/quaffure: how b_p falls from 0.9 to 0.01 (geometric spends more steps "
                              "where the quadratic barrier's push-out force is strong)")
-    parser.add_argument("--grad-clip-norm", type=float, default=StaticTrainingConfig.grad_clip_norm,
-                        help="static/quaffure: clip the gradient norm to this (0: off)")
-    parser.add_argument("--loss-normalization", default=StaticTrainingConfig.loss_normalization,
+    parser.add_argument("--recipe", choices=sorted(RECIPES), default="shipped",
+                        help="defaults of the flags below: 'shipped' (the recipe of the shipped checkpoint: "
+                             "length projection, contact features, b_p 0.1 -> 0.01, inverse-energy weighting, "
+                             "gradient clip 1, lr 2e-4 static / 3e-5 dynamic, 30 %% long hair) or 'paper' "
+                             "(b_p 0.9 -> 0.01, lr 1e-4, no projection, no contact features, no clip)")
+    parser.add_argument("--grad-clip-norm", type=float, default=None,
+                        help="clip the gradient norm to this (0: off)")
+    parser.add_argument("--loss-normalization", default=None,
                         choices=LOSS_NORMALIZATIONS,
-                        help="static/quaffure: divide each sample's energy by its rigid placement's (rigid), or weight it by 1 / (1 + |E|) (inverse)")
-    parser.add_argument("--bp-start", type=float, default=StaticTrainingConfig.bp_start,
+                        help="static/quaffure: divide each sample's energy by its rigid placement's (rigid), "
+                             "or weight it by 1 / (1 + |E|) (inverse)")
+    parser.add_argument("--bp-start", type=float, default=None,
                         help="static/quaffure: b_p at the first step (0.9 in the paper; 0.01 = constant)")
     parser.add_argument("--energy", action="append", default=[], metavar="FIELD=VALUE",
                         help="override an EnergyConfig field in the training loss (repeatable), e.g. stretch_weight=1e10")
     parser.add_argument("--model", action="append", default=[], metavar="FIELD=VALUE",
                         help="static: override a network config field (repeatable), e.g. grid_height=16 "
                              "grid_width=16 length_projection=follow_the_leader")
-    parser.add_argument("--long-hair-fraction", type=float, default=0.0,
+    parser.add_argument("--long-hair-fraction", type=float, default=None,
                         help="static: share of phase-2/3 samples drawn from the pool's long hairstyles (>= 0.4 m)")
-    parser.add_argument("--lr", type=float, default=StaticTrainingConfig.learning_rate, help="Adam step size")
+    parser.add_argument("--lr", type=float, default=None, help="Adam step size")
     parser.add_argument("--curve-every", type=int, default=250,
                         help="static/quaffure: learning curve every this many steps (0: off): "
                              "OUT/<kind>_run/learning_curve.json and .png")
-    parser.add_argument("--curve-scenes", default="table1,medium_poses", help="held-out scenes of the curve")
+    parser.add_argument("--curve-scenes", default="table1,short_rest,medium_rest,medium_poses",
+                        help="held-out scenes of the curve")
     parser.add_argument("--resume", action="store_true",
                         help="static/quaffure: continue OUT/<kind>_run from its checkpoint (an earlier call's run)")
     parser.add_argument("--seed", type=int, default=0)
@@ -268,6 +284,16 @@ def main(argv=None) -> None:
     parser.add_argument("--static", default=None, help="dynamic: the trained static checkpoint (float32 run file)")
     parser.add_argument("--out", default="hairwarp-train")
     args = parser.parse_args(argv)
+    recipe = RECIPES[args.recipe]
+    for name, value in recipe.items():
+        if name == "model":
+            # Explicit --model wins; Quaffure's decoder reads no contact features.
+            args.model = [f"{k}={v}" for k, v in value.items()
+                          if not (args.kind == "quaffure" and k == "contact_samples")] + args.model
+        elif name == "lr":
+            args.lr = args.lr if args.lr is not None else value[args.kind == "dynamic"]
+        elif getattr(args, name) is None:
+            setattr(args, name, value)
     os.makedirs(args.out, exist_ok=True)
     if args.kind in ("static", "quaffure"):  # Quaffure (adapted): the static curriculum, Section 4.3.1
         train_static(args)
