@@ -88,19 +88,22 @@ def main(argv=None):
                 for name, fn in (("static", run_static), ("dynamic", run_dynamic), ("quaffure", run_quaffure)):
                     if size != "paper" and name == "quaffure":
                         continue
-                    # The contact features (a body query) run eagerly before the network, as in
-                    # `hairwarp.methods`; the timing includes them.
-                    features = (lambda: static.contact_features(rigid, root_uv, body)) if scfg.contact_samples else None
-                    modes = [("eager", (lambda f=fn: f(features())) if features else fn)]
+                    # The contact features (a body query) are part of the drape, as in
+                    # `hairwarp.methods`, and of its CUDA graph.
+                    if scfg.contact_samples:
+                        def call(f=fn):
+                            return f(static.contact_features(rigid, root_uv, body))
+                    else:
+                        call = fn
+                    modes = [("eager", call)]
                     if device.type == "cuda":
                         try:
-                            graph = CapturedCall(fn, *([features()] if features else []))
-                            modes.append(("graph", (lambda g=graph: g(features())) if features else graph))
+                            modes.append(("graph", CapturedCall(call)))
                         except RuntimeError as exc:  # an op that cannot be captured
                             print(f"{name} {size} B={batch} {precision}: no CUDA graph ({exc})")
-                    for mode, call in modes:
+                    for mode, timed_call in modes:
                         try:
-                            ms = time_ms(call, device, warmup=5, repeats=20)
+                            ms = time_ms(timed_call, device, warmup=5, repeats=20)
                         except RuntimeError as exc:  # e.g. bf16 unsupported on this CPU
                             print(f"{name} {size} B={batch} {precision}: {exc}")
                             continue

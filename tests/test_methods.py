@@ -239,18 +239,35 @@ def test_public_drape_and_simulate():
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device; this machine has none")
-def test_cuda_graph_drape_equals_eager(checkpoints):
+@pytest.mark.parametrize("contact", [False, True])
+def test_cuda_graph_drape_equals_eager(checkpoints, tmp_path, contact):
+    """The one-shot drape replayed from a CUDA graph equals eager evaluation; a network reading
+    contact features captures its body query too, per body."""
     scene = comparison_scene("medium_poses", strand_stride=16, num_vertices=TINY_N)
     frames = scene.frames(device="cuda")
-    sim = load_simulator("static", checkpoints["static"], torch.device("cuda"))
+    path = checkpoints["static"]
+    if contact:
+        torch.manual_seed(0)
+        cfg = dataclasses.replace(StaticConfig.tiny(), latent_dim=512, num_vertices=TINY_N, contact_samples=4,
+                                  length_projection="follow_the_leader", head_init_gain=0.5)
+        path = str(tmp_path / "contact.pt")
+        save_checkpoint(path, StaticNetwork(cfg))
+    sim = load_simulator("static", path, torch.device("cuda"))
     sim.use_cuda_graphs = False
     eager = sim.drape(frames)
     sim.use_cuda_graphs = True
     graphed = sim.drape(frames)
     again = sim.drape(frames)  # a replay
-    assert any(g is not None for g in sim._graphs.values())  # a graph was captured, not the eager fallback
+    assert any(g[0] is not None for g in sim._graphs.values())  # a graph was captured, not the eager fallback
     torch.testing.assert_close(graphed, eager, rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(again, eager, rtol=1e-5, atol=1e-6)
+    if contact:  # another body (other poses): another graph, its own answer
+        other = comparison_scene("table1", strand_stride=16, num_vertices=TINY_N)
+        f2 = other.frames(device="cuda")
+        sim.use_cuda_graphs = False
+        e2 = sim.drape(f2)
+        sim.use_cuda_graphs = True
+        torch.testing.assert_close(sim.drape(f2), e2, rtol=1e-5, atol=1e-6)
 
 
 def test_a_network_with_contact_features_and_the_length_projection_drapes(tmp_path, poses_scene):

@@ -40,6 +40,10 @@ RECIPES = {
     "paper": {"bp_start": 0.9, "loss_normalization": "none", "grad_clip_norm": 0.0, "lr": (1e-4, 1e-4),
               "long_hair_fraction": 0.0, "model": {"length_projection": "none", "contact_samples": 0}},
 }
+# DynamicConfig fields per --recipe (a dynamic run's --model overrides these). The shipped recipe
+# weights Eq. 4's functional regularization so that the dynamic head's drift from the static
+# head (~1e-3 m^2 after 400 steps at weight 1) counts as much as the energy (~3).
+RECIPES_DYNAMIC_MODEL = {"shipped": {"func_reg_weight": 1000.0}, "paper": {}}
 # Step cap of a dynamic run given only a time budget (the budget ends it first).
 DYNAMIC_OPEN_STEPS = 100_000
 # Share of the steps in each curriculum phase (0: rest, 1: head rotations, 2: one subject, 3: all).
@@ -224,7 +228,8 @@ def train_dynamic(args) -> None:
     def config(steps):
         return DynamicTrainingConfig(static_checkpoint=args.static, model_preset="shipped", steps=steps,
                                      hairstyles=PHASE3_HAIRSTYLES, batch_size=args.batch, checkpoint_every=0,
-                                     learning_rate=args.lr, grad_clip_norm=args.grad_clip_norm, data=data_config())
+                                     learning_rate=args.lr, grad_clip_norm=args.grad_clip_norm, data=data_config(),
+                                     model=_overrides("--model", args.model, _number_or_text))
 
     # The dynamic run has no schedule over its steps (one phase, constant b_p), so the
     # wall-clock budget alone ends it: no probe (a probe's first batches decode new hairstyles
@@ -286,10 +291,12 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     recipe = RECIPES[args.recipe]
     for name, value in recipe.items():
-        if name == "model":
+        if name == "model" and args.kind != "dynamic":  # a dynamic run takes its static's settings
             # Explicit --model wins; Quaffure's decoder reads no contact features.
             args.model = [f"{k}={v}" for k, v in value.items()
                           if not (args.kind == "quaffure" and k == "contact_samples")] + args.model
+        elif name == "model":
+            args.model = [f"{k}={v}" for k, v in RECIPES_DYNAMIC_MODEL[args.recipe].items()] + args.model
         elif name == "lr":
             args.lr = args.lr if args.lr is not None else value[args.kind == "dynamic"]
         elif getattr(args, name) is None:

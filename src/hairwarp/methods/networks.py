@@ -39,6 +39,8 @@ NETWORK_METHODS = tuple(SHIPPED)
 HOLD_FRAMES = 10
 
 _LOADED: dict[tuple, HairFormerSimulator] = {}
+# CUDA graphs a simulator keeps (per input shapes, and per body for a network reading contact).
+MAX_GRAPHS = 8
 
 
 def shipped_checkpoint(name: str) -> str | None:
@@ -68,7 +70,7 @@ class HairFormerSimulator:
         # On CUDA the one-shot drape replays a CUDA graph per input shape (at batch 1 the
         # eager forward is launch-bound: 4.2 ms for the paper's static network on an H100).
         self.use_cuda_graphs = True
-        self._graphs: dict[tuple, CapturedCall | None] = {}
+        self._graphs: dict[tuple, tuple] = {}  # key -> (CapturedCall or None, the body it queries)
 
     @property
     def num_vertices(self) -> int:
@@ -96,27 +98,33 @@ class HairFormerSimulator:
         z = self.latent(style, rigid.device, dtype).expand(rigid.shape[0], -1)
         root_uv = style.root_uv.to(rigid.device)
         inputs = (z, frames.betas.to(dtype), frames.poses.to(dtype), rigid.to(dtype), root_uv)
-        reader = getattr(self.static, "contact_features", None)
-        contact = None if reader is None else reader(inputs[3], root_uv, frames.body_mesh)
-        if contact is not None:  # the body query runs eagerly; the network replays with its result
-            inputs = (*inputs, contact)
-        return self._one_shot(*inputs).to(rigid.dtype)
+        body = frames.body_mesh if getattr(self.static.config, "contact_samples", 0) > 0 else None
+        return self._one_shot(inputs, body).to(rigid.dtype)
 
-    def _drape_with_contact(self, z, beta, theta, rigid, root_uv, contact):
-        return self.static.drape(z, beta, theta, rigid, root_uv, None, contact)
+    def _one_shot(self, inputs: tuple, body=None) -> torch.Tensor:
+        """The static (or Quaffure) drape, replayed from a CUDA graph where one can be captured.
 
-    def _one_shot(self, *inputs: torch.Tensor) -> torch.Tensor:
-        """The static (or Quaffure) drape, replayed from a CUDA graph where one can be captured."""
-        fn = self.static.drape if len(inputs) == 5 else self._drape_with_contact
+        A network that reads contact features queries `body` inside the same graph, which then
+        belongs to that body (its BVH): graphs are kept per input shapes and body, the last
+        `MAX_GRAPHS` of them.
+        """
+        if body is None:
+            fn = self.static.drape
+        else:
+            def fn(z, beta, theta, rigid, root_uv):
+                contact = self.static.contact_features(rigid, root_uv, body)
+                return self.static.drape(z, beta, theta, rigid, root_uv, None, contact)
         if not (inputs[0].is_cuda and self.use_cuda_graphs):
             return fn(*inputs)
-        key = tuple((tuple(t.shape), t.dtype, str(t.device)) for t in inputs)
+        key = (tuple((tuple(t.shape), t.dtype, str(t.device)) for t in inputs), None if body is None else id(body))
         if key not in self._graphs:
+            while len(self._graphs) >= MAX_GRAPHS:
+                self._graphs.pop(next(iter(self._graphs)))
             try:
-                self._graphs[key] = CapturedCall(fn, *inputs)
+                self._graphs[key] = (CapturedCall(fn, *inputs), body)  # the body lives as long as its graph
             except RuntimeError:  # an op that cannot be captured: stay eager for these shapes
-                self._graphs[key] = None
-        graph = self._graphs[key]
+                self._graphs[key] = (None, body)
+        graph = self._graphs[key][0]
         return fn(*inputs) if graph is None else graph(*inputs)
 
     @torch.no_grad()
