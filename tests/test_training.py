@@ -20,7 +20,8 @@ import torch
 
 from hairwarp import cli
 from hairwarp.config import EnergyConfig
-from hairwarp.models import DynamicNetwork, StaticNetwork, load_checkpoint
+from hairwarp.energy import total_energy
+from hairwarp.models import DynamicNetwork, StaticNetwork, apply_deformation, length_projection_of, load_checkpoint
 from hairwarp.ops import BodyMesh, hair_body_contact_energy
 from hairwarp.scene.motion import DESCRIPTOR_DIM_NO_BETAS
 from hairwarp.scene.skeleton import JOINT
@@ -603,3 +604,41 @@ def test_networks_beyond_the_paper_train_static_then_dynamic(tmp_path, static_co
     dynamic.train_step(seq)
     with pytest.raises(ValueError, match="contact: this network reads contact features"):
         dynamic.model.simulate(seq.z, seq.betas, seq.poses, seq.motion)
+
+
+def test_inertia_time_step_follows_the_sampling_interval(dynamic_config, sampler):
+    """Eq. 16 ~ 1 / h^2: with "interval" a sequence sampled every k frames has its inertia term
+    divided by k^2 against "frame" (h = 1 / fps for every k); the other terms are the same."""
+    trainer = DynamicTrainer(dynamic_config, sampler=sampler)
+    batch = trainer.next_batch(0)
+    energy = EnergyConfig(barrier_join_fraction=0.01)
+    torch.manual_seed(0)
+    _, frame_terms, x_frame = dynamic_loss(trainer.model, batch, energy, inertia_time_step="frame")
+    _, interval_terms, x_interval = dynamic_loss(trainer.model, batch, energy, inertia_time_step="interval")
+    assert torch.equal(x_frame, x_interval)
+    k = torch.tensor(batch.intervals, dtype=torch.float64)
+    assert len(set(batch.intervals)) >= 1 and min(batch.intervals) >= 2
+    # Per-sequence inertia at h = 1/fps, then weighted by 1/k^2 and averaged over the frames.
+    per_item = total_energy(x_frame.reshape(-1, *x_frame.shape[2:]).detach(), dataclasses.replace(
+        batch.rollout.inputs, **_history(trainer, batch, x_frame)), energy, dynamic=True, terms=("inertia",)).total
+    per_seq = per_item.double().reshape(batch.batch_size, -1).mean(1)
+    assert interval_terms["inertia"] == pytest.approx(float((per_seq / k**2).mean()), rel=1e-5)
+    assert frame_terms["inertia"] == pytest.approx(float(per_seq.mean()), rel=1e-5)
+    for name in ("gravity", "hair_body_contact", "auxiliary"):
+        assert interval_terms[name] == pytest.approx(frame_terms[name], rel=1e-6)
+    with pytest.raises(ValueError, match="inertia_time_step"):
+        DynamicTrainingConfig.tiny("x.pt").replace(inertia_time_step="never")
+
+
+def _history(trainer, batch, positions):
+    """prev / prev2 of the rollout frames as `dynamic_loss` builds them."""
+    b, w = batch.batch_size, batch.warmup_frames
+    m, n = positions.shape[2], positions.shape[3]
+    model = trainer.model
+    root_uv = batch.rollout.root_uv
+    with torch.no_grad():
+        warm = model.simulate(batch.z, batch.betas, batch.poses[:, :w], batch.motion[:, :w], None, None)
+        maps = warm.deformation_map.reshape(b * w, *warm.deformation_map.shape[2:])
+        warm_x = apply_deformation(batch.warmup.rigid, maps, root_uv, length_projection_of(model)).reshape(b, w, m, n, 3)
+    prev, prev2 = inertia_history(warm_x, positions.detach())
+    return {"prev": prev.reshape(-1, m, n, 3), "prev2": prev2.reshape(-1, m, n, 3)}

@@ -36,6 +36,7 @@ MODEL_PRESETS = ("paper", "shipped", "tiny")
 STATIC_MODEL_KINDS = ("static", "quaffure")
 BP_SCHEDULES = ("linear", "geometric")
 LOSS_NORMALIZATIONS = ("none", "rigid", "inverse")
+INERTIA_TIME_STEPS = ("interval", "frame")
 # Energy added to the rigid placement's before dividing by it ("rigid" normalization): keeps
 # samples that start at rest (energy near its minimum) from being magnified.
 LOSS_NORMALIZATION_FLOOR = 1.0
@@ -451,6 +452,10 @@ class DynamicTrainingConfig(_TrainingConfig):
         dynamic_candidates: random sequences whose scores set the threshold (500).
         dynamic_quantile: quantile of those scores used as threshold (0.5, the median).
         barrier_join_fraction: b_p of the contact barrier (the static curriculum's final 0.01).
+        inertia_time_step: the h of Eq. 16 between two drapes of a sequence: "interval" (k / fps
+            for a sequence sampled every k frames: the time that passed) or "frame" (1 / fps
+            whatever k: inertia weighted k^2 = 4-25 times too much, which trained networks that
+            throw the hair up and out).
         deformation_clip: optional clamp of each deformation component [m] (None: off).
         grad_clip_norm: clip the gradient norm to this (0: off).
         checkpoint_every: write `checkpoint.pt` every this many steps (0: only at the end).
@@ -475,6 +480,7 @@ class DynamicTrainingConfig(_TrainingConfig):
     dynamic_candidates: int = 500
     dynamic_quantile: float = 0.5
     barrier_join_fraction: float = 0.01
+    inertia_time_step: str = "interval"
     deformation_clip: float | None = None
     grad_clip_norm: float = 0.0
     checkpoint_every: int = 1000
@@ -486,6 +492,7 @@ class DynamicTrainingConfig(_TrainingConfig):
         owner = type(self).__name__
         self.static_checkpoint = os.fspath(self.static_checkpoint)
         _choice(owner, "model_preset", self.model_preset, MODEL_PRESETS)
+        _choice(owner, "inertia_time_step", self.inertia_time_step, INERTIA_TIME_STEPS)
         if isinstance(self.model, dict):
             for name in ("motion_dim", "window", "static"):
                 if name in self.model:

@@ -69,7 +69,8 @@ def inertia_history(
     return history[:, 1:r + 1], history[:, :r]
 
 
-def dynamic_loss(model: DynamicNetwork, batch: SequenceBatch, energy, clip: float | None = None):
+def dynamic_loss(model: DynamicNetwork, batch: SequenceBatch, energy, clip: float | None = None,
+                 inertia_time_step: str = "frame"):
     """Eq. 6 averaged over the rollout frames of a sequence batch (see the module docstring).
 
     Args:
@@ -77,6 +78,9 @@ def dynamic_loss(model: DynamicNetwork, batch: SequenceBatch, energy, clip: floa
         batch: the sequences.
         energy: the `EnergyConfig` (time_step = dt of Eq. 16).
         clip: optional clamp of each deformation component [m].
+        inertia_time_step: "frame" (Eq. 16 with h = `energy.time_step` for every sequence) or
+            "interval" (h = k * `energy.time_step` for a sequence sampled every k frames:
+            its inertia term divided by k^2).
 
     Returns:
         (loss () tensor, terms {name: mean float, "func_reg" included},
@@ -100,11 +104,20 @@ def dynamic_loss(model: DynamicNetwork, batch: SequenceBatch, energy, clip: floa
     prev, prev2 = inertia_history(warm_positions, positions.reshape(b, r, m, n, 3))
     inputs = dataclasses.replace(batch.rollout.inputs, prev=prev.reshape(b * r, m, n, 3),
                                  prev2=prev2.reshape(b * r, m, n, 3))
-    result = total_energy(positions, inputs, energy, dynamic=True)
+    if inertia_time_step == "interval":
+        # Eq. 16 ~ 1 / h^2: a sequence sampled every k frames has h = k dt.
+        k = torch.as_tensor(batch.intervals, dtype=positions.dtype, device=positions.device)
+        scale = (1.0 / k**2).repeat_interleave(r)
+        static = total_energy(positions, inputs, energy)
+        inertia = total_energy(positions, inputs, energy, dynamic=True, terms=("inertia",))
+        total = static.total + inertia.total * scale
+        terms = term_means({**static.terms, "inertia": inertia.terms["inertia"] * scale})
+    else:
+        result = total_energy(positions, inputs, energy, dynamic=True)
+        total, terms = result.total, term_means(result.terms)
     func_reg = model.functional_regularization(out.static_features)
-    terms = term_means(result.terms)
     terms["func_reg"] = float(func_reg.detach())
-    return result.total.mean() + func_reg, terms, positions.reshape(b, r, m, n, 3)
+    return total.mean() + func_reg, terms, positions.reshape(b, r, m, n, 3)
 
 
 def dynamic_model_config(config: DynamicTrainingConfig, static_config) -> DynamicConfig:
@@ -238,7 +251,8 @@ class DynamicTrainer(Trainer):
             # Eq. 16's dt is the frame time the motions are played at (1/60 s in the paper).
             fixed["time_step"] = 1.0 / cfg.data.fps
         energy = energy_config(cfg.energy, **fixed)
-        loss, terms, _ = dynamic_loss(self.model if model is None else model, batch, energy, cfg.deformation_clip)
+        loss, terms, _ = dynamic_loss(self.model if model is None else model, batch, energy, cfg.deformation_clip,
+                                      cfg.inertia_time_step)
         # The global batch's size and intervals (every rank drew them all).
         extras = {"bp": cfg.barrier_join_fraction, "batch_size": batch.info.get("global_batch_size", batch.batch_size),
                   "intervals": list(batch.info.get("intervals", batch.intervals))}
