@@ -206,34 +206,129 @@ def hair_hair_pairs_kernel(
 
 
 @wp.func
+def _add_vertex_gradient(gradient_out: wp.array(dtype=Any), v: int, num_vertices: int, g: Any):
+    if v % num_vertices >= NUM_FIXED_VERTICES:
+        wp.atomic_add(gradient_out, v, g)
+
+
+@wp.func
+def _add_pair_energy(
+    vi: int,
+    vj: int,
+    p0: Any,
+    p1: Any,
+    q0: Any,
+    q1: Any,
+    s: Any,
+    t: Any,
+    group: int,
+    num_vertices: int,
+    xi: Any,
+    dhat: Any,
+    bp: Any,
+    weight: Any,
+    variant: int,
+    energy_out: wp.array(dtype=wp.float64),
+    gradient_out: wp.array(dtype=Any),
+):
+    """energy_out[group] += weight * B(d), gradient_out[v] += weight * B'(d) dd/dx_v for the pair
+    of segments (p0, p1) (first vertex vi) and (q0, q1) (first vertex vj) whose closest points
+    are at parameters (s, t) (`edge_edge_closest_parameters`). Fixed vertices get nothing.
+    """
+    d, g_p0, g_p1, g_q0, g_q1 = edge_edge_distance_gradient_at(p0, p1, q0, q1, s, t)
+    energy = barrier_energy(d, xi, dhat, bp, variant)
+    if energy == type(energy)(0.0):
+        return
+    wp.atomic_add(energy_out, group, wp.float64(weight * energy))
+    scale = weight * barrier_gradient(d, xi, dhat, bp, variant)
+    _add_vertex_gradient(gradient_out, vi, num_vertices, scale * g_p0)
+    _add_vertex_gradient(gradient_out, vi + 1, num_vertices, scale * g_p1)
+    _add_vertex_gradient(gradient_out, vj, num_vertices, scale * g_q0)
+    _add_vertex_gradient(gradient_out, vj + 1, num_vertices, scale * g_q1)
+
+
+@wp.func
+def lines_apart(p0: Any, p1: Any, q0: Any, q1: Any, cutoff2: Any):
+    """True if the lines through the segments (p0, p1) and (q0, q1) are surely farther apart
+    than sqrt(cutoff2) (so are the segments): a cheap reject before the exact distance.
+
+    Line distance |r . n| / |n| with n = ep x eq, r = p0 - q0. Only when the lines are at least
+    0.6 degrees apart (|n|^2 > 1e-4 |ep|^2 |eq|^2: n's direction is then accurate to ~1e-5 of
+    the input precision's rounding), and with the cutoff widened by 0.05 %: the exact test
+    would find the same, so the pairs are unchanged.
+    """
+    ep = p1 - p0
+    eq = q1 - q0
+    n = wp.cross(ep, eq)
+    nn = wp.dot(n, n)
+    if nn <= type(nn)(1e-4) * wp.dot(ep, ep) * wp.dot(eq, eq):
+        return False
+    rn = wp.dot(p0 - q0, n)
+    return rn * rn > cutoff2 * type(nn)(1.001) * nn
+
+
+@wp.func
 def _write_pair_if_close(
     x_in: wp.array(dtype=Any),
     i: int,
     j: int,
     strand_i: int,
+    vi: int,
     p0: Any,
     p1: Any,
     num_vertices: int,
+    num_strands: int,
     skip_root_segments: int,
     cutoff2: Any,
     capacity: int,
+    with_energy: int,
+    xi: Any,
+    dhat: Any,
+    bp: Any,
+    weight: Any,
+    variant: int,
     count_out: wp.array(dtype=wp.int32),
     pairs_out: wp.array(dtype=wp.int32),
+    energy_out: wp.array(dtype=wp.float64),
+    gradient_out: wp.array(dtype=Any),
 ):
-    """Write (min(i, j), max(i, j)) if segment j is of another strand, past the root segments,
-    and closer than sqrt(cutoff2) to segment i = (p0, p1) (the exact test, input precision).
+    """Count and write (min(i, j), max(i, j)) if segment j is of another strand, past the root
+    segments, and closer than sqrt(cutoff2) to segment i = (p0, p1) (first vertex vi; the exact
+    test, input precision); with `with_energy` != 0 also add the pair's energy and gradient
+    (`_add_pair_energy`), the broad phase's distance reused (no second pass over the pairs).
+
+    The lower id's segment goes first into the distance, as in `hair_hair_energy_kernel`, so
+    the test and the energy are the same numbers whichever segment's query finds the pair.
     """
     segs_per_strand = num_vertices - 1
     strand_j = j // segs_per_strand
     if strand_j == strand_i or j % segs_per_strand < skip_root_segments:
         return
     vj = strand_j * num_vertices + j % segs_per_strand
-    s, t, dist2 = edge_edge_closest_parameters(p0, p1, x_in[vj], x_in[vj + 1])
+    a0 = p0
+    a1 = p1
+    b0 = x_in[vj]
+    b1 = x_in[vj + 1]
+    va = vi
+    vb = vj
+    if j < i:
+        a0 = b0
+        a1 = b1
+        b0 = p0
+        b1 = p1
+        va = vj
+        vb = vi
+    if lines_apart(a0, a1, b0, b1, cutoff2):
+        return
+    s, t, dist2 = edge_edge_closest_parameters(a0, a1, b0, b1)
     if dist2 < cutoff2:
         n = wp.atomic_add(count_out, 0, 1)
         if n < capacity:
             pairs_out[2 * n] = wp.min(i, j)
             pairs_out[2 * n + 1] = wp.max(i, j)
+        if with_energy != 0:
+            _add_pair_energy(va, vb, a0, a1, b0, b1, s, t, strand_i // num_strands, num_vertices, xi, dhat, bp,
+                             weight, variant, energy_out, gradient_out)
 
 
 @wp.func
@@ -294,9 +389,17 @@ def hair_hair_pairs_cpu_kernel(
     relative_slack: float,
     cutoff: Any,
     capacity: int,
+    with_energy: int,
+    xi: Any,
+    dhat: Any,
+    bp: Any,
+    weight: Any,
+    variant: int,
     # Out:
     count_out: wp.array(dtype=wp.int32),
     pairs_out: wp.array(dtype=wp.int32),
+    energy_out: wp.array(dtype=wp.float64),
+    gradient_out: wp.array(dtype=Any),
 ):
     """The pairs of `hair_hair_pairs_kernel` (same query radii, bounds and ownership of long
     segments, so the same pairs), shaped for Warp's CPU backend, where threads run one after
@@ -316,6 +419,9 @@ def hair_hair_pairs_cpu_kernel(
     that does not query (the caller guarantees those are short: every long segment queries),
     so each pair with at least one querying segment is found once, and pairs between two
     segments that do not query are not found at all (the caller has them from elsewhere).
+
+    With `with_energy` != 0 each pair found also adds its energy and gradient (the arguments
+    of `hair_hair_energy_kernel`; pass capacity 0 to count the pairs without writing them).
     """
     rank = query_ranks[wp.tid()]
     i = sorted_ids[rank]
@@ -355,8 +461,9 @@ def hair_hair_pairs_cpu_kernel(
                     e = wp.vec3(bounds_j[0], bounds_j[1], bounds_j[2]) - mi
                     if wp.dot(e, e) > bound * bound:
                         continue
-                    _write_pair_if_close(x_in, i, j, strand_i, p0, p1, num_vertices, skip_root_segments, cutoff2,
-                                         capacity, count_out, pairs_out)
+                    _write_pair_if_close(x_in, i, j, strand_i, vi, p0, p1, num_vertices, num_strands,
+                                         skip_root_segments, cutoff2, capacity, with_energy, xi, dhat, bp, weight,
+                                         variant, count_out, pairs_out, energy_out, gradient_out)
             else:
                 if all_queried == 0:
                     # Below our rank: only the segments that do not query (short by the caller's rule).
@@ -368,8 +475,10 @@ def hair_hair_pairs_cpu_kernel(
                         e = wp.vec3(bounds_j[0], bounds_j[1], bounds_j[2]) - mi
                         if wp.dot(e, e) > bound * bound:
                             continue
-                        _write_pair_if_close(x_in, i, sorted_ids[k], strand_i, p0, p1, num_vertices,
-                                             skip_root_segments, cutoff2, capacity, count_out, pairs_out)
+                        _write_pair_if_close(x_in, i, sorted_ids[k], strand_i, vi, p0, p1, num_vertices,
+                                             num_strands, skip_root_segments, cutoff2, capacity, with_energy, xi,
+                                             dhat, bp, weight, variant, count_out, pairs_out, energy_out,
+                                             gradient_out)
                 for k in range(wp.max(start, rank + 1), end):
                     bounds_j = sorted_bounds[k]
                     half_j = bounds_j[3]
@@ -379,8 +488,9 @@ def hair_hair_pairs_cpu_kernel(
                     e = wp.vec3(bounds_j[0], bounds_j[1], bounds_j[2]) - mi
                     if wp.dot(e, e) > bound * bound:
                         continue
-                    _write_pair_if_close(x_in, i, sorted_ids[k], strand_i, p0, p1, num_vertices,
-                                         skip_root_segments, cutoff2, capacity, count_out, pairs_out)
+                    _write_pair_if_close(x_in, i, sorted_ids[k], strand_i, vi, p0, p1, num_vertices,
+                                         num_strands, skip_root_segments, cutoff2, capacity, with_energy, xi, dhat,
+                                         bp, weight, variant, count_out, pairs_out, energy_out, gradient_out)
 
 
 @wp.kernel
@@ -390,15 +500,25 @@ def hair_hair_candidates_kernel(
     candidates_in: wp.array(dtype=wp.int32),
     queried_in: wp.array(dtype=wp.int32),
     num_vertices: int,
+    num_strands: int,
     cutoff: Any,
     capacity: int,
+    with_energy: int,
+    xi: Any,
+    dhat: Any,
+    bp: Any,
+    weight: Any,
+    variant: int,
     # Out:
     count_out: wp.array(dtype=wp.int32),
     pairs_out: wp.array(dtype=wp.int32),
+    energy_out: wp.array(dtype=wp.float64),
+    gradient_out: wp.array(dtype=Any),
 ):
     """Of candidate pairs (i < j, different strands, past the root segments: a reused pair list),
     write those closer than the cutoff, except pairs with a segment that queried this call
-    (`queried_in`: `hair_hair_pairs_cpu_kernel` found those).
+    (`queried_in`: `hair_hair_pairs_cpu_kernel` found those); with `with_energy` != 0 also add
+    their energy and gradient (as `hair_hair_pairs_cpu_kernel`).
     """
     k = wp.tid()
     i = candidates_in[2 * k]
@@ -407,14 +527,9 @@ def hair_hair_candidates_kernel(
         return
     segs_per_strand = num_vertices - 1
     vi = (i // segs_per_strand) * num_vertices + i % segs_per_strand
-    _write_pair_if_close(x_in, i, j, i // segs_per_strand, x_in[vi], x_in[vi + 1], num_vertices, 0, cutoff * cutoff,
-                         capacity, count_out, pairs_out)
-
-
-@wp.func
-def _add_vertex_gradient(gradient_out: wp.array(dtype=Any), v: int, num_vertices: int, g: Any):
-    if v % num_vertices >= NUM_FIXED_VERTICES:
-        wp.atomic_add(gradient_out, v, g)
+    _write_pair_if_close(x_in, i, j, i // segs_per_strand, vi, x_in[vi], x_in[vi + 1], num_vertices, num_strands, 0,
+                         cutoff * cutoff, capacity, with_energy, xi, dhat, bp, weight, variant, count_out, pairs_out,
+                         energy_out, gradient_out)
 
 
 @wp.kernel
@@ -457,13 +572,5 @@ def hair_hair_energy_kernel(
     q0 = x_in[vj]
     q1 = x_in[vj + 1]
     s, t, dist2 = edge_edge_closest_parameters(p0, p1, q0, q1)
-    d, g_p0, g_p1, g_q0, g_q1 = edge_edge_distance_gradient_at(p0, p1, q0, q1, s, t)
-    energy = barrier_energy(d, xi, dhat, bp, variant)
-    if energy == type(energy)(0.0):
-        return
-    wp.atomic_add(energy_out, strand_i // num_strands, wp.float64(weight * energy))
-    scale = weight * barrier_gradient(d, xi, dhat, bp, variant)
-    _add_vertex_gradient(gradient_out, vi, num_vertices, scale * g_p0)
-    _add_vertex_gradient(gradient_out, vi + 1, num_vertices, scale * g_p1)
-    _add_vertex_gradient(gradient_out, vj, num_vertices, scale * g_q0)
-    _add_vertex_gradient(gradient_out, vj + 1, num_vertices, scale * g_q1)
+    _add_pair_energy(vi, vj, p0, p1, q0, q1, s, t, strand_i // num_strands, num_vertices, xi, dhat, bp, weight,
+                     variant, energy_out, gradient_out)

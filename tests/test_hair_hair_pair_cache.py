@@ -157,3 +157,57 @@ def test_a_pile_past_max_pairs_keeps_no_list(rng):
     capped, info_capped = hair_hair_contact_energy(pile, XI, DHAT, BP, max_pairs=needed, pair_cache=cache)
     assert info_capped.pair_count == needed and cache.builds == 0 and "stored_pairs=0" in repr(cache)
     np.testing.assert_allclose(capped.numpy(), full.numpy(), rtol=RTOL)
+
+
+def _segment_pairs_at_the_cutoff(rng, count=200):
+    """Hair of `count` two-strand groups, each a pair of segments (vertices 2-3 of each strand)
+    at a distance within 0.02 % of the cutoff, at angles from parallel to crossing, closest
+    points inside or at the ends: the cases where the cheap line-distance reject and the exact
+    test meet."""
+    cutoff = XI + DHAT
+    strands = []
+    for k in range(count):
+        angle = [0.0, 1e-4, 1e-2, 0.1, 0.5, np.pi / 2][k % 6]
+        gap = cutoff * (1.0 + rng.uniform(-2e-4, 2e-4))
+        origin = np.array([0.05 * k, 0.0, 0.0])
+        a = np.stack([origin + [0.0, -i * 3e-3, 0.0] for i in range(5)])
+        direction = np.array([np.sin(angle), -np.cos(angle), 0.0])
+        shift = rng.uniform(-4e-3, 4e-3) if k % 2 else 0.0  # slide along: an end-to-segment case
+        b = np.stack([a[2] + [0.0, shift, gap] + (i - 2) * 3e-3 * direction for i in range(5)])
+        strands += [a, b]
+    return torch.tensor(np.stack(strands)[None])
+
+
+def test_pairs_at_the_cutoff_match_the_float64_reference_at_every_angle(rng):
+    x = _segment_pairs_at_the_cutoff(rng)
+    # The reference per group (the groups are 50 mm apart: no pair across them).
+    segs = x.shape[2] - 1
+    expected = np.concatenate([ref.segment_pairs(x[:, 2 * k:2 * k + 2].numpy(), XI, DHAT)[0] + 2 * k * segs
+                               for k in range(x.shape[1] // 2)])
+    groups_in_contact = np.unique(expected[:, 0] // (2 * segs)).shape[0]
+    assert 0 < groups_in_contact < x.shape[1] // 2  # both sides of the cutoff
+    fresh = hair_hair_contact_pairs(x, XI, DHAT).pairs
+    np.testing.assert_array_equal(fresh.numpy(), expected)
+    cache = HairHairPairCache(skin=SKIN)
+    np.testing.assert_array_equal(_cached_pairs(x, cache).numpy(), expected)
+    moved = x.clone()
+    moved[0, 1::2, 2:] += torch.tensor([0.0, 0.0, 1e-3], dtype=x.dtype)  # the second strands away and back
+    moved[0, 1::2, 2:] -= torch.tensor([0.0, 0.0, 1e-3], dtype=x.dtype)
+    np.testing.assert_array_equal(_cached_pairs(moved, cache).numpy(), expected)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_fused_pass_gives_the_pair_energies_of_the_plain_pass(rng, dtype):
+    """The cache adds each pair's energy as its kernel finds it: per batch item and per vertex
+    the same as the plain pass over the pair list, in float32 too (the lower id first in both)."""
+    cache = HairHairPairCache(skin=SKIN)
+    for x in _sequence(rng):
+        x = x.to(dtype)
+        e_fresh, g_fresh, n_fresh = _energy_and_gradient(x)
+        e_cached, g_cached, n_cached = _energy_and_gradient(x, cache)
+        assert n_fresh > 0 and n_cached == n_fresh
+        rtol = RTOL if dtype == torch.float64 else 1e-5  # float32 gradient: summation order
+        np.testing.assert_allclose(e_cached.numpy(), e_fresh.numpy(), rtol=RTOL)
+        np.testing.assert_allclose(g_cached.numpy(), g_fresh.numpy(), rtol=rtol,
+                                   atol=rtol * float(g_fresh.abs().max()))
+    assert cache.builds >= 1 and cache.calls == 5

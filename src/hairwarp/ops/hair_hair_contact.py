@@ -316,9 +316,10 @@ class _CpuGrid:
         """(S,) bool by segment id: half length above the grid's long threshold H (as the kernel decides)."""
         return self.half_lengths > self.params[1]
 
-    def pairs(self, x4, skip_root_segments, cutoff, queried, count, pairs, room) -> None:
+    def pairs(self, x4, skip_root_segments, cutoff, queried, count, pairs, room, energy=None) -> None:
         """Launch `hair_hair_pairs_cpu_kernel`: every segment queries (`queried` None), or those
-        with queried[id] != 0 (int32 by id), adding to `count` and `pairs` (room for `room`).
+        with queried[id] != 0 (int32 by id), adding to `count` and `pairs` (room for `room`),
+        and with `energy` (a `_PairEnergyArgs`) each pair's energy and gradient.
         """
         b, m, n = self.shape
         if queried is None:
@@ -337,10 +338,51 @@ class _CpuGrid:
             inputs=[self.x_wp, wp.from_torch(self.bounds, dtype=wp.vec4), _warp.as_warp(self.ids),
                     _warp.as_warp(self.cell_start), self.origin, self.inv_width, self.dims, _warp.as_warp(ranks),
                     _warp.as_warp(by_rank), all_queried, self.params_wp, n, m, skip_root_segments, float(cutoff),
-                    _RADIUS_SLACK, _warp.scalar(cutoff, x4.dtype), room],
-            outputs=[_warp.as_warp(count), _warp.as_warp(pairs)],
+                    _RADIUS_SLACK, _warp.scalar(cutoff, x4.dtype), room,
+                    *_PairEnergyArgs.inputs(energy, x4.dtype)],
+            outputs=[_warp.as_warp(count), _warp.as_warp(pairs), *_PairEnergyArgs.outputs(energy, x4.dtype)],
             device="cpu",
         )
+
+
+@dataclass
+class _PairEnergyArgs:
+    """What the CPU pair kernels need to add each pair's energy and gradient as they find it
+    (the arguments of `hair_hair_energy_kernel`): barrier parameters, weight, variant id, and
+    the (B,) float64 energy and (B, M, N, 3) gradient they add to.
+    """
+
+    xi: float
+    dhat: float
+    bp: float
+    weight: float
+    variant_id: int
+    energy: torch.Tensor
+    gradient: torch.Tensor
+
+    @staticmethod
+    def inputs(args: _PairEnergyArgs | None, dtype: torch.dtype) -> list:
+        """with_energy, xi, dhat, bp, weight, variant of the kernels (zeros without `args`)."""
+        if args is None:
+            zero = _warp.scalar(0.0, dtype)
+            return [0, zero, zero, zero, zero, 0]
+        return [1, _warp.scalar(args.xi, dtype), _warp.scalar(args.dhat, dtype), _warp.scalar(args.bp, dtype),
+                _warp.scalar(args.weight, dtype), args.variant_id]
+
+    @staticmethod
+    def outputs(args: _PairEnergyArgs | None, dtype: torch.dtype) -> list:
+        """energy_out, gradient_out of the kernels (one-element stand-ins without `args`)."""
+        if args is None:
+            stand_in = _energy_stand_ins.get(dtype)
+            if stand_in is None:
+                stand_in = _energy_stand_ins[dtype] = (torch.zeros(1, dtype=torch.float64),
+                                                       torch.zeros(1, 3, dtype=dtype))
+            return [_warp.as_warp(stand_in[0]), _warp.as_warp(stand_in[1], vec3=True)]
+        return [_warp.as_warp(args.energy), _warp.as_warp(args.gradient, vec3=True)]
+
+
+# Unwritten stand-ins for the energy outputs of a pair kernel launched without energy, by dtype.
+_energy_stand_ins: dict[torch.dtype, tuple[torch.Tensor, torch.Tensor]] = {}
 
 
 _aranges: dict[int, torch.Tensor] = {}
@@ -486,8 +528,13 @@ class HairHairPairCache:
     move by micrometres; a list rebuilt whenever any vertex moved more than half the skin was
     rebuilt at 44 of 45 evaluations (docs/contact.md).
 
+    The energy and gradient are added by the pair kernels as they find each pair (the exact
+    distance computed once; `_PairEnergyArgs`), in the same order of the two segments as
+    `hair_hair_energy_kernel`, so the same numbers up to summation order.
+
     Args:
-        skin: margin of the stored list [m], > 0.
+        skin: margin of the stored list [m], > 0 (1 mm: on the L-BFGS drape of docs/contact.md
+            0.5-2 mm cost the same within noise, 3 mm more; the hanging tips move centimetres).
         rebuild_fraction: rebuild when more than this share of the segments moved, in (0, 1].
 
     Attributes:
@@ -496,7 +543,7 @@ class HairHairPairCache:
         requeried: segments that queried the grid at the last call (0 after a build).
     """
 
-    def __init__(self, skin: float = 2e-3, rebuild_fraction: float = 0.5):
+    def __init__(self, skin: float = 1e-3, rebuild_fraction: float = 0.5):
         self.skin = check_positive("skin", skin)
         if not 0.0 < float(rebuild_fraction) <= 1.0:
             raise ValueError(f"rebuild_fraction: expected a number in (0, 1], got {rebuild_fraction!r}")
@@ -526,8 +573,13 @@ def _moved_segments(x4: torch.Tensor, reference: torch.Tensor, threshold: float)
     return (seg > threshold * threshold).reshape(-1)
 
 
-def _cached_broad_phase(x4, cutoff, skip_root_segments, max_pairs, cache: HairHairPairCache):
-    """`_broad_phase` ("grow") on the CPU through `cache` (see `HairHairPairCache`): the same pairs."""
+def _cached_broad_phase(x4, cutoff, skip_root_segments, max_pairs, cache: HairHairPairCache, energy=None):
+    """`_broad_phase` ("grow") on the CPU through `cache` (see `HairHairPairCache`): the same pairs.
+
+    With `energy` (a `_PairEnergyArgs`) the pair kernels add each pair's energy and gradient
+    to it as they find the pair (the exact distance computed once) and write no pair list:
+    the pairs returned are then empty, the count is the pairs' count.
+    """
     b, m, n, _ = x4.shape
     num_segments = b * m * max(n - 1, 0)
     cap = default_max_pairs(num_segments) if max_pairs is None else max_pairs
@@ -559,7 +611,11 @@ def _cached_broad_phase(x4, cutoff, skip_root_segments, max_pairs, cache: HairHa
         if stored > cap:
             # A pile far denser than a drape: no list kept (its memory stays within max_pairs).
             cache.reset()
-            return _broad_phase(x4, cutoff, None, skip_root_segments, "grow", max_pairs)
+            pairs, count, found, requested = _broad_phase(x4, cutoff, None, skip_root_segments, "grow", max_pairs)
+            if energy is not None:
+                _pair_energies(x4, pairs, count, energy)
+                pairs = pairs[:0]
+            return pairs, count, found, requested
         cache._candidates = candidates[:stored].clone()
         cache._reference = x4.detach().clone()
         cache._key = key
@@ -578,20 +634,63 @@ def _cached_broad_phase(x4, cutoff, skip_root_segments, max_pairs, cache: HairHa
         count.zero_()
         pairs = _pair_buffer(device, room, cap)
         if grid is not None and cache.requeried > 0:
-            grid.pairs(x4, skip_root_segments, cutoff, queried, count, pairs, room)
+            grid.pairs(x4, skip_root_segments, cutoff, queried, count, pairs, room, energy)
         if candidates.shape[0] > 0:
             wp.launch(hh_kernels.hair_hair_candidates_kernel, dim=candidates.shape[0],
-                      inputs=[x_wp, _warp.as_warp(candidates), _warp.as_warp(queried), n,
-                              _warp.scalar(cutoff, x4.dtype), room],
-                      outputs=[_warp.as_warp(count), _warp.as_warp(pairs)], device="cpu")
+                      inputs=[x_wp, _warp.as_warp(candidates), _warp.as_warp(queried), n, m,
+                              _warp.scalar(cutoff, x4.dtype), room, *_PairEnergyArgs.inputs(energy, x4.dtype)],
+                      outputs=[_warp.as_warp(count), _warp.as_warp(pairs),
+                               *_PairEnergyArgs.outputs(energy, x4.dtype)], device="cpu")
         return pairs
 
     # Room for the config's pairs per segment, or 1.25 x the last call's count: no rerun as the
     # count jumps on a line search's trial point (pages never written cost nothing on the CPU).
     requested = min(max(cache._room, default_capacity(num_segments), 1), cap)
+    if energy is not None:
+        # Nothing written, so nothing to grow: one pass, the count checked against the cap.
+        run(0)
+        found = int(count.item())
+        if found > cap:
+            raise HairHairCapacityError(found, requested, cap)
+        cache._room = max(found + found // 4, 1)
+        return torch.zeros(0, 2, dtype=torch.int32), count, found, requested
     pairs, count, found, requested = _collect(run, count, requested, cap, requested, num_segments, "grow")
     cache._room = max(found + found // 4, 1)
     return pairs, count, found, requested
+
+
+def _pair_energies(x4, pairs, count, energy) -> None:
+    """Add the energy and gradient of the (P, 2) int32 `pairs` to `energy` (a `_PairEnergyArgs`)."""
+    b, m, n, _ = x4.shape
+    if pairs.shape[0] == 0:
+        return
+    with _warp.launch_scope(x4.device):
+        wp.launch(
+            hh_kernels.hair_hair_energy_kernel,
+            dim=pairs.shape[0],
+            inputs=[_warp.as_warp(x4, vec3=True), _warp.as_warp(pairs.contiguous()), _warp.as_warp(count),
+                    pairs.shape[0], n, m, _warp.scalar(energy.xi, x4.dtype), _warp.scalar(energy.dhat, x4.dtype),
+                    _warp.scalar(energy.bp, x4.dtype), _warp.scalar(energy.weight, x4.dtype), energy.variant_id],
+            outputs=[_warp.as_warp(energy.energy), _warp.as_warp(energy.gradient, vec3=True)],
+            device=_warp.warp_device(x4.device),
+        )
+
+
+class _PrecomputedContactEnergy(torch.autograd.Function):
+    """The (B,) energy and its gradient computed together outside autograd (the pair cache's
+    fused pass): forward returns the energy, backward scales the stored gradient.
+    """
+
+    @staticmethod
+    def forward(ctx, x4, energy, gradient):
+        ctx.save_for_backward(gradient)
+        return energy.to(x4.dtype, copy=True)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_energy):
+        (gradient,) = ctx.saved_tensors
+        return grad_energy[:, None, None, None] * gradient, None, None
 
 
 class _HairHairContactEnergy(torch.autograd.Function):
@@ -757,9 +856,16 @@ def hair_hair_contact_energy(
             raise ValueError(f"pair_cache: CPU only (x is on {x4c.device}); on CUDA use CapturedEnergy")
         if on_overflow != "grow":
             raise ValueError(f"pair_cache: needs on_overflow='grow', got {on_overflow!r}")
-        pairs, count, found, requested = _cached_broad_phase(
-            x4c.detach(), xi + dhat, skip_root_segments, max_pairs, pair_cache
+        b = x4c.shape[0]
+        args = _PairEnergyArgs(xi, dhat, bp, weight, variant_id, torch.zeros(b, dtype=torch.float64),
+                               torch.zeros_like(x4c, memory_format=torch.contiguous_format))
+        _, count, found, requested = _cached_broad_phase(
+            x4c.detach(), xi + dhat, skip_root_segments, max_pairs, pair_cache, energy=args
         )
+        energy = _PrecomputedContactEnergy.apply(x4c, args.energy, args.gradient)
+        if x.dim() == 3:
+            energy = energy[0]
+        return energy, HairHairContactInfo(found, requested)
     else:
         pairs, count, found, requested = _broad_phase(
             x4c.detach(), xi + dhat, capacity, skip_root_segments, on_overflow, max_pairs
