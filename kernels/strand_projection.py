@@ -64,7 +64,7 @@ def follow_the_leader_adjoint_kernel(
 ):
     """dL/dq of one strand from dL/dx (`grad_out`) and the forward's output `projected`."""
     base = wp.tid() * num_vertices
-    carry = grad_out[base] * eps * type(eps)(0.0)  # a zero of the right vector type
+    carry = grad_out[base] * type(eps)(0.0)  # a zero of the vector type
     i = num_vertices - 1
     while i >= FIRST_PROJECTED_VERTEX:
         g = grad_out[base + i] + carry

@@ -166,35 +166,14 @@ _KERNELS = {
     "strand": strand_kernels.strand_energies_per_strand_kernel,
     "vertex": strand_kernels.strand_energies_per_vertex_kernel,
 }
-_concrete_kernels: dict = {}
 _placeholders: dict = {}
+# Array arguments of the fused kernels that hold vec3 (the others are scalars per element).
+_VECTOR_ARRAYS = ("x", "rigid", "normals", "prev", "prev2", "gradient_out")
 
 
 def _kernel(layout: str, dtype: torch.dtype):
-    """The float32/float64 instance of a layout's generic kernel, resolved once.
-
-    Launching the generic kernel would infer its 31 argument types on every call; the host
-    overhead matters on the GPU, where the kernel itself takes tens of microseconds.
-    """
-    key = (layout, dtype)
-    if key not in _concrete_kernels:
-        kernel = _KERNELS[layout]
-        vec = _VEC3[dtype]
-        real = _warp.scalar_type(dtype)
-        types = {}
-        for arg in kernel.adj.args:
-            annotation = arg.type
-            if annotation in (int, wp.int32):
-                types[arg.label] = wp.int32
-            elif hasattr(annotation, "dtype"):  # wp.array(dtype=Any)
-                vector = arg.label in ("x", "rigid", "normals", "prev", "prev2", "gradient_out")
-                types[arg.label] = wp.array(dtype=vec if vector else real)
-            elif arg.label == "weight_g":
-                types[arg.label] = vec
-            else:
-                types[arg.label] = real
-        _concrete_kernels[key] = wp.overload(kernel, types)
-    return _concrete_kernels[key]
+    """The float32/float64 instance of a layout's generic kernel (31 arguments), resolved once."""
+    return _warp.concrete_kernel(_KERNELS[layout], dtype, _VECTOR_ARRAYS, ("weight_g",))
 
 
 def _placeholder(vec3: bool, dtype: torch.dtype, device: torch.device) -> wp.array:

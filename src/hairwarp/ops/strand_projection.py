@@ -21,38 +21,25 @@ from hairwarp.kernels import strand_projection as kernels
 # Below this leader-to-target distance [m] the rigid segment direction is kept (no gradient).
 FOLLOW_THE_LEADER_EPS = 1e-9
 
-_concrete: dict = {}
 
-
-def _kernel(kernel, dtype: torch.dtype):
-    """The float32/float64 instance of a generic kernel (resolved once, not per launch)."""
-    key = (kernel.key, dtype)
-    if key not in _concrete:
-        vec = wp.array(dtype=_warp._VEC3[dtype])
-        types = {arg.label: (vec if hasattr(arg.type, "dtype") else
-                             wp.int32 if arg.type in (int, wp.int32) else _warp.scalar_type(dtype))
-                 for arg in kernel.adj.args}
-        _concrete[key] = wp.overload(kernel, types)
-    return _concrete[key]
-
-
-def _launch(kernel, strands: int, device: torch.device, inputs, outputs) -> None:
+def _launch(kernel, target: torch.Tensor, arrays, outputs) -> None:
+    """One thread per strand of `target` (..., M, N, 3): `kernel`(*arrays, N, eps, *outputs)."""
+    n = target.shape[-2]
+    strands = target.numel() // (3 * n)
     if strands == 0:
         return
-    with _warp.launch_scope(device):
-        wp.launch(kernel, dim=strands, inputs=inputs, outputs=outputs, device=_warp.warp_device(device))
+    inputs = [_warp.as_warp(a, vec3=True) for a in arrays] + [n, _warp.scalar(FOLLOW_THE_LEADER_EPS, target.dtype)]
+    with _warp.launch_scope(target.device):
+        wp.launch(_warp.concrete_kernel(kernel, target.dtype), dim=strands, inputs=inputs,
+                  outputs=[_warp.as_warp(o, vec3=True) for o in outputs], device=_warp.warp_device(target.device))
 
 
 class _FollowTheLeader(torch.autograd.Function):
     @staticmethod
     def forward(ctx, rigid, target):
-        n = rigid.shape[-2]
         rigid, target = rigid.contiguous(), target.contiguous()
         out = torch.empty_like(target)
-        eps = _warp.scalar(FOLLOW_THE_LEADER_EPS, target.dtype)
-        _launch(_kernel(kernels.follow_the_leader_kernel, target.dtype), target.numel() // (3 * n), target.device,
-                [_warp.as_warp(rigid, vec3=True), _warp.as_warp(target, vec3=True), n, eps],
-                [_warp.as_warp(out, vec3=True)])
+        _launch(kernels.follow_the_leader_kernel, target, (rigid, target), (out,))
         ctx.save_for_backward(rigid, target, out)
         return out
 
@@ -60,14 +47,9 @@ class _FollowTheLeader(torch.autograd.Function):
     @once_differentiable
     def backward(ctx, grad_out):
         rigid, target, out = ctx.saved_tensors
-        n = rigid.shape[-2]
         grad_target = torch.empty_like(target)
-        eps = _warp.scalar(FOLLOW_THE_LEADER_EPS, target.dtype)
-        _launch(_kernel(kernels.follow_the_leader_adjoint_kernel, target.dtype), target.numel() // (3 * n),
-                target.device,
-                [_warp.as_warp(rigid, vec3=True), _warp.as_warp(target, vec3=True), _warp.as_warp(out, vec3=True),
-                 _warp.as_warp(grad_out.contiguous(), vec3=True), n, eps],
-                [_warp.as_warp(grad_target, vec3=True)])
+        _launch(kernels.follow_the_leader_adjoint_kernel, target, (rigid, target, out, grad_out.contiguous()),
+                (grad_target,))
         return None, grad_target
 
 
