@@ -40,9 +40,13 @@ with |d(a)| = D, the open ball B(a, D) holds no surface, so a later vertex p wit
 r = |p - a| < D is on a's side with |d(p)| >= D - r, and in any case |d(p)| <= D + r. Vertices
 proven outside and beyond the reach skip the query; the others make an exact query capped at
 D + r (the cap prunes the BVH walk), which becomes the next anchor. Every vertex's result equals
-that of an unbounded query. The per-vertex kernel (one thread per vertex: the GPU's choice
-until there are enough strands to fill it) queries within the reach and, on a miss, once more
-without a cap.
+that of an unbounded query. The per-vertex kernels (the GPU's choice: one thread per vertex
+fills it) use the same rule link by link: pass 1 queries each vertex within max(reach, the
+length of the segment that ends at it); a miss proves the vertex farther from the surface than
+that segment is long, hence on its predecessor's side. Pass 2 gives each missed vertex the side
+of the last vertex before it whose query hit: outside, it is beyond the reach and costs nothing
+more; inside, one unbounded query gives its depth. An unbounded query from far outside walks
+most of the BVH, and most hair is far outside: this is what the cap saves.
 """
 
 from typing import Any
@@ -289,6 +293,34 @@ def hair_body_energy_strand_kernel(
     query_count_out[s] = queries
 
 
+@wp.func
+def chain_query_radius(x: wp.array(dtype=Any), i: int, v: int, floor: Any):
+    """Query radius of point i, index v along its polyline: max(floor, |p_i - p_{i-1}|), with
+    slack for the float32 query. A miss within it proves |d(p_i)| > |p_i - p_{i-1}|, so the
+    open ball around p_i of radius |d| holds p_{i-1} and no surface: p_i is on p_{i-1}'s side
+    of the body (the sign rule of the module docstring, link by link along the polyline)."""
+    radius = floor
+    if v > 0:
+        radius = wp.max(floor, wp.length(x[i] - x[i - 1]))
+    return wp.float32(radius * type(floor)(1.001) + type(floor)(1.0e-6))
+
+
+@wp.func
+def chain_side_before(side: wp.array(dtype=wp.int32), i: int, v: int):
+    """Side (+1 outside, -1 inside) of the nearest point before i on its polyline whose capped
+    query found the surface, 0 when none did. Every point in between missed its own capped
+    query, so all of them, and point i, share that side (`chain_query_radius`)."""
+    j = i - 1
+    first = i - v
+    found_side = int(0)
+    while j >= first:
+        if side[j] != 0:
+            found_side = side[j]
+            break
+        j -= 1
+    return found_side
+
+
 @wp.kernel
 def hair_body_energy_vertex_kernel(
     # In:
@@ -313,45 +345,197 @@ def hair_body_energy_vertex_kernel(
     vertex_energy_out: wp.array(dtype=Any),
     gradient_out: wp.array(dtype=Any),
     query_count_out: wp.array(dtype=wp.int32),
+    side_out: wp.array(dtype=wp.int32),
 ):
-    """One thread per vertex (wide GPU launches): weight * B(d) and its gradient (Eq. 12).
+    """One thread per vertex (wide GPU launches), pass 1 of 2: weight * B(d) and its gradient
+    (Eq. 12) for every vertex whose query, capped at max(reach, its segment's length), finds
+    the surface (the root, vertex 0, is measured at any distance on a miss); `side_out` = +1/-1 for those (fixed vertices 0, 1 included: they carry the
+    side along the strand), 0 for a miss (energy and gradient 0 until pass 2 decides).
 
-    A query within the reach first; on a miss the vertex is either outside beyond the reach or
-    inside deeper than it, and only an unbounded query tells which.
+    The cap keeps the BVH walk short: an unbounded query from a vertex far outside visits most
+    of the tree, and most hair is far outside.
     """
     i = wp.tid()
     v = i % num_vertices
     zero = xi * type(xi)(0.0)
     p = x[i]
-    if v < 2:
-        vertex_energy_out[i] = zero
-        gradient_out[i] = p * zero
-        query_count_out[i] = 0
-        return
     body = (i // (num_strands * num_vertices)) * body_batch_stride
-    mesh = mesh_ids[body]
-    vertex_offset = body * body_vertex_count
-    edge_offset = body * body_face_count * 3
-    reach32 = wp.float32(xi + dhat)
-    queries = int(1)
     found, d, g = body_signed_distance(
-        mesh, body_vertices, faces, vertex_normals, edge_normals, vertex_offset, edge_offset,
-        p, reach32, zero_dist
+        mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, body * body_vertex_count,
+        body * body_face_count * 3, p, chain_query_radius(x, i, v, xi + dhat), zero_dist
     )
-    if found == 0:
+    queries = int(1)
+    if found == 0 and v == 0:
+        # The root anchors the strand's sides: measured at any distance (roots lie on the scalp,
+        # so this is rare).
         found, d, g = body_signed_distance(
-            mesh, body_vertices, faces, vertex_normals, edge_normals, vertex_offset, edge_offset,
-            p, wp.float32(FAR), zero_dist
+            mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, body * body_vertex_count,
+            body * body_face_count * 3, p, wp.float32(FAR), zero_dist
         )
         queries = 2
+    side = int(0)
+    if found != 0:
+        side = 1
+        if d < zero:
+            side = -1
+    side_out[i] = side
+    query_count_out[i] = queries
     e = zero
     gradient = p * zero
-    if found != 0:
+    if found != 0 and v >= 2:
         e = weight * barrier_energy(d, xi, dhat, bp, variant)
         gradient = (weight * barrier_gradient(d, xi, dhat, bp, variant)) * g
     vertex_energy_out[i] = e
     gradient_out[i] = gradient
-    query_count_out[i] = queries
+
+
+@wp.kernel
+def hair_body_energy_far_kernel(
+    # In:
+    x: wp.array(dtype=Any),
+    mesh_ids: wp.array(dtype=wp.uint64),
+    body_vertices: wp.array(dtype=Any),
+    faces: wp.array(dtype=wp.int32),
+    vertex_normals: wp.array(dtype=Any),
+    edge_normals: wp.array(dtype=Any),
+    num_strands: int,
+    num_vertices: int,
+    body_vertex_count: int,
+    body_face_count: int,
+    body_batch_stride: int,
+    xi: Any,
+    dhat: Any,
+    bp: Any,
+    weight: Any,
+    variant: int,
+    zero_dist: Any,
+    side: wp.array(dtype=wp.int32),
+    # Out:
+    vertex_energy_out: wp.array(dtype=Any),
+    gradient_out: wp.array(dtype=Any),
+    query_count_out: wp.array(dtype=wp.int32),
+):
+    """Pass 2 of 2, one thread per vertex: a moving vertex that missed its capped query is
+    beyond it on the side of the strand's last vertex before it that found the surface
+    (`chain_side_before`). Outside, it is beyond the reach: zero, as pass 1 wrote. Inside (or
+    with no side known before it) only an unbounded query gives its depth, and it makes one.
+    """
+    i = wp.tid()
+    v = i % num_vertices
+    if side[i] != 0 or v < 2:
+        return
+    if chain_side_before(side, i, v) > 0:
+        return
+    body = (i // (num_strands * num_vertices)) * body_batch_stride
+    p = x[i]
+    found, d, g = body_signed_distance(
+        mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, body * body_vertex_count,
+        body * body_face_count * 3, p, wp.float32(FAR), zero_dist
+    )
+    query_count_out[i] = 2
+    if found != 0:
+        vertex_energy_out[i] = weight * barrier_energy(d, xi, dhat, bp, variant)
+        gradient_out[i] = (weight * barrier_gradient(d, xi, dhat, bp, variant)) * g
+
+
+@wp.kernel
+def signed_distance_capped_kernel(
+    # In:
+    points: wp.array(dtype=Any),
+    mesh_ids: wp.array(dtype=wp.uint64),
+    body_vertices: wp.array(dtype=Any),
+    faces: wp.array(dtype=wp.int32),
+    vertex_normals: wp.array(dtype=Any),
+    edge_normals: wp.array(dtype=Any),
+    points_per_line: int,
+    points_per_batch: int,
+    body_vertex_count: int,
+    body_face_count: int,
+    body_batch_stride: int,
+    max_distance: Any,
+    zero_dist: Any,
+    # Out:
+    distance_out: wp.array(dtype=Any),
+    gradient_out: wp.array(dtype=Any),
+    side_out: wp.array(dtype=wp.int32),
+):
+    """Signed distance of points on polylines, pass 1 of 2: a query capped at
+    max(max_distance, the point's link length) (`chain_query_radius`); a hit writes d clamped
+    to at most max_distance (gradient zero where clamped) and its side, a miss side 0."""
+    i = wp.tid()
+    v = i % points_per_line
+    zero = zero_dist * type(zero_dist)(0.0)
+    body = (i // points_per_batch) * body_batch_stride
+    p = points[i]
+    found, d, g = body_signed_distance(
+        mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, body * body_vertex_count,
+        body * body_face_count * 3, p, chain_query_radius(points, i, v, max_distance), zero_dist
+    )
+    if found == 0 and v == 0:
+        # The first point anchors its polyline's sides: measured at any distance.
+        found, d, g = body_signed_distance(
+            mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, body * body_vertex_count,
+            body * body_face_count * 3, p, wp.float32(FAR), zero_dist
+        )
+    side = int(0)
+    if found != 0:
+        side = 1
+        if d < zero:
+            side = -1
+        if d > max_distance:
+            d = max_distance
+            g = p * zero
+    side_out[i] = side
+    distance_out[i] = d
+    gradient_out[i] = g
+
+
+@wp.kernel
+def signed_distance_far_kernel(
+    # In:
+    points: wp.array(dtype=Any),
+    mesh_ids: wp.array(dtype=wp.uint64),
+    body_vertices: wp.array(dtype=Any),
+    faces: wp.array(dtype=wp.int32),
+    vertex_normals: wp.array(dtype=Any),
+    edge_normals: wp.array(dtype=Any),
+    points_per_line: int,
+    points_per_batch: int,
+    body_vertex_count: int,
+    body_face_count: int,
+    body_batch_stride: int,
+    max_distance: Any,
+    zero_dist: Any,
+    side: wp.array(dtype=wp.int32),
+    # Out:
+    distance_out: wp.array(dtype=Any),
+    gradient_out: wp.array(dtype=Any),
+):
+    """Pass 2 of 2: a point that missed is outside beyond max_distance (reported as
+    max_distance, gradient zero) or inside, where an unbounded query gives its depth."""
+    i = wp.tid()
+    if side[i] != 0:
+        return
+    v = i % points_per_line
+    zero = zero_dist * type(zero_dist)(0.0)
+    p = points[i]
+    if chain_side_before(side, i, v) > 0:
+        distance_out[i] = max_distance
+        gradient_out[i] = p * zero
+        return
+    body = (i // points_per_batch) * body_batch_stride
+    found, d, g = body_signed_distance(
+        mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, body * body_vertex_count,
+        body * body_face_count * 3, p, wp.float32(FAR), zero_dist
+    )
+    if found == 0:
+        d = max_distance
+        g = p * zero
+    if d > max_distance:
+        d = max_distance
+        g = p * zero
+    distance_out[i] = d
+    gradient_out[i] = g
 
 
 @wp.func

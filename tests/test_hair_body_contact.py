@@ -283,6 +283,65 @@ def test_strand_walk_skips_queries_and_matches_per_vertex_kernel(rng):
     assert int(q_v.sum()) >= m * (n - 2)
 
 
+def _in_and_out_strands(rng, m=24, n=30):
+    """Strands through a unit sphere with segments longer than the reach: each starts at a
+    random radius (far outside, near the surface or deep inside), then crosses the surface in
+    and out along a wavy radial path, so capped queries miss on both sides of the body."""
+    directions = _random_directions(rng, m)
+    t = np.linspace(0.0, 1.0, n)
+    start = rng.uniform(0.3, 1.6, size=(m, 1))
+    radius = start + 0.7 * np.sin(2 * np.pi * (t[None] * rng.uniform(0.5, 1.5, size=(m, 1))) + rng.uniform(0, 6, size=(m, 1)))
+    radius = np.clip(radius, 0.05, None)
+    wobble = rng.normal(scale=0.02, size=(m, n, 3))
+    return directions[:, None] * radius[..., None] + wobble
+
+
+def test_two_pass_vertex_kernel_matches_unbounded_queries_in_and_out(rng):
+    v, f, vt, ft = _sphere()
+    body = BodyMesh(vt, ft)
+    hair = _in_and_out_strands(rng)
+    m, n = hair.shape[:2]
+    x = _t(hair)[None]
+    variant_id = barrier_variant_id("quadratic")
+    e_v, g_v, q_v = _energy_forward(x, body, XI, DHAT, BP, 1.0, variant_id, "vertex")
+    e_s, g_s, _ = _energy_forward(x, body, XI, DHAT, BP, 1.0, variant_id, "strand")
+    e_ref, g_ref = ref.hair_body_contact_energy(hair[None], v, f, XI, DHAT, BP)
+    d_ref = ref.signed_distance(hair.reshape(-1, 3), v, f)[0].reshape(m, n)
+    # The scene holds every case: deep inside, far outside, segments longer than the reach.
+    seg = np.linalg.norm(np.diff(hair, axis=1), axis=2)
+    assert (d_ref[:, 2:] < -0.2).sum() > 20 and (d_ref[:, 2:] > 0.2).sum() > 20 and np.median(seg) > 10 * REACH
+    np.testing.assert_allclose(e_v.numpy(), e_ref, rtol=1e-9)
+    np.testing.assert_allclose(e_v.numpy(), e_s.numpy(), rtol=1e-12)
+    np.testing.assert_allclose(g_v.numpy(), g_ref, rtol=0,
+                               atol=1e-9 * np.abs(g_ref).max())
+    torch.testing.assert_close(g_v, g_s, rtol=0, atol=1e-12 * g_s.abs().max().item())
+    # Unbounded queries only where a capped query missed inside (and at a root that missed):
+    # never for a moving vertex outside beyond its cap.
+    q = q_v.numpy().reshape(m, n)
+    far_outside = d_ref > 1.01 * np.maximum(REACH, np.concatenate([np.zeros((m, 1)), seg], axis=1))
+    assert (q[:, 2:][far_outside[:, 2:]] == 1).all()
+    assert (q[:, 2:][d_ref[:, 2:] < 0] >= 1).all() and (q == 2).sum() > 0
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_capped_signed_distance_equals_clamped_unbounded(rng, dtype):
+    from hairwarp.ops.hair_body_contact import hair_body_signed_distance_and_normal
+
+    _, _, vt, ft = _sphere(dtype=dtype)
+    body = BodyMesh(vt, ft)
+    x = _t(_in_and_out_strands(rng, m=16, n=20), dtype)[None].expand(2, -1, -1, -1)
+    d, g = hair_body_signed_distance_and_normal(x, body)
+    cap = 0.1
+    dc, gc = hair_body_signed_distance_and_normal(x, body, max_distance=cap)
+    tol = 1e-12 if dtype == torch.float64 else 1e-6
+    torch.testing.assert_close(dc, d.clamp(max=cap), rtol=0, atol=tol)
+    near = d <= cap
+    torch.testing.assert_close(gc[near], g[near], rtol=0, atol=tol)
+    assert torch.count_nonzero(gc[~near]) == 0 and (d > cap).sum() > 10 and (d < -cap).sum() > 10
+    with pytest.raises(ValueError, match="max_distance"):
+        hair_body_signed_distance_and_normal(x, body, max_distance=0.0)
+
+
 def test_far_hair_has_zero_energy_and_gradient():
     _, _, vt, ft = _sphere()
     x = torch.zeros(2, 3, 5, 3, dtype=torch.float64)

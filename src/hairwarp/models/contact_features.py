@@ -57,7 +57,7 @@ def contact_features(rigid: torch.Tensor, root_uv: torch.Tensor, body, grid_heig
     b, m, n, _ = rigid.shape
     idx = sample_indices(n, samples, rigid.device)
     points = rigid[:, :, idx].contiguous()  # (B, M, K, 3)
-    distance, direction = hair_body_signed_distance_and_normal(points, body)
+    distance, direction = hair_body_signed_distance_and_normal(points, body, max_distance=DISTANCE_SCALE)
     scaled = distance.clamp(-DISTANCE_SCALE, DISTANCE_SCALE) / DISTANCE_SCALE
     push = ((-distance).clamp(0.0, DISTANCE_SCALE) / DISTANCE_SCALE)[..., None] * direction
     offset = (points - rigid[:, :, :1]) / OFFSET_SCALE

@@ -18,6 +18,8 @@ Gradients flow to the hair/points only: `wp.Mesh` queries give none to the body 
 
 from __future__ import annotations
 
+import math
+
 import torch
 import warp as wp
 
@@ -448,33 +450,41 @@ def _body_stride(body: BodyMesh, batch: int) -> int:
     return 1
 
 
-def _signed_distance_forward(points: torch.Tensor, body: BodyMesh, points_per_batch: int):
-    """Flat (P, 3) points -> (P,) signed distances and (P, 3) gradients (no autograd)."""
+def _signed_distance_forward(points: torch.Tensor, body: BodyMesh, points_per_batch: int,
+                             max_distance: float | None = None, points_per_line: int = 1):
+    """Flat (P, 3) points -> (P,) signed distances and (P, 3) gradients (no autograd).
+
+    With `max_distance`, the points are polylines of `points_per_line` consecutive points and
+    distances above max_distance are reported as max_distance with a zero gradient (capped
+    queries, the side of a miss read along its polyline; see the kernels)."""
     batch = points.shape[0] // points_per_batch
     stride = _body_stride(body, batch)
     distance = torch.empty(points.shape[0], dtype=points.dtype, device=points.device)
     gradient = torch.empty_like(points)
     vertex_normals, edge_normals = body._normals_as(points.dtype)
+    mesh = [
+        _warp.as_warp(points, vec3=True),
+        body._mesh_ids,
+        _warp.as_warp(body._vertices_as(points.dtype), vec3=True),
+        body._faces_wp,
+        _warp.as_warp(vertex_normals, vec3=True),
+        _warp.as_warp(edge_normals, vec3=True),
+    ]
+    counts = [points_per_batch, body.num_vertices, body.num_faces, stride]
+    zero_dist = _warp.scalar(_ZERO_DISTANCE[points.dtype], points.dtype)
+    outputs = [_warp.as_warp(distance), _warp.as_warp(gradient, vec3=True)]
+    device = _warp.warp_device(points.device)
     with _warp.launch_scope(points.device):
-        wp.launch(
-            kernels.signed_distance_kernel,
-            dim=points.shape[0],
-            inputs=[
-                _warp.as_warp(points, vec3=True),
-                body._mesh_ids,
-                _warp.as_warp(body._vertices_as(points.dtype), vec3=True),
-                body._faces_wp,
-                _warp.as_warp(vertex_normals, vec3=True),
-                _warp.as_warp(edge_normals, vec3=True),
-                points_per_batch,
-                body.num_vertices,
-                body.num_faces,
-                stride,
-                _warp.scalar(_ZERO_DISTANCE[points.dtype], points.dtype),
-            ],
-            outputs=[_warp.as_warp(distance), _warp.as_warp(gradient, vec3=True)],
-            device=_warp.warp_device(points.device),
-        )
+        if max_distance is None:
+            wp.launch(kernels.signed_distance_kernel, dim=points.shape[0], inputs=mesh + counts + [zero_dist],
+                      outputs=outputs, device=device)
+        else:
+            inputs = mesh + [points_per_line] + counts + [_warp.scalar(max_distance, points.dtype), zero_dist]
+            side = _warp.as_warp(torch.empty(points.shape[0], dtype=torch.int32, device=points.device))
+            wp.launch(kernels.signed_distance_capped_kernel, dim=points.shape[0], inputs=inputs,
+                      outputs=outputs + [side], device=device)
+            wp.launch(kernels.signed_distance_far_kernel, dim=points.shape[0], inputs=inputs + [side],
+                      outputs=outputs, device=device)
     return distance, gradient
 
 
@@ -556,26 +566,35 @@ def hair_body_signed_distance(x: torch.Tensor, body: BodyMesh) -> torch.Tensor:
 
 
 @torch.no_grad()
-def hair_body_signed_distance_and_normal(x: torch.Tensor, body: BodyMesh) -> tuple[torch.Tensor, torch.Tensor]:
+def hair_body_signed_distance_and_normal(
+    x: torch.Tensor, body: BodyMesh, max_distance: float | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Signed distance of every hair vertex to the body and the outward unit direction there.
 
     The direction is the distance's gradient: from the closest surface point towards the vertex
     (outside), the other way inside; the face normal on the surface. No autograd (features).
 
     Args:
-        x: (M, N, 3) or (B, M, N, 3) hair vertices [m], float32/float64.
+        x: (M, N, 3) or (B, M, N, 3) hair vertices [m], float32/float64: polylines along N.
         body: the posed body; batch size 1 (shared by every hair batch item) or B.
+        max_distance: optional [m] > 0: distances above it are reported as max_distance with a
+            zero direction, and the queries are capped (faster: far outside points skip the
+            unbounded query). Points inside are exact at any depth.
 
     Returns:
         (distance (..., M, N) [m], negative inside; direction (..., M, N, 3) unit vectors).
 
     Raises:
-        ValueError: as `hair_body_signed_distance`.
+        ValueError: as `hair_body_signed_distance`, or for a max_distance that is not > 0.
     """
     _check_body(body)
     _check_hair(x, body)
+    if max_distance is not None and not (float(max_distance) > 0.0 and math.isfinite(float(max_distance))):
+        raise ValueError(f"max_distance: expected a finite number > 0 or None, got {max_distance}")
     points = x.contiguous().reshape(-1, 3)
-    distance, direction = _signed_distance_forward(points, body, x.shape[-3] * x.shape[-2])
+    distance, direction = _signed_distance_forward(
+        points, body, x.shape[-3] * x.shape[-2], None if max_distance is None else float(max_distance), x.shape[-2]
+    )
     return distance.reshape(x.shape[:-1]), direction.reshape(x.shape)
 
 
@@ -607,22 +626,24 @@ def _energy_forward(x, body, xi, dhat, bp, weight, variant_id, strategy):
     ]
     if strategy == "strand":
         count = batch * num_strands
-        kernel = kernels.hair_body_energy_strand_kernel
     elif strategy == "vertex":
         count = batch * num_strands * num_vertices
-        kernel = kernels.hair_body_energy_vertex_kernel
     else:
         raise ValueError(f"strategy: expected 'strand' or 'vertex', got {strategy!r}")
     partial = torch.empty(count, dtype=x.dtype, device=x.device)
     queries = torch.empty(count, dtype=torch.int32, device=x.device)
+    outputs = [_warp.as_warp(partial), _warp.as_warp(gradient, vec3=True), _warp.as_warp(queries)]
     with _warp.launch_scope(x.device):
-        wp.launch(
-            kernel,
-            dim=count,
-            inputs=common,
-            outputs=[_warp.as_warp(partial), _warp.as_warp(gradient, vec3=True), _warp.as_warp(queries)],
-            device=device,
-        )
+        if strategy == "strand":
+            wp.launch(kernels.hair_body_energy_strand_kernel, dim=count, inputs=common, outputs=outputs,
+                      device=device)
+        else:
+            # Capped queries, then the misses' sides along each strand (kernel docstrings).
+            side = _warp.as_warp(torch.empty(count, dtype=torch.int32, device=x.device))
+            wp.launch(kernels.hair_body_energy_vertex_kernel, dim=count, inputs=common,
+                      outputs=outputs + [side], device=device)
+            wp.launch(kernels.hair_body_energy_far_kernel, dim=count, inputs=common + [side],
+                      outputs=outputs, device=device)
     # Per-strand (or per-vertex) partial sums, reduced per batch item here: no atomics.
     return partial.view(batch, -1).sum(dim=1), gradient, queries
 
