@@ -7,7 +7,8 @@ of the hair-hair pair count); "graph" is `hairwarp.energy.CapturedEnergy` (the g
 captured once, replayed). Then the L-BFGS baseline (`optimize_drape`) on the full-size table1
 scene, with and without the graph. With `--profile`, a torch profile of one eager step per batch
 (the ten costliest device kernels); with `--probe-kernels`, the contact kernels alone (hair-hair
-at cell widths 0.5-1.5 x the query radius, hair-body one thread per vertex vs per strand).
+with the boxes-in-cells broad phase at cell widths 1-1.5 x a typical box and with the midpoint
+grid; hair-body one thread per vertex in two passes vs one per strand).
 
     python benchmarks/bm_captured_energy.py --device cuda --out OUT
 
@@ -73,7 +74,8 @@ def _energy_rows(device, batches, profile: bool) -> tuple[list, dict]:
 
 
 def _kernel_probe(device, batches) -> dict:
-    """Hair-hair at several cell widths and hair-body per vertex vs per strand, each alone."""
+    """Hair-hair with each device broad phase (boxes in cells at several cell widths, the midpoint
+    grid) and hair-body per vertex vs per strand, each term alone, forward+backward."""
     import importlib
 
     from hairwarp import set_finite_checks
@@ -85,20 +87,21 @@ def _kernel_probe(device, batches) -> dict:
     hh = importlib.import_module("hairwarp.ops.hair_hair_contact")
     hb = importlib.import_module("hairwarp.ops.hair_body_contact")
     c, out = EnergyConfig(), {}
-    previous, chosen = set_finite_checks(False), hh._CELL_FACTOR
+    previous, chosen, kind_of = set_finite_checks(False), hh._CELL_FACTOR, hh._broad_phase_kind
     try:
         for batch in batches:
             x, inputs, _, _ = build_energy_inputs(batch, device)
             x = x.detach().requires_grad_(True)
-            for factor in (0.5, 0.75, 1.0, 1.5):
+            for kind, factor in (("cells", 1.0), ("cells", 1.25), ("cells", 1.5), ("midpoints", 1.0)):
                 hh._CELL_FACTOR = factor
+                hh._broad_phase_kind = lambda d, k=kind: k
 
                 def hair_hair():
                     x.grad = None
                     hair_hair_contact_energy(x, c.hair_diameter, c.hair_hair_dhat, c.barrier_join_fraction,
                                              weight=c.hair_hair_weight)[0].sum().backward()
 
-                out[f"hair_hair B={batch} cell={factor}"] = time_ms(hair_hair, device, warmup=2, repeats=10,
+                out[f"hair_hair B={batch} {kind} cell={factor}"] = time_ms(hair_hair, device, warmup=2, repeats=10,
                                                                      min_time_s=0.2)
             for strategy in ("vertex", "strand"):
                 def hair_body():
@@ -112,6 +115,7 @@ def _kernel_probe(device, batches) -> dict:
                 print(f"  {key:<32s} {out[key]:8.3f} ms", flush=True)
     finally:
         hh._CELL_FACTOR = chosen
+        hh._broad_phase_kind = kind_of
         set_finite_checks(previous)
     return out
 
@@ -146,7 +150,8 @@ def main(argv=None):
     parser.add_argument("--lbfgs-iterations", type=int, default=300, help="0: skip the L-BFGS rows")
     parser.add_argument("--profile", action="store_true", help="torch profile of one eager step per batch")
     parser.add_argument("--probe-kernels", action="store_true",
-                        help="also time the contact kernels alone: hair-hair cell widths, hair-body per vertex/strand")
+                        help="also time the contact kernels alone: hair-hair broad phases and cell widths, "
+                             "hair-body per vertex (two passes) / per strand")
     parser.add_argument("--out", default="hairwarp-out")
     args = parser.parse_args(argv)
     device = torch.device(args.device)

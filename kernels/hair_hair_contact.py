@@ -574,3 +574,306 @@ def hair_hair_energy_kernel(
     s, t, dist2 = edge_edge_closest_parameters(p0, p1, q0, q1)
     _add_pair_energy(vi, vj, p0, p1, q0, q1, s, t, strand_i // num_strands, num_vertices, xi, dhat, bp, weight,
                      variant, energy_out, gradient_out)
+
+
+# ------------------------------------------------------------------------------------------
+# The device broad phase: segment boxes in hashed cells (one thread per (segment, cell) entry)
+#
+# Two segments closer than the cutoff c have boxes, each the segment's bounding box grown by
+# c / 2 per side, that overlap (the midpoint of the two closest points lies in both). So each
+# segment is entered in every cell its box touches, and a pair is tested in exactly one cell:
+# the one that holds the low corner of the two boxes' intersection. Cells are as wide as a
+# typical box (`grid_params[0]`), so a typical segment sits in at most 2 cells per axis (8
+# entries, a fixed bound per segment: no capacity to learn); a longer one ("long", wider than
+# 2 cells on some axis: a stretched line-search trial point) is entered once, at its midpoint's
+# cell, and finds its own pairs by walking the cells of its box (`hair_hair_long_pairs_kernel`).
+# The cells are hashed into a table of 2^k slots, with the batch item in the hash; slots shared by
+# distant cells only add candidates that the exact cell test rejects. Against the midpoint grid
+# (`hair_hair_pairs_kernel`: every segment within the midpoints' bound, ~600 candidates walked for
+# ~1 pair per segment on a drape), a segment meets only the boxes that share its cells.
+
+# Entries per segment: at most two cells per axis.
+MAX_CELLS_PER_SEGMENT = wp.constant(8)
+
+
+@wp.func
+def cell_table_slot(c: wp.vec3i, group: int, table_mask: int):
+    """Slot of cell c of batch item `group` in a table of table_mask + 1 (a power of two) slots."""
+    h = wp.uint32(c[0]) * wp.uint32(73856093)
+    h = h ^ (wp.uint32(c[1]) * wp.uint32(19349663))
+    h = h ^ (wp.uint32(c[2]) * wp.uint32(83492791))
+    h = h ^ (wp.uint32(group) * wp.uint32(668265263))
+    h = h ^ (h >> wp.uint32(15))
+    h = h * wp.uint32(374761393)
+    h = h ^ (h >> wp.uint32(13))
+    return int(h & wp.uint32(table_mask))
+
+
+@wp.func
+def box_center_cell(lo: wp.vec3, hi: wp.vec3, inv_width: float):
+    """Cell of a box's centre: where a long segment is entered."""
+    return grid_cell((lo + hi) * 0.5, inv_width)
+
+
+@wp.func
+def entry_cell(lo_cell: wp.vec3i, k: int):
+    """Cell of entry k (0..7) of a short segment whose box starts in cell lo_cell."""
+    return wp.vec3i(lo_cell[0] + (k & 1), lo_cell[1] + ((k >> 1) & 1), lo_cell[2] + (k >> 2))
+
+
+@wp.func
+def boxes_meet_in_cell(lo_i: wp.vec3, hi_i: wp.vec3, lo_j: wp.vec3, hi_j: wp.vec3, cell: wp.vec3i, inv_width: float):
+    """True if the two boxes overlap and the low corner of their intersection is in `cell`."""
+    corner = wp.max(lo_i, lo_j)
+    top = wp.min(hi_i, hi_j)
+    if corner[0] > top[0] or corner[1] > top[1] or corner[2] > top[2]:
+        return False
+    c = grid_cell(corner, inv_width)
+    return c[0] == cell[0] and c[1] == cell[1] and c[2] == cell[2]
+
+
+@wp.kernel
+def segment_boxes_kernel(
+    # In:
+    x_in: wp.array(dtype=Any),
+    num_vertices: int,
+    num_strands: int,
+    skip_root_segments: int,
+    grid_params: wp.array(dtype=float),
+    half_cutoff32: float,
+    relative_slack: float,
+    table_mask: int,
+    # Out:
+    box_lo_out: wp.array(dtype=wp.vec3),
+    box_hi_out: wp.array(dtype=wp.vec3),
+    long_out: wp.array(dtype=wp.int32),
+    entry_rank_out: wp.array(dtype=wp.int32),
+    slot_count_out: wp.array(dtype=wp.int32),
+):
+    """Each segment's box (float32, grown by the cutoff / 2 and the rounding slack), whether it is
+    long, and its entries: entry k of segment s gets its rank in its slot (`entry_rank_out[8 s + k]`,
+    -1 for no entry), counted by an atomic on the slot. Root segments get no entry.
+    """
+    s = wp.tid()
+    segs_per_strand = num_vertices - 1
+    strand = s // segs_per_strand
+    index = s % segs_per_strand
+    v0 = strand * num_vertices + index
+    a = wp.vec3(x_in[v0])
+    b = wp.vec3(x_in[v0 + 1])
+    pad = half_cutoff32 * (1.0 + relative_slack) + grid_params[2]
+    lo = wp.min(a, b) - wp.vec3(pad)
+    hi = wp.max(a, b) + wp.vec3(pad)
+    box_lo_out[s] = lo
+    box_hi_out[s] = hi
+    base = s * MAX_CELLS_PER_SEGMENT
+    for k in range(MAX_CELLS_PER_SEGMENT):
+        entry_rank_out[base + k] = -1
+    long_out[s] = 0
+    if index < skip_root_segments:
+        return
+    group = strand // num_strands
+    inv_width = 1.0 / grid_params[0]
+    lo_cell = grid_cell(lo, inv_width)
+    hi_cell = grid_cell(hi, inv_width)
+    if hi_cell[0] - lo_cell[0] > 1 or hi_cell[1] - lo_cell[1] > 1 or hi_cell[2] - lo_cell[2] > 1:
+        long_out[s] = 1
+        slot = cell_table_slot(box_center_cell(lo, hi, inv_width), group, table_mask)
+        entry_rank_out[base] = wp.atomic_add(slot_count_out, slot, 1)
+        return
+    for k in range(MAX_CELLS_PER_SEGMENT):
+        c = entry_cell(lo_cell, k)
+        if c[0] <= hi_cell[0] and c[1] <= hi_cell[1] and c[2] <= hi_cell[2]:
+            entry_rank_out[base + k] = wp.atomic_add(slot_count_out, cell_table_slot(c, group, table_mask), 1)
+
+
+@wp.kernel
+def scatter_entries_kernel(
+    # In:
+    box_lo: wp.array(dtype=wp.vec3),
+    box_hi: wp.array(dtype=wp.vec3),
+    long_in: wp.array(dtype=wp.int32),
+    entry_rank: wp.array(dtype=wp.int32),
+    slot_end: wp.array(dtype=wp.int32),
+    slot_count: wp.array(dtype=wp.int32),
+    grid_params: wp.array(dtype=float),
+    num_vertices: int,
+    num_strands: int,
+    table_mask: int,
+    # Out:
+    slot_segments_out: wp.array(dtype=wp.int32),
+):
+    """Counting sort: entry k of segment s goes to position start(slot) + rank of the slot's list."""
+    e = wp.tid()
+    rank = entry_rank[e]
+    if rank < 0:
+        return
+    s = e // MAX_CELLS_PER_SEGMENT
+    k = e % MAX_CELLS_PER_SEGMENT
+    group = s // ((num_vertices - 1) * num_strands)
+    inv_width = 1.0 / grid_params[0]
+    lo = box_lo[s]
+    cell = entry_cell(grid_cell(lo, inv_width), k)
+    if long_in[s] != 0:
+        cell = box_center_cell(lo, box_hi[s], inv_width)
+    slot = cell_table_slot(cell, group, table_mask)
+    slot_segments_out[slot_end[slot] - slot_count[slot] + rank] = s
+
+
+@wp.kernel
+def hair_hair_cell_pairs_kernel(
+    # In:
+    x_in: wp.array(dtype=Any),
+    box_lo: wp.array(dtype=wp.vec3),
+    box_hi: wp.array(dtype=wp.vec3),
+    long_in: wp.array(dtype=wp.int32),
+    entry_rank: wp.array(dtype=wp.int32),
+    slot_end: wp.array(dtype=wp.int32),
+    slot_count: wp.array(dtype=wp.int32),
+    slot_segments: wp.array(dtype=wp.int32),
+    grid_params: wp.array(dtype=float),
+    num_vertices: int,
+    num_strands: int,
+    skip_root_segments: int,
+    table_mask: int,
+    cutoff: Any,
+    capacity: int,
+    with_energy: int,
+    xi: Any,
+    dhat: Any,
+    bp: Any,
+    weight: Any,
+    variant: int,
+    # Out:
+    count_out: wp.array(dtype=wp.int32),
+    pairs_out: wp.array(dtype=wp.int32),
+    energy_out: wp.array(dtype=wp.float64),
+    gradient_out: wp.array(dtype=Any),
+):
+    """Short-short pairs, one thread per entry (segment i, cell): the higher-id short segments of
+    the cell whose box meets i's with the intersection's low corner in this cell, tested exactly
+    (`_write_pair_if_close`). Each pair is tested once: by its lower id, in one cell."""
+    e = wp.tid()
+    if entry_rank[e] < 0:
+        return
+    i = e // MAX_CELLS_PER_SEGMENT
+    if long_in[i] != 0:
+        return
+    segs_per_strand = num_vertices - 1
+    strand_i = i // segs_per_strand
+    group = strand_i // num_strands
+    inv_width = 1.0 / grid_params[0]
+    lo_i = box_lo[i]
+    hi_i = box_hi[i]
+    cell = entry_cell(grid_cell(lo_i, inv_width), e % MAX_CELLS_PER_SEGMENT)
+    slot = cell_table_slot(cell, group, table_mask)
+    vi = strand_i * num_vertices + i % segs_per_strand
+    p0 = x_in[vi]
+    p1 = x_in[vi + 1]
+    cutoff2 = cutoff * cutoff
+    end = slot_end[slot]
+    for k in range(end - slot_count[slot], end):
+        j = slot_segments[k]
+        if j <= i or long_in[j] != 0:
+            continue
+        if (j // segs_per_strand) // num_strands != group:
+            continue  # a slot shared with another batch item's cell
+        if not boxes_meet_in_cell(lo_i, hi_i, box_lo[j], box_hi[j], cell, inv_width):
+            continue
+        _write_pair_if_close(x_in, i, j, strand_i, vi, p0, p1, num_vertices, num_strands, skip_root_segments,
+                             cutoff2, capacity, with_energy, xi, dhat, bp, weight, variant, count_out, pairs_out,
+                             energy_out, gradient_out)
+
+
+@wp.kernel
+def hair_hair_long_pairs_kernel(
+    # In:
+    x_in: wp.array(dtype=Any),
+    box_lo: wp.array(dtype=wp.vec3),
+    box_hi: wp.array(dtype=wp.vec3),
+    long_in: wp.array(dtype=wp.int32),
+    slot_end: wp.array(dtype=wp.int32),
+    slot_count: wp.array(dtype=wp.int32),
+    slot_segments: wp.array(dtype=wp.int32),
+    grid_params: wp.array(dtype=float),
+    num_vertices: int,
+    num_strands: int,
+    skip_root_segments: int,
+    table_mask: int,
+    half_cutoff32: float,
+    cutoff: Any,
+    capacity: int,
+    with_energy: int,
+    xi: Any,
+    dhat: Any,
+    bp: Any,
+    weight: Any,
+    variant: int,
+    # Out:
+    count_out: wp.array(dtype=wp.int32),
+    pairs_out: wp.array(dtype=wp.int32),
+    energy_out: wp.array(dtype=wp.float64),
+    gradient_out: wp.array(dtype=Any),
+):
+    """One thread per segment; only long ones work. A long segment i walks the cells of its box
+    for short partners (each met in the cell of the boxes' low corner, as between short ones),
+    and the cells of its box grown by the longest half length for long partners (entered at
+    their box centre's cell), keeping those shorter than i (ties: the higher id)."""
+    i = wp.tid()
+    if long_in[i] == 0:
+        return
+    segs_per_strand = num_vertices - 1
+    strand_i = i // segs_per_strand
+    group = strand_i // num_strands
+    inv_width = 1.0 / grid_params[0]
+    lo_i = box_lo[i]
+    hi_i = box_hi[i]
+    vi = strand_i * num_vertices + i % segs_per_strand
+    p0 = x_in[vi]
+    p1 = x_in[vi + 1]
+    half_i = wp.length(wp.vec3(p1) - wp.vec3(p0)) * 0.5
+    cutoff2 = cutoff * cutoff
+    lo_cell = grid_cell(lo_i, inv_width)
+    hi_cell = grid_cell(hi_i, inv_width)
+    for cx in range(lo_cell[0], hi_cell[0] + 1):
+        for cy in range(lo_cell[1], hi_cell[1] + 1):
+            for cz in range(lo_cell[2], hi_cell[2] + 1):
+                cell = wp.vec3i(cx, cy, cz)
+                slot = cell_table_slot(cell, group, table_mask)
+                end = slot_end[slot]
+                for k in range(end - slot_count[slot], end):
+                    j = slot_segments[k]
+                    if long_in[j] != 0 or (j // segs_per_strand) // num_strands != group:
+                        continue
+                    if not boxes_meet_in_cell(lo_i, hi_i, box_lo[j], box_hi[j], cell, inv_width):
+                        continue
+                    _write_pair_if_close(x_in, i, j, strand_i, vi, p0, p1, num_vertices, num_strands,
+                                         skip_root_segments, cutoff2, capacity, with_energy, xi, dhat, bp, weight,
+                                         variant, count_out, pairs_out, energy_out, gradient_out)
+    # Long partners: a long j closer than the cutoff has its centre within its half length plus
+    # the cutoff / 2 of i's box (and i's box holds the cutoff / 2 already).
+    grow = wp.vec3(grid_params[3] * (1.0 + 1.0e-4) + half_cutoff32 + grid_params[2])
+    lo_cell = grid_cell(lo_i - grow, inv_width)
+    hi_cell = grid_cell(hi_i + grow, inv_width)
+    for cx in range(lo_cell[0], hi_cell[0] + 1):
+        for cy in range(lo_cell[1], hi_cell[1] + 1):
+            for cz in range(lo_cell[2], hi_cell[2] + 1):
+                cell = wp.vec3i(cx, cy, cz)
+                slot = cell_table_slot(cell, group, table_mask)
+                end = slot_end[slot]
+                for k in range(end - slot_count[slot], end):
+                    j = slot_segments[k]
+                    if j == i or long_in[j] == 0 or (j // segs_per_strand) // num_strands != group:
+                        continue
+                    lo_j = box_lo[j]
+                    hi_j = box_hi[j]
+                    c = box_center_cell(lo_j, hi_j, inv_width)
+                    if c[0] != cx or c[1] != cy or c[2] != cz:
+                        continue  # entered in another cell sharing this slot
+                    vj = (j // segs_per_strand) * num_vertices + j % segs_per_strand
+                    half_j = wp.length(wp.vec3(x_in[vj + 1]) - wp.vec3(x_in[vj])) * 0.5
+                    if half_j > half_i or (half_j == half_i and j < i):
+                        continue  # the longer one's thread (ties: the lower id's) tests the pair
+                    _write_pair_if_close(x_in, i, j, strand_i, vi, p0, p1, num_vertices, num_strands,
+                                         skip_root_segments, cutoff2, capacity, with_energy, xi, dhat, bp, weight,
+                                         variant, count_out, pairs_out, energy_out, gradient_out)

@@ -25,6 +25,17 @@ FD_H = 1e-8
 FD_RTOL = 1e-5
 
 
+@pytest.fixture(autouse=True, params=["cpu-grid", "cells", "midpoints"])
+def broad_phase(request, monkeypatch):
+    """Every test of this module runs each broad phase: the CPU's own grid and both device
+    kinds (the boxes in hashed cells, the midpoint grid), whichever device runs it."""
+    import hairwarp.ops.hair_hair_contact as hh
+
+    monkeypatch.setattr(hh, "_broad_phase_kind", lambda device: request.param)
+    monkeypatch.setattr(hh, "_learned_capacity", {})  # each kind learns its own
+    return request.param
+
+
 def _t(a, dtype=torch.float64, device="cpu"):
     return torch.tensor(np.asarray(a), dtype=dtype, device=device)
 

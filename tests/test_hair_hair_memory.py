@@ -99,12 +99,15 @@ def test_benchmark_torch_peer_item_by_item_equals_whole_batch(rng):
     torch.testing.assert_close(torch_hair_hair_by_item(x, config), whole, rtol=1e-12, atol=0)
 
 
+@pytest.mark.parametrize("kind", ["cpu-grid", "cells", "midpoints"])
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_stretched_and_equal_length_segments_find_every_pair_once(rng, dtype):
+def test_stretched_and_equal_length_segments_find_every_pair_once(rng, dtype, kind, monkeypatch):
     """The broad phase finds a pair from one query only: the lower id's between typical
     segments, the longer segment's when one is long (> 1.5 x the mean), the lower id's on
     equal lengths. Stretched segments (as an L-BFGS trial point makes) and exactly equal
-    lengths (a straight grid) must still give exactly the brute-force pairs."""
+    lengths (a straight grid) must still give exactly the brute-force pairs, with every broad
+    phase (the boxes-in-cells one enters a long segment once and lets it walk its own box)."""
+    monkeypatch.setattr(hh, "_broad_phase_kind", lambda device: kind)
     x = ref.random_hair(rng, batch=2, strands=8, vertices=12, extent=0.01, segment=2e-3)
     # Stretch a few segments 5-10x by moving the tail of their strand.
     for b, m, v, factor in ((0, 1, 5, 6.0), (0, 4, 7, 10.0), (1, 2, 3, 5.0), (1, 6, 8, 8.0)):
@@ -116,7 +119,16 @@ def test_stretched_and_equal_length_segments_find_every_pair_once(rng, dtype):
     grid[0, 1, :, 1] = np.arange(12) * 2e-3 - 11e-3
     grid[0, 1, :, 0] = 11e-3
     grid[0, 1, :, 2] = 3e-3
-    for hair in (x, grid):
+    # Two long segments crossing 2 mm apart (a long-long pair), among short ones.
+    cross = np.zeros((1, 3, 12, 3))
+    cross[0, :, :, 0] = np.arange(12) * 2e-3
+    cross[0, 1, :, 0] = 11e-3
+    cross[0, 1, :, 1] = np.arange(12) * 2e-3 - 11e-3
+    cross[0, 1, :, 2] = 2e-3
+    cross[0, 2, :, 2] = 4e-3
+    cross[0, 0, 6:] += np.array([0.03, 0.0, 0.0])  # segment 5 of strand 0: 32 mm
+    cross[0, 1, 6:] += np.array([0.0, 0.04, 0.0])  # segment 5 of strand 1: 42 mm
+    for hair in (x, grid, cross):
         hair = torch.tensor(hair).to(dtype).double().numpy()
         _, expected = ref.energy(hair, XI, DHAT, BP)
         assert expected.shape[0] > 0
@@ -125,3 +137,4 @@ def test_stretched_and_equal_length_segments_find_every_pair_once(rng, dtype):
         assert found.pair_count == expected.shape[0]
     lengths = np.linalg.norm(np.diff(x, axis=2), axis=-1)
     assert lengths.max() > 3 * lengths.mean()  # long segments were present
+    assert [5, 16] in found.pairs.tolist()  # the crossing long segments (the last hair) paired

@@ -67,6 +67,9 @@ _RADIUS_SLACK = 1e-4
 # a typical query's radius (fewer, fuller cells: each visited cell costs a lookup).
 _LONG_FACTOR = 1.5
 _CELL_FACTOR = 1.0
+# The device broad phase: "cells" (segment boxes in hashed cells, `_cell_broad_phase`) or
+# "midpoints" (a midpoint grid walked by each segment's query, `hair_hair_pairs_kernel`).
+_DEVICE_BROAD_PHASE = "cells"
 # The CPU grid (`_CpuGrid`): cells of _CPU_CELL_FACTOR x the device path's width (a query walks
 # one contiguous range per z row, so finer cells cost little and bring fewer candidates), at
 # most _CPU_MAX_CELLS_PER_SEGMENT cells per segment (4 bytes each).
@@ -251,7 +254,8 @@ def default_capacity(num_segments: int) -> int:
 
 
 def _grid_params(x4: torch.Tensor, cutoff: float) -> torch.Tensor:
-    """(3,) float32 on the device: cell width, long half length H, absolute slack [m] (no host read).
+    """(4,) float32 on the device: cell width, long half length H, absolute slack, longest half
+    length [m] (no host read).
 
     Two segments closer than the cutoff have midpoints at most cutoff + (l_i + l_j) / 2 apart;
     the float32 midpoints add up to |coordinate| * 2^-24 each. Segments longer than
@@ -261,10 +265,11 @@ def _grid_params(x4: torch.Tensor, cutoff: float) -> torch.Tensor:
     trial point with one segment stretched to 72 mm took 0.6-1.2 s (docs/contact.md).
     """
     lengths = (x4[:, :, 1:] - x4[:, :, :-1]).norm(dim=-1)
-    long_half = 0.5 * torch.minimum(lengths.max(), _LONG_FACTOR * lengths.mean())
+    max_half = 0.5 * lengths.max()
+    long_half = torch.minimum(max_half, 0.5 * _LONG_FACTOR * lengths.mean())
     absolute_slack = 4.0 * x4.abs().max() * 2.0**-23
     cell_width = (cutoff + 2.0 * long_half) * _CELL_FACTOR * (1.0 + _RADIUS_SLACK) + absolute_slack
-    return torch.stack([cell_width, long_half, absolute_slack]).to(torch.float32)
+    return torch.stack([cell_width, long_half, absolute_slack, max_half]).to(torch.float32)
 
 
 class _CpuGrid:
@@ -418,7 +423,8 @@ def _broad_phase(x4, cutoff, capacity, skip_root_segments, on_overflow, max_pair
                 0, requested)
 
     x_flat = x4.detach().reshape(-1, 3)
-    if device.type == "cpu":
+    kind = _broad_phase_kind(device)
+    if kind == "cpu-grid":
         grid = _CpuGrid(x4, cutoff)
         count = torch.zeros(1, dtype=torch.int32, device=device)
 
@@ -430,6 +436,9 @@ def _broad_phase(x4, cutoff, capacity, skip_root_segments, on_overflow, max_pair
 
         return _collect(run, count, requested, cap, capacity, num_segments, on_overflow)
 
+    if kind == "cells":
+        run, count = _cell_broad_phase(x4, cutoff, skip_root_segments, cap)
+        return _collect(run, count, requested, cap, capacity, num_segments, on_overflow)
     params = _grid_params(x4, cutoff)
     wp_device = _warp.warp_device(device)
     midpoints = torch.empty(num_segments, 3, dtype=torch.float32, device=device)
@@ -472,6 +481,76 @@ def _broad_phase(x4, cutoff, capacity, skip_root_segments, on_overflow, max_pair
         return pairs
 
     return _collect(run, count, requested, cap, capacity, num_segments, on_overflow)
+
+
+def _broad_phase_kind(device: torch.device) -> str:
+    """"cpu-grid" (`_CpuGrid`) on the CPU, `_DEVICE_BROAD_PHASE` on CUDA (the tests run the
+    device kinds on the CPU by replacing this)."""
+    return "cpu-grid" if device.type == "cpu" else _DEVICE_BROAD_PHASE
+
+
+def _cell_table_size(num_segments: int) -> int:
+    """Slots of the cell table: a power of two >= 4 slots per segment (a drape enters ~3 cells
+    per segment, so most slots hold one cell)."""
+    return 1 << max(10, (4 * num_segments - 1).bit_length())
+
+
+def _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy=None):
+    """The device broad phase of boxes in hashed cells (`kernels.hair_hair_contact`,
+    `segment_boxes_kernel` ...): returns (run, count) as `_collect` takes them. Any device
+    (the CPU runs it in the tests); nothing read back to launch, so it can be captured.
+
+    Memory per call: 8 entries per segment (rank and sorted segment: 64 bytes), its box, long
+    flag (28 bytes) and the table (8 bytes per slot, 4-8 slots per segment): ~130 bytes per
+    segment (420 MiB for 1024 x 100 hair at batch 32), besides the pair buffer.
+    """
+    b, m, n, _ = x4.shape
+    num_segments = b * m * (n - 1)
+    device = x4.device
+    wp_device = _warp.warp_device(device)
+    params = _grid_params(x4, cutoff)
+    table = _cell_table_size(num_segments)
+    entries = num_segments * int(hh_kernels.MAX_CELLS_PER_SEGMENT)
+    box_lo = torch.empty(num_segments, 3, dtype=torch.float32, device=device)
+    box_hi = torch.empty(num_segments, 3, dtype=torch.float32, device=device)
+    long_flags = torch.empty(num_segments, dtype=torch.int32, device=device)
+    ranks = torch.empty(entries, dtype=torch.int32, device=device)
+    slot_count = torch.zeros(table, dtype=torch.int32, device=device)
+    slot_segments = torch.empty(entries, dtype=torch.int32, device=device)
+    count = torch.zeros(1, dtype=torch.int32, device=device)
+    x_wp = _warp.as_warp(x4.reshape(-1, 3), vec3=True)
+    params_wp = _warp.as_warp(params)
+    half_cutoff32 = 0.5 * float(cutoff)
+    boxes = [wp.from_torch(box_lo, dtype=wp.vec3), wp.from_torch(box_hi, dtype=wp.vec3), _warp.as_warp(long_flags)]
+    with _warp.launch_scope(device):
+        wp.launch(hh_kernels.segment_boxes_kernel, dim=num_segments,
+                  inputs=[x_wp, n, m, skip_root_segments, params_wp, half_cutoff32, _RADIUS_SLACK, table - 1],
+                  outputs=boxes + [_warp.as_warp(ranks), _warp.as_warp(slot_count)], device=wp_device)
+    slot_end = torch.cumsum(slot_count, 0, dtype=torch.int32)
+    table_wp = [_warp.as_warp(slot_end), _warp.as_warp(slot_count)]
+    with _warp.launch_scope(device):
+        wp.launch(hh_kernels.scatter_entries_kernel, dim=entries,
+                  inputs=boxes + [_warp.as_warp(ranks)] + table_wp + [params_wp, n, m, table - 1],
+                  outputs=[_warp.as_warp(slot_segments)], device=wp_device)
+
+    def run(room):
+        count.zero_()
+        pairs = _pair_buffer(device, room, cap)
+        common_out = [_warp.as_warp(count), _warp.as_warp(pairs)] + _PairEnergyArgs.outputs(energy, x4.dtype)
+        pair_inputs = [_warp.scalar(cutoff, x4.dtype), room] + _PairEnergyArgs.inputs(energy, x4.dtype)
+        with _warp.launch_scope(device):
+            wp.launch(hh_kernels.hair_hair_cell_pairs_kernel, dim=entries,
+                      inputs=[x_wp] + boxes + [_warp.as_warp(ranks)] + table_wp
+                      + [_warp.as_warp(slot_segments), params_wp, n, m, skip_root_segments, table - 1] + pair_inputs,
+                      outputs=common_out, device=wp_device)
+            wp.launch(hh_kernels.hair_hair_long_pairs_kernel, dim=num_segments,
+                      inputs=[x_wp] + boxes + table_wp
+                      + [_warp.as_warp(slot_segments), params_wp, n, m, skip_root_segments, table - 1,
+                         half_cutoff32] + pair_inputs,
+                      outputs=common_out, device=wp_device)
+        return pairs
+
+    return run, count
 
 
 def _collect(run, count, requested, cap, capacity, num_segments, on_overflow):
