@@ -687,6 +687,15 @@ def segment_boxes_kernel(
             entry_rank_out[base + k] = wp.atomic_add(slot_count_out, cell_table_slot(c, group, table_mask), 1)
 
 
+@wp.func
+def entry_id(s: int, k: int, long_segment: int):
+    """Packed entry of the sorted table: 8 s + k for entry k of a short segment s, -(8 s) - 1 for
+    a long one (entered once)."""
+    if long_segment != 0:
+        return -(s * MAX_CELLS_PER_SEGMENT) - 1
+    return s * MAX_CELLS_PER_SEGMENT + k
+
+
 @wp.kernel
 def scatter_entries_kernel(
     # In:
@@ -701,9 +710,12 @@ def scatter_entries_kernel(
     num_strands: int,
     table_mask: int,
     # Out:
-    slot_segments_out: wp.array(dtype=wp.int32),
+    sorted_entries_out: wp.array(dtype=wp.int32),
+    sorted_lo_out: wp.array(dtype=wp.vec3),
+    sorted_hi_out: wp.array(dtype=wp.vec3),
 ):
-    """Counting sort: entry k of segment s goes to position start(slot) + rank of the slot's list."""
+    """Counting sort: entry k of segment s goes to position start(slot) + its rank in the slot,
+    with its box, so a slot's candidates are read contiguously."""
     e = wp.tid()
     rank = entry_rank[e]
     if rank < 0:
@@ -713,24 +725,27 @@ def scatter_entries_kernel(
     group = s // ((num_vertices - 1) * num_strands)
     inv_width = 1.0 / grid_params[0]
     lo = box_lo[s]
+    hi = box_hi[s]
+    is_long = long_in[s]
     cell = entry_cell(grid_cell(lo, inv_width), k)
-    if long_in[s] != 0:
-        cell = box_center_cell(lo, box_hi[s], inv_width)
+    if is_long != 0:
+        cell = box_center_cell(lo, hi, inv_width)
     slot = cell_table_slot(cell, group, table_mask)
-    slot_segments_out[slot_end[slot] - slot_count[slot] + rank] = s
+    pos = slot_end[slot] - slot_count[slot] + rank
+    sorted_entries_out[pos] = entry_id(s, k, is_long)
+    sorted_lo_out[pos] = lo
+    sorted_hi_out[pos] = hi
 
 
 @wp.kernel
 def hair_hair_cell_pairs_kernel(
     # In:
     x_in: wp.array(dtype=Any),
-    box_lo: wp.array(dtype=wp.vec3),
-    box_hi: wp.array(dtype=wp.vec3),
-    long_in: wp.array(dtype=wp.int32),
-    entry_rank: wp.array(dtype=wp.int32),
+    sorted_entries: wp.array(dtype=wp.int32),
+    sorted_lo: wp.array(dtype=wp.vec3),
+    sorted_hi: wp.array(dtype=wp.vec3),
     slot_end: wp.array(dtype=wp.int32),
     slot_count: wp.array(dtype=wp.int32),
-    slot_segments: wp.array(dtype=wp.int32),
     grid_params: wp.array(dtype=float),
     num_vertices: int,
     num_strands: int,
@@ -750,36 +765,43 @@ def hair_hair_cell_pairs_kernel(
     energy_out: wp.array(dtype=wp.float64),
     gradient_out: wp.array(dtype=Any),
 ):
-    """Short-short pairs, one thread per entry (segment i, cell): the higher-id short segments of
-    the cell whose box meets i's with the intersection's low corner in this cell, tested exactly
+    """Short-short pairs, one thread per sorted entry (segment i, cell c; threads of a slot side
+    by side, reading the same candidates): each higher-id short segment entered in the same
+    cell c whose box meets i's with the intersection's low corner in c, tested exactly
     (`_write_pair_if_close`). Each pair is tested once: by its lower id, in one cell."""
-    e = wp.tid()
-    if entry_rank[e] < 0:
-        return
-    i = e // MAX_CELLS_PER_SEGMENT
-    if long_in[i] != 0:
-        return
+    pos = wp.tid()
+    if pos >= slot_end[table_mask]:
+        return  # past the entries (launched over the bound of 8 per segment)
+    packed = sorted_entries[pos]
+    if packed < 0:
+        return  # a long segment: `hair_hair_long_pairs_kernel`
+    i = packed // MAX_CELLS_PER_SEGMENT
     segs_per_strand = num_vertices - 1
     strand_i = i // segs_per_strand
     group = strand_i // num_strands
     inv_width = 1.0 / grid_params[0]
-    lo_i = box_lo[i]
-    hi_i = box_hi[i]
-    cell = entry_cell(grid_cell(lo_i, inv_width), e % MAX_CELLS_PER_SEGMENT)
+    lo_i = sorted_lo[pos]
+    hi_i = sorted_hi[pos]
+    cell = entry_cell(grid_cell(lo_i, inv_width), packed % MAX_CELLS_PER_SEGMENT)
     slot = cell_table_slot(cell, group, table_mask)
     vi = strand_i * num_vertices + i % segs_per_strand
     p0 = x_in[vi]
     p1 = x_in[vi + 1]
     cutoff2 = cutoff * cutoff
     end = slot_end[slot]
-    for k in range(end - slot_count[slot], end):
-        j = slot_segments[k]
-        if j <= i or long_in[j] != 0:
+    for q in range(end - slot_count[slot], end):
+        other = sorted_entries[q]
+        j = other // MAX_CELLS_PER_SEGMENT
+        if other < 0 or j <= i:
             continue
         if (j // segs_per_strand) // num_strands != group:
             continue  # a slot shared with another batch item's cell
-        if not boxes_meet_in_cell(lo_i, hi_i, box_lo[j], box_hi[j], cell, inv_width):
+        lo_j = sorted_lo[q]
+        if not boxes_meet_in_cell(lo_i, hi_i, lo_j, sorted_hi[q], cell, inv_width):
             continue
+        c = entry_cell(grid_cell(lo_j, inv_width), other % MAX_CELLS_PER_SEGMENT)
+        if c[0] != cell[0] or c[1] != cell[1] or c[2] != cell[2]:
+            continue  # j's entry of another cell sharing this slot: the pair is met in c only
         _write_pair_if_close(x_in, i, j, strand_i, vi, p0, p1, num_vertices, num_strands, skip_root_segments,
                              cutoff2, capacity, with_energy, xi, dhat, bp, weight, variant, count_out, pairs_out,
                              energy_out, gradient_out)
@@ -792,9 +814,11 @@ def hair_hair_long_pairs_kernel(
     box_lo: wp.array(dtype=wp.vec3),
     box_hi: wp.array(dtype=wp.vec3),
     long_in: wp.array(dtype=wp.int32),
+    sorted_entries: wp.array(dtype=wp.int32),
+    sorted_lo: wp.array(dtype=wp.vec3),
+    sorted_hi: wp.array(dtype=wp.vec3),
     slot_end: wp.array(dtype=wp.int32),
     slot_count: wp.array(dtype=wp.int32),
-    slot_segments: wp.array(dtype=wp.int32),
     grid_params: wp.array(dtype=float),
     num_vertices: int,
     num_strands: int,
@@ -841,12 +865,19 @@ def hair_hair_long_pairs_kernel(
                 cell = wp.vec3i(cx, cy, cz)
                 slot = cell_table_slot(cell, group, table_mask)
                 end = slot_end[slot]
-                for k in range(end - slot_count[slot], end):
-                    j = slot_segments[k]
-                    if long_in[j] != 0 or (j // segs_per_strand) // num_strands != group:
+                for q in range(end - slot_count[slot], end):
+                    other = sorted_entries[q]
+                    if other < 0:
                         continue
-                    if not boxes_meet_in_cell(lo_i, hi_i, box_lo[j], box_hi[j], cell, inv_width):
+                    j = other // MAX_CELLS_PER_SEGMENT
+                    if (j // segs_per_strand) // num_strands != group:
                         continue
+                    lo_j = sorted_lo[q]
+                    if not boxes_meet_in_cell(lo_i, hi_i, lo_j, sorted_hi[q], cell, inv_width):
+                        continue
+                    c = entry_cell(grid_cell(lo_j, inv_width), other % MAX_CELLS_PER_SEGMENT)
+                    if c[0] != cx or c[1] != cy or c[2] != cz:
+                        continue  # j's entry of another cell sharing this slot
                     _write_pair_if_close(x_in, i, j, strand_i, vi, p0, p1, num_vertices, num_strands,
                                          skip_root_segments, cutoff2, capacity, with_energy, xi, dhat, bp, weight,
                                          variant, count_out, pairs_out, energy_out, gradient_out)
@@ -861,13 +892,14 @@ def hair_hair_long_pairs_kernel(
                 cell = wp.vec3i(cx, cy, cz)
                 slot = cell_table_slot(cell, group, table_mask)
                 end = slot_end[slot]
-                for k in range(end - slot_count[slot], end):
-                    j = slot_segments[k]
-                    if j == i or long_in[j] == 0 or (j // segs_per_strand) // num_strands != group:
+                for q in range(end - slot_count[slot], end):
+                    other = sorted_entries[q]
+                    if other >= 0:
                         continue
-                    lo_j = box_lo[j]
-                    hi_j = box_hi[j]
-                    c = box_center_cell(lo_j, hi_j, inv_width)
+                    j = (-other - 1) // MAX_CELLS_PER_SEGMENT
+                    if j == i or (j // segs_per_strand) // num_strands != group:
+                        continue
+                    c = box_center_cell(sorted_lo[q], sorted_hi[q], inv_width)
                     if c[0] != cx or c[1] != cy or c[2] != cz:
                         continue  # entered in another cell sharing this slot
                     vj = (j // segs_per_strand) * num_vertices + j % segs_per_strand

@@ -138,3 +138,19 @@ def test_stretched_and_equal_length_segments_find_every_pair_once(rng, dtype, ki
     lengths = np.linalg.norm(np.diff(x, axis=2), axis=-1)
     assert lengths.max() > 3 * lengths.mean()  # long segments were present
     assert [5, 16] in found.pairs.tolist()  # the crossing long segments (the last hair) paired
+
+
+@pytest.mark.parametrize("slots", [1, 4])
+def test_cell_table_collisions_neither_drop_nor_repeat_pairs(rng, slots, monkeypatch):
+    """The boxes-in-cells broad phase hashes cells into a table; with 1 or 4 slots every cell
+    (both batch items', a segment's own several cells, long segments' centres) shares a slot,
+    and the pairs must still be exactly the brute force's, each once."""
+    monkeypatch.setattr(hh, "_broad_phase_kind", lambda device: "cells")
+    monkeypatch.setattr(hh, "_cell_table_size", lambda num_segments: slots)
+    x = ref.random_hair(rng, batch=2, strands=8, vertices=12, extent=0.01, segment=2e-3)
+    x[0, 3, 6:] += 5 * (x[0, 3, 6] - x[0, 3, 5])  # one long segment
+    _, expected = ref.energy(x, XI, DHAT, BP)
+    found = hair_hair_contact_pairs(torch.tensor(x), XI, DHAT)
+    assert expected.shape[0] > 20
+    np.testing.assert_array_equal(found.pairs.numpy(), expected)
+    assert found.pair_count == expected.shape[0]

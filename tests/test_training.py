@@ -289,6 +289,29 @@ def test_sequence_batch(sampler, data):
     assert unfiltered.info["threshold"] is None
 
 
+def test_sequence_batch_long_hair_fraction(sampler, dynamic_config):
+    """long_hair_fraction = 1: every sequence's hairstyle is a long one of the pool; the clips,
+    intervals and shapes stay those of the uniform draw (the swap is drawn last); the dynamic
+    trainer passes its config's fraction through."""
+    cfg = dict(num_hairstyles=40, subsample=(2, 3), window=3, candidates=16)
+    pool = sampler.long_hairstyles(40)
+    assert pool and len(pool) < 40
+    plain = sampler.sequence_batch(1, 6, 2, 1, **cfg)
+    biased = sampler.sequence_batch(1, 6, 2, 1, long_hair_fraction=1.0, **cfg)
+    assert all(i in pool for i in biased.info["hairstyles"])
+    assert not all(i in pool for i in plain.info["hairstyles"])
+    assert torch.equal(plain.poses, biased.poses) and torch.equal(plain.betas, biased.betas)
+    assert plain.intervals == biased.intervals
+    trainer = DynamicTrainer(dynamic_config.replace(hairstyles=40, long_hair_fraction=1.0), sampler=sampler)
+    assert all(i in pool for i in trainer.next_batch(0).info["hairstyles"])
+    with pytest.raises(ValueError, match="long_hair_fraction"):
+        sampler.sequence_batch(1, 2, 2, 1, long_hair_fraction=1.5, **cfg)
+    with pytest.raises(ValueError, match="long_hair_fraction"):
+        dynamic_config.replace(long_hair_fraction=-0.1)
+    with pytest.raises(ValueError, match="long_hair_fraction"):
+        dynamic_config.replace(long_hair_fraction=0.5, data=dynamic_config.data.replace(latent_source="sample"))
+
+
 def test_sampler_bad_input(data, sampler):
     with pytest.raises(ValueError, match="rank"):
         TrainingSampler(data, rank=2, world_size=2)

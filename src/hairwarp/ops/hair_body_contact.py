@@ -480,10 +480,11 @@ def _signed_distance_forward(points: torch.Tensor, body: BodyMesh, points_per_ba
                       outputs=outputs, device=device)
         else:
             inputs = mesh + [points_per_line] + counts + [_warp.scalar(max_distance, points.dtype), zero_dist]
-            side = _warp.as_warp(torch.empty(points.shape[0], dtype=torch.int32, device=points.device))
+            hits = [_warp.as_warp(torch.empty(points.shape[0], dtype=torch.int32, device=points.device)),
+                    _warp.as_warp(torch.empty(points.shape[0], dtype=torch.float32, device=points.device))]
             wp.launch(kernels.signed_distance_capped_kernel, dim=points.shape[0], inputs=inputs,
-                      outputs=outputs + [side], device=device)
-            wp.launch(kernels.signed_distance_far_kernel, dim=points.shape[0], inputs=inputs + [side],
+                      outputs=outputs + hits, device=device)
+            wp.launch(kernels.signed_distance_far_kernel, dim=points.shape[0], inputs=inputs + hits,
                       outputs=outputs, device=device)
     return distance, gradient
 
@@ -639,10 +640,11 @@ def _energy_forward(x, body, xi, dhat, bp, weight, variant_id, strategy):
                       device=device)
         else:
             # Capped queries, then the misses' sides along each strand (kernel docstrings).
-            side = _warp.as_warp(torch.empty(count, dtype=torch.int32, device=x.device))
+            hits = [_warp.as_warp(torch.empty(count, dtype=torch.int32, device=x.device)),
+                    _warp.as_warp(torch.empty(count, dtype=torch.float32, device=x.device))]
             wp.launch(kernels.hair_body_energy_vertex_kernel, dim=count, inputs=common,
-                      outputs=outputs + [side], device=device)
-            wp.launch(kernels.hair_body_energy_far_kernel, dim=count, inputs=common + [side],
+                      outputs=outputs + hits, device=device)
+            wp.launch(kernels.hair_body_energy_far_kernel, dim=count, inputs=common + hits,
                       outputs=outputs, device=device)
     # Per-strand (or per-vertex) partial sums, reduced per batch item here: no atomics.
     return partial.view(batch, -1).sum(dim=1), gradient, queries

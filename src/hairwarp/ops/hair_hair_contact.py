@@ -500,9 +500,10 @@ def _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy=None):
     `segment_boxes_kernel` ...): returns (run, count) as `_collect` takes them. Any device
     (the CPU runs it in the tests); nothing read back to launch, so it can be captured.
 
-    Memory per call: 8 entries per segment (rank and sorted segment: 64 bytes), its box, long
-    flag (28 bytes) and the table (8 bytes per slot, 4-8 slots per segment): ~130 bytes per
-    segment (420 MiB for 1024 x 100 hair at batch 32), besides the pair buffer.
+    Memory per call: room for 8 entries per segment (rank, packed id and box: 288 bytes), the
+    segment's box and long flag (28 bytes) and the table (8 bytes per slot, 4-8 slots per
+    segment): ~360 bytes per segment (1.1 GiB for 1024 x 100 hair at batch 32), besides the pair
+    buffer.
     """
     b, m, n, _ = x4.shape
     num_segments = b * m * (n - 1)
@@ -516,7 +517,9 @@ def _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy=None):
     long_flags = torch.empty(num_segments, dtype=torch.int32, device=device)
     ranks = torch.empty(entries, dtype=torch.int32, device=device)
     slot_count = torch.zeros(table, dtype=torch.int32, device=device)
-    slot_segments = torch.empty(entries, dtype=torch.int32, device=device)
+    sorted_entries = torch.empty(entries, dtype=torch.int32, device=device)
+    sorted_lo = torch.empty(entries, 3, dtype=torch.float32, device=device)
+    sorted_hi = torch.empty(entries, 3, dtype=torch.float32, device=device)
     count = torch.zeros(1, dtype=torch.int32, device=device)
     x_wp = _warp.as_warp(x4.reshape(-1, 3), vec3=True)
     params_wp = _warp.as_warp(params)
@@ -528,10 +531,12 @@ def _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy=None):
                   outputs=boxes + [_warp.as_warp(ranks), _warp.as_warp(slot_count)], device=wp_device)
     slot_end = torch.cumsum(slot_count, 0, dtype=torch.int32)
     table_wp = [_warp.as_warp(slot_end), _warp.as_warp(slot_count)]
+    sorted_wp = [_warp.as_warp(sorted_entries), wp.from_torch(sorted_lo, dtype=wp.vec3),
+                 wp.from_torch(sorted_hi, dtype=wp.vec3)]
     with _warp.launch_scope(device):
         wp.launch(hh_kernels.scatter_entries_kernel, dim=entries,
                   inputs=boxes + [_warp.as_warp(ranks)] + table_wp + [params_wp, n, m, table - 1],
-                  outputs=[_warp.as_warp(slot_segments)], device=wp_device)
+                  outputs=sorted_wp, device=wp_device)
 
     def run(room):
         count.zero_()
@@ -540,13 +545,12 @@ def _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy=None):
         pair_inputs = [_warp.scalar(cutoff, x4.dtype), room] + _PairEnergyArgs.inputs(energy, x4.dtype)
         with _warp.launch_scope(device):
             wp.launch(hh_kernels.hair_hair_cell_pairs_kernel, dim=entries,
-                      inputs=[x_wp] + boxes + [_warp.as_warp(ranks)] + table_wp
-                      + [_warp.as_warp(slot_segments), params_wp, n, m, skip_root_segments, table - 1] + pair_inputs,
+                      inputs=[x_wp] + sorted_wp + table_wp + [params_wp, n, m, skip_root_segments, table - 1]
+                      + pair_inputs,
                       outputs=common_out, device=wp_device)
             wp.launch(hh_kernels.hair_hair_long_pairs_kernel, dim=num_segments,
-                      inputs=[x_wp] + boxes + table_wp
-                      + [_warp.as_warp(slot_segments), params_wp, n, m, skip_root_segments, table - 1,
-                         half_cutoff32] + pair_inputs,
+                      inputs=[x_wp] + boxes + sorted_wp + table_wp
+                      + [params_wp, n, m, skip_root_segments, table - 1, half_cutoff32] + pair_inputs,
                       outputs=common_out, device=wp_device)
         return pairs
 

@@ -452,6 +452,10 @@ class DynamicTrainingConfig(_TrainingConfig):
         dynamic_candidates: random sequences whose scores set the threshold (500).
         dynamic_quantile: quantile of those scores used as threshold (0.5, the median).
         barrier_join_fraction: b_p of the contact barrier (the static curriculum's final 0.01).
+        long_hair_fraction: share of each batch's sequences whose hairstyle is drawn from the
+            pool's long hairstyles (corpus parameter length >= `data.long_hair_length`); 0 (the
+            paper): uniform over the pool, which holds ~16 % long hair, so long hair on a bent
+            torso is ~0.7 % of the rollout frames (docs/training_diagnosis.md, H17-H19).
         inertia_time_step: the h of Eq. 16 between two drapes of a sequence: "interval" (k / fps
             for a sequence sampled every k frames: the time that passed) or "frame" (1 / fps
             whatever k: inertia weighted k^2 = 4-25 times too much, which trained networks that
@@ -480,6 +484,7 @@ class DynamicTrainingConfig(_TrainingConfig):
     dynamic_candidates: int = 500
     dynamic_quantile: float = 0.5
     barrier_join_fraction: float = 0.01
+    long_hair_fraction: float = 0.0
     inertia_time_step: str = "interval"
     deformation_clip: float | None = None
     grad_clip_norm: float = 0.0
@@ -517,6 +522,7 @@ class DynamicTrainingConfig(_TrainingConfig):
         _number(owner, "barrier_join_fraction", self.barrier_join_fraction, strict=True, maximum=1.0)
         if self.barrier_join_fraction >= 1.0:
             _fail(owner, "barrier_join_fraction", "a value in (0, 1)", self.barrier_join_fraction)
+        _number(owner, "long_hair_fraction", self.long_hair_fraction, maximum=1.0)
         if self.deformation_clip is not None:
             _number(owner, "deformation_clip", self.deformation_clip, strict=True)
         _number(owner, "grad_clip_norm", self.grad_clip_norm)
@@ -527,6 +533,9 @@ class DynamicTrainingConfig(_TrainingConfig):
             self.data = DataConfig.from_dict(self.data)
         if not isinstance(self.data, DataConfig):
             _fail(owner, "data", "a DataConfig", self.data)
+        if self.long_hair_fraction > 0 and self.data.latent_source != "corpus":
+            _fail(owner, "long_hair_fraction", "0 unless data.latent_source is 'corpus' (sampled latents have no "
+                  "length)", self.long_hair_fraction)
 
     @property
     def frames_per_sequence(self) -> int:

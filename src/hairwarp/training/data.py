@@ -680,6 +680,7 @@ class TrainingSampler:
         candidates: int = 500,
         quantile: float = 0.5,
         warmup_bodies: bool = False,
+        long_hair_fraction: float = 0.0,
     ) -> SequenceBatch:
         """The batch of a dynamic-training step (Section 4.2.2).
 
@@ -701,6 +702,10 @@ class TrainingSampler:
             quantile: threshold quantile (0.5: the median).
             warmup_bodies: also build the warm-up frames' body meshes (a network that reads
                 contact features needs them; the loss never does).
+            long_hair_fraction: share of the sequences whose hairstyle is redrawn from the
+                pool's long hairstyles (`long_hairstyles`, corpus parameter length >=
+                `DataConfig.long_hair_length`); 0 (the paper): uniform over the pool. Drawn
+                after everything else, so the clips and shapes are those of the uniform draw.
 
         Returns:
             SequenceBatch of this rank's sequences (all of them in a single process).
@@ -710,6 +715,11 @@ class TrainingSampler:
                                  ("num_hairstyles", num_hairstyles, 1)):
             if not isinstance(value, int) or isinstance(value, bool) or value < low:
                 raise ValueError(f"{name}: expected an int >= {low}, got {value!r}")
+        fraction_ok = isinstance(long_hair_fraction, (int, float)) and not isinstance(long_hair_fraction, bool)
+        if not (fraction_ok and 0.0 <= long_hair_fraction <= 1.0):
+            raise ValueError(f"long_hair_fraction: expected a number in [0, 1], got {long_hair_fraction!r}")
+        if long_hair_fraction > 0 and self.config.latent_source != "corpus":
+            raise ValueError("long_hair_fraction: 0 unless latent_source is 'corpus' (sampled latents have no length)")
         subsample = (int(subsample[0]), int(subsample[1]))
         if not 1 <= subsample[0] <= subsample[1]:
             raise ValueError(f"subsample: expected 1 <= k_min <= k_max, got {subsample}")
@@ -739,6 +749,13 @@ class TrainingSampler:
         betas = torch.stack([self.subject_betas[self.entries[c[0]].subject] for c in clips])
         if cfg.beta_noise_std > 0:
             betas = betas + _noise(g, cfg.beta_noise_std, betas)
+        if long_hair_fraction > 0:
+            # Drawn last (as in `static_batch`), so the clips and shapes are the uniform draw's.
+            long_pool = self.long_hairstyles(num_hairstyles)
+            swap = g.uniform(size=batch_size) < long_hair_fraction
+            repl = g.integers(0, max(len(long_pool), 1), size=batch_size)
+            if long_pool:
+                ids = [long_pool[int(r)] if s else i for i, s, r in zip(ids, swap, repl)]
         info = {
             "motions": [self.entries[c[0]].name for c in clips],
             "intervals": [c[1] for c in clips],

@@ -242,6 +242,7 @@ class DynamicTrainer(Trainer):
             subsample=(cfg.subsample_min, cfg.subsample_max), window=cfg.window,
             dynamic_filter=cfg.dynamic_filter, candidates=cfg.dynamic_candidates,
             quantile=cfg.dynamic_quantile, warmup_bodies=self.model.static.config.contact_samples > 0,
+            long_hair_fraction=cfg.long_hair_fraction,
         )
 
     def compute_loss(self, batch: SequenceBatch, step: int, model: DynamicNetwork | None = None):
