@@ -81,6 +81,7 @@ def _kernel_probe(device, batches) -> dict:
     from hairwarp import set_finite_checks
     from hairwarp.bench.energy import build_energy_inputs
     from hairwarp.config import EnergyConfig
+    from hairwarp.energy import CapturedEnergy
     from hairwarp.ops import hair_hair_contact_energy
     from hairwarp.ops.barrier import barrier_variant_id
 
@@ -102,7 +103,12 @@ def _kernel_probe(device, batches) -> dict:
                                              weight=c.hair_hair_weight)[0].sum().backward()
 
                 out[f"hair_hair B={batch} {kind} cell={factor}"] = time_ms(hair_hair, device, warmup=2, repeats=10,
-                                                                     min_time_s=0.2)
+                                                                             min_time_s=0.2)
+                if device.type == "cuda":
+                    # The whole energy replayed from a CUDA graph: the figure the goals name.
+                    captured = CapturedEnergy(x.detach(), inputs, dynamic=True)
+                    out[f"total graph B={batch} {kind} cell={factor}"] = time_ms(
+                        lambda: captured(x.detach()), device, warmup=3, repeats=20, min_time_s=0.3)
             for strategy in ("vertex", "strand"):
                 def hair_body():
                     x.grad = None

@@ -586,7 +586,8 @@ def hair_hair_energy_kernel(
 # typical box (`grid_params[0]`), so a typical segment sits in at most 2 cells per axis (8
 # entries, a fixed bound per segment: no capacity to learn); a longer one ("long", wider than
 # 2 cells on some axis: a stretched line-search trial point) is entered once, at its midpoint's
-# cell, and finds its own pairs by walking the cells of its box (`hair_hair_long_pairs_kernel`).
+# cell, and finds its own pairs by walking the cells of its box, 32 threads to a long segment
+# (`hair_hair_long_pairs_kernel`).
 # The cells are hashed into a table of 2^k slots, with the batch item in the hash; slots shared by
 # distant cells only add candidates that the exact cell test rejects. Against the midpoint grid
 # (`hair_hair_pairs_kernel`: every segment within the midpoints' bound, ~600 candidates walked for
@@ -649,10 +650,13 @@ def segment_boxes_kernel(
     long_out: wp.array(dtype=wp.int32),
     entry_rank_out: wp.array(dtype=wp.int32),
     slot_count_out: wp.array(dtype=wp.int32),
+    long_count_out: wp.array(dtype=wp.int32),
+    long_list_out: wp.array(dtype=wp.int32),
 ):
     """Each segment's box (float32, grown by the cutoff / 2 and the rounding slack), whether it is
     long, and its entries: entry k of segment s gets its rank in its slot (`entry_rank_out[8 s + k]`,
-    -1 for no entry), counted by an atomic on the slot. Root segments get no entry.
+    -1 for no entry), counted by an atomic on the slot. Root segments get no entry. Long segments
+    are also listed (`long_list_out`, `long_count_out`) for `hair_hair_long_pairs_kernel`.
     """
     s = wp.tid()
     segs_per_strand = num_vertices - 1
@@ -678,6 +682,7 @@ def segment_boxes_kernel(
     hi_cell = grid_cell(hi, inv_width)
     if hi_cell[0] - lo_cell[0] > 1 or hi_cell[1] - lo_cell[1] > 1 or hi_cell[2] - lo_cell[2] > 1:
         long_out[s] = 1
+        long_list_out[wp.atomic_add(long_count_out, 0, 1)] = s
         slot = cell_table_slot(box_center_cell(lo, hi, inv_width), group, table_mask)
         entry_rank_out[base] = wp.atomic_add(slot_count_out, slot, 1)
         return
@@ -807,13 +812,33 @@ def hair_hair_cell_pairs_kernel(
                              energy_out, gradient_out)
 
 
+# Threads that share one long segment's walk (its cells dealt out in turn): a few long segments
+# with wide boxes would otherwise each be one thread walking a hundred cells, the whole launch
+# waiting on them.
+LONG_LANES = wp.constant(32)
+
+
+@wp.func
+def box_cell(lo_cell: wp.vec3i, hi_cell: wp.vec3i, c: int):
+    """Cell c (row-major, x fastest) of the cell box [lo_cell, hi_cell]."""
+    ex = hi_cell[0] - lo_cell[0] + 1
+    ey = hi_cell[1] - lo_cell[1] + 1
+    return wp.vec3i(lo_cell[0] + c % ex, lo_cell[1] + (c // ex) % ey, lo_cell[2] + c // (ex * ey))
+
+
+@wp.func
+def box_cell_count(lo_cell: wp.vec3i, hi_cell: wp.vec3i):
+    return (hi_cell[0] - lo_cell[0] + 1) * (hi_cell[1] - lo_cell[1] + 1) * (hi_cell[2] - lo_cell[2] + 1)
+
+
 @wp.kernel
 def hair_hair_long_pairs_kernel(
     # In:
     x_in: wp.array(dtype=Any),
     box_lo: wp.array(dtype=wp.vec3),
     box_hi: wp.array(dtype=wp.vec3),
-    long_in: wp.array(dtype=wp.int32),
+    long_count: wp.array(dtype=wp.int32),
+    long_list: wp.array(dtype=wp.int32),
     sorted_entries: wp.array(dtype=wp.int32),
     sorted_lo: wp.array(dtype=wp.vec3),
     sorted_hi: wp.array(dtype=wp.vec3),
@@ -825,6 +850,7 @@ def hair_hair_long_pairs_kernel(
     skip_root_segments: int,
     table_mask: int,
     half_cutoff32: float,
+    list_stride: int,
     cutoff: Any,
     capacity: int,
     with_energy: int,
@@ -839,73 +865,71 @@ def hair_hair_long_pairs_kernel(
     energy_out: wp.array(dtype=wp.float64),
     gradient_out: wp.array(dtype=Any),
 ):
-    """One thread per segment; only long ones work. A long segment i walks the cells of its box
-    for short partners (each met in the cell of the boxes' low corner, as between short ones),
-    and the cells of its box grown by the longest half length for long partners (entered at
+    """The long segments' pairs: LONG_LANES threads per listed long segment i (launched as
+    list_stride x LONG_LANES threads, striding over the list). Lane l walks the cells l, l + 32, ...
+    of i's box for short partners (each met in the cell of the boxes' low corner, as between
+    short ones), then of i's box grown by the longest half length for long partners (entered at
     their box centre's cell), keeping those shorter than i (ties: the higher id)."""
-    i = wp.tid()
-    if long_in[i] == 0:
-        return
+    t = wp.tid()
+    lane = t % LONG_LANES
     segs_per_strand = num_vertices - 1
-    strand_i = i // segs_per_strand
-    group = strand_i // num_strands
     inv_width = 1.0 / grid_params[0]
-    lo_i = box_lo[i]
-    hi_i = box_hi[i]
-    vi = strand_i * num_vertices + i % segs_per_strand
-    p0 = x_in[vi]
-    p1 = x_in[vi + 1]
-    half_i = wp.length(wp.vec3(p1) - wp.vec3(p0)) * 0.5
     cutoff2 = cutoff * cutoff
-    lo_cell = grid_cell(lo_i, inv_width)
-    hi_cell = grid_cell(hi_i, inv_width)
-    for cx in range(lo_cell[0], hi_cell[0] + 1):
-        for cy in range(lo_cell[1], hi_cell[1] + 1):
-            for cz in range(lo_cell[2], hi_cell[2] + 1):
-                cell = wp.vec3i(cx, cy, cz)
-                slot = cell_table_slot(cell, group, table_mask)
-                end = slot_end[slot]
-                for q in range(end - slot_count[slot], end):
-                    other = sorted_entries[q]
-                    if other < 0:
-                        continue
-                    j = other // MAX_CELLS_PER_SEGMENT
-                    if (j // segs_per_strand) // num_strands != group:
-                        continue
-                    lo_j = sorted_lo[q]
-                    if not boxes_meet_in_cell(lo_i, hi_i, lo_j, sorted_hi[q], cell, inv_width):
-                        continue
-                    c = entry_cell(grid_cell(lo_j, inv_width), other % MAX_CELLS_PER_SEGMENT)
-                    if c[0] != cx or c[1] != cy or c[2] != cz:
-                        continue  # j's entry of another cell sharing this slot
-                    _write_pair_if_close(x_in, i, j, strand_i, vi, p0, p1, num_vertices, num_strands,
-                                         skip_root_segments, cutoff2, capacity, with_energy, xi, dhat, bp, weight,
-                                         variant, count_out, pairs_out, energy_out, gradient_out)
     # Long partners: a long j closer than the cutoff has its centre within its half length plus
     # the cutoff / 2 of i's box (and i's box holds the cutoff / 2 already).
     grow = wp.vec3(grid_params[3] * (1.0 + 1.0e-4) + half_cutoff32 + grid_params[2])
-    lo_cell = grid_cell(lo_i - grow, inv_width)
-    hi_cell = grid_cell(hi_i + grow, inv_width)
-    for cx in range(lo_cell[0], hi_cell[0] + 1):
-        for cy in range(lo_cell[1], hi_cell[1] + 1):
-            for cz in range(lo_cell[2], hi_cell[2] + 1):
-                cell = wp.vec3i(cx, cy, cz)
-                slot = cell_table_slot(cell, group, table_mask)
-                end = slot_end[slot]
-                for q in range(end - slot_count[slot], end):
-                    other = sorted_entries[q]
-                    if other >= 0:
-                        continue
-                    j = (-other - 1) // MAX_CELLS_PER_SEGMENT
-                    if j == i or (j // segs_per_strand) // num_strands != group:
-                        continue
-                    c = box_center_cell(sorted_lo[q], sorted_hi[q], inv_width)
-                    if c[0] != cx or c[1] != cy or c[2] != cz:
-                        continue  # entered in another cell sharing this slot
-                    vj = (j // segs_per_strand) * num_vertices + j % segs_per_strand
-                    half_j = wp.length(wp.vec3(x_in[vj + 1]) - wp.vec3(x_in[vj])) * 0.5
-                    if half_j > half_i or (half_j == half_i and j < i):
-                        continue  # the longer one's thread (ties: the lower id's) tests the pair
-                    _write_pair_if_close(x_in, i, j, strand_i, vi, p0, p1, num_vertices, num_strands,
-                                         skip_root_segments, cutoff2, capacity, with_energy, xi, dhat, bp, weight,
-                                         variant, count_out, pairs_out, energy_out, gradient_out)
+    for listed in range(t // LONG_LANES, long_count[0], list_stride):
+        i = long_list[listed]
+        strand_i = i // segs_per_strand
+        group = strand_i // num_strands
+        lo_i = box_lo[i]
+        hi_i = box_hi[i]
+        vi = strand_i * num_vertices + i % segs_per_strand
+        p0 = x_in[vi]
+        p1 = x_in[vi + 1]
+        half_i = wp.length(wp.vec3(p1) - wp.vec3(p0)) * 0.5
+        lo_cell = grid_cell(lo_i, inv_width)
+        hi_cell = grid_cell(hi_i, inv_width)
+        for c in range(lane, box_cell_count(lo_cell, hi_cell), LONG_LANES):
+            cell = box_cell(lo_cell, hi_cell, c)
+            slot = cell_table_slot(cell, group, table_mask)
+            end = slot_end[slot]
+            for q in range(end - slot_count[slot], end):
+                other = sorted_entries[q]
+                if other < 0:
+                    continue
+                j = other // MAX_CELLS_PER_SEGMENT
+                if (j // segs_per_strand) // num_strands != group:
+                    continue
+                lo_j = sorted_lo[q]
+                if not boxes_meet_in_cell(lo_i, hi_i, lo_j, sorted_hi[q], cell, inv_width):
+                    continue
+                cj = entry_cell(grid_cell(lo_j, inv_width), other % MAX_CELLS_PER_SEGMENT)
+                if cj[0] != cell[0] or cj[1] != cell[1] or cj[2] != cell[2]:
+                    continue  # j's entry of another cell sharing this slot
+                _write_pair_if_close(x_in, i, j, strand_i, vi, p0, p1, num_vertices, num_strands,
+                                     skip_root_segments, cutoff2, capacity, with_energy, xi, dhat, bp, weight,
+                                     variant, count_out, pairs_out, energy_out, gradient_out)
+        lo_cell = grid_cell(lo_i - grow, inv_width)
+        hi_cell = grid_cell(hi_i + grow, inv_width)
+        for c in range(lane, box_cell_count(lo_cell, hi_cell), LONG_LANES):
+            cell = box_cell(lo_cell, hi_cell, c)
+            slot = cell_table_slot(cell, group, table_mask)
+            end = slot_end[slot]
+            for q in range(end - slot_count[slot], end):
+                other = sorted_entries[q]
+                if other >= 0:
+                    continue
+                j = (-other - 1) // MAX_CELLS_PER_SEGMENT
+                if j == i or (j // segs_per_strand) // num_strands != group:
+                    continue
+                cj = box_center_cell(sorted_lo[q], sorted_hi[q], inv_width)
+                if cj[0] != cell[0] or cj[1] != cell[1] or cj[2] != cell[2]:
+                    continue  # entered in another cell sharing this slot
+                vj = (j // segs_per_strand) * num_vertices + j % segs_per_strand
+                half_j = wp.length(wp.vec3(x_in[vj + 1]) - wp.vec3(x_in[vj])) * 0.5
+                if half_j > half_i or (half_j == half_i and j < i):
+                    continue  # the longer one's thread (ties: the lower id's) tests the pair
+                _write_pair_if_close(x_in, i, j, strand_i, vi, p0, p1, num_vertices, num_strands,
+                                     skip_root_segments, cutoff2, capacity, with_energy, xi, dhat, bp, weight,
+                                     variant, count_out, pairs_out, energy_out, gradient_out)

@@ -31,7 +31,13 @@ def broad_phase(request, monkeypatch):
     kinds (the boxes in hashed cells, the midpoint grid), whichever device runs it."""
     import hairwarp.ops.hair_hair_contact as hh
 
-    monkeypatch.setattr(hh, "_broad_phase_kind", lambda device: request.param)
+    device_kind = hh._broad_phase_kind
+
+    def kind(device):
+        # The CPU grid is the CPU's own: CUDA tensors keep the device kind.
+        return device_kind(device) if request.param == "cpu-grid" and device.type != "cpu" else request.param
+
+    monkeypatch.setattr(hh, "_broad_phase_kind", kind)
     monkeypatch.setattr(hh, "_learned_capacity", {})  # each kind learns its own
     return request.param
 

@@ -154,3 +154,19 @@ def test_cell_table_collisions_neither_drop_nor_repeat_pairs(rng, slots, monkeyp
     assert expected.shape[0] > 20
     np.testing.assert_array_equal(found.pairs.numpy(), expected)
     assert found.pair_count == expected.shape[0]
+
+
+def test_many_long_segments_share_the_long_lanes(rng, monkeypatch):
+    """More long segments than the long-pairs launch serves at once (it strides over its list):
+    every other segment 4x longer, so half of them are long; pairs as the brute force's."""
+    monkeypatch.setattr(hh, "_broad_phase_kind", lambda device: "cells")
+    x = ref.random_hair(rng, batch=1, strands=10, vertices=12, extent=0.01, segment=1e-3)
+    steps = np.diff(x, axis=2)
+    steps[:, :, 1::2] *= 4.0
+    x = np.concatenate([x[:, :, :1], x[:, :, :1] + np.cumsum(steps, axis=2)], axis=2)
+    lengths = np.linalg.norm(np.diff(x, axis=2), axis=-1)
+    assert (lengths > 1.5 * lengths.mean()).sum() > x.shape[1] * (x.shape[2] - 1) // 32 + 8
+    _, expected = ref.energy(x, XI, DHAT, BP)
+    found = hair_hair_contact_pairs(torch.tensor(x), XI, DHAT)
+    assert expected.shape[0] > 20
+    np.testing.assert_array_equal(found.pairs.numpy(), expected)

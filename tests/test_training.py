@@ -22,7 +22,7 @@ from hairwarp import cli
 from hairwarp.config import EnergyConfig
 from hairwarp.energy import total_energy
 from hairwarp.models import DynamicNetwork, StaticNetwork, apply_deformation, length_projection_of, load_checkpoint
-from hairwarp.ops import BodyMesh, hair_body_contact_energy
+from hairwarp.ops import BodyMesh, hair_body_contact_energy, hair_body_signed_distance
 from hairwarp.scene.motion import DESCRIPTOR_DIM_NO_BETAS
 from hairwarp.scene.skeleton import JOINT
 from hairwarp.training import (
@@ -237,6 +237,36 @@ def test_long_hair_fraction_biases_phase_2_3_towards_long_hairstyles(data):
         dataclasses.replace(data, long_hair_fraction=1.5)
     with pytest.raises(ValueError, match="long_hair_fraction"):
         dataclasses.replace(data, long_hair_fraction=0.5, latent_source="sample")
+
+
+def test_grown_hair_fraction_trains_on_hair_grown_around_the_body(data):
+    """grown_hair_fraction: the chosen share of the corpus (per index, the same for every
+    sampler) has P_init = its strands grown around the rest body, on the grid roots, with z their
+    encoding; a long one rests outside the rest body where its decode(z) cuts into it."""
+    grown_cfg = data.replace(grown_hair_fraction=1.0)
+    plain, grown = TrainingSampler(data, seed=0), TrainingSampler(grown_cfg, seed=0)
+    index = grown.long_hairstyles(40)[0]
+    assert grown.is_grown(index) and not plain.is_grown(index)
+    z, strands = grown.hairstyle(index)
+    z_plain, decoded = plain.hairstyle(index)
+    assert strands.shape == decoded.shape == (data.num_strands, data.num_vertices, 3)
+    assert torch.equal(strands[:, 0], grown.roots)
+    z_grown, full = grown.grown_hairstyle(index)
+    assert torch.allclose(z.double(), z_grown, atol=1e-5) and not torch.allclose(z, z_plain, atol=1e-3)
+    assert full.shape[1] == grown.basis.num_vertices
+    # The decoded hair cuts into the rest body; the grown hair rests (almost) outside it.
+    body = BodyMesh(grown.body.rest_vertices, grown.body.faces)
+    inside = [float((hair_body_signed_distance(x[None], body)[0, :, 2:] < 0).double().mean())
+              for x in (decoded, strands)]
+    assert inside[0] > 0.02 and inside[1] < 0.2 * inside[0]
+    half = TrainingSampler(data.replace(grown_hair_fraction=0.5), seed=3)
+    picks = [half.is_grown(i) for i in range(40)]
+    assert 5 < sum(picks) < 35 and picks == [TrainingSampler(data.replace(grown_hair_fraction=0.5)).is_grown(i)
+                                            for i in range(40)]
+    with pytest.raises(ValueError, match="grown_hair_fraction"):
+        data.replace(grown_hair_fraction=1.5)
+    with pytest.raises(ValueError, match="grown_hair_fraction"):
+        data.replace(grown_hair_fraction=0.5, latent_source="sample")
 
 
 def test_batched_placement_matches_eq1_reference(data):

@@ -2,6 +2,8 @@
 
     python tools/train_shipped.py static  --device cuda --minutes 6 --out OUT
     python tools/train_shipped.py dynamic --device cuda --minutes 6 --static OUT/static_run/checkpoint.pt --out OUT
+    python tools/train_shipped.py dynamic --device cuda --minutes 4 --init src/hairwarp/assets/hairformer_dynamic.pt \
+        --grown-hair-fraction 0.5 --long-hair-fraction 0.3 --out OUT
     python tools/train_shipped.py quaffure --device cuda --steps 1100 --out OUT
 
 The curriculum's length depends on its total step count (phase boundaries, the b_p anneal of
@@ -50,31 +52,46 @@ DYNAMIC_OPEN_STEPS = 100_000
 PHASE_SHARES = (0.05, 0.15, 0.25, 0.55)
 
 
-def data_config(long_hair_fraction: float = 0.0):
+def data_config(long_hair_fraction: float = 0.0, motions: list | None = None, grown_hair_fraction: float = 0.0):
     from hairwarp.training.config import DataConfig
 
     # Every hairstyle of the pool stays decoded (256 x 100 x 3 float32: 0.3 MB each): decoding one
     # costs ~40 ms on the CPU, which at batch 32 would be most of a step.
+    extra = {} if motions is None else {"motions": list(motions)}
     return DataConfig(strand_stride=STRAND_STRIDE, hairstyle_cache_size=PHASE3_HAIRSTYLES, pose_cache_size=4096,
-                      long_hair_fraction=long_hair_fraction)
+                      long_hair_fraction=long_hair_fraction, grown_hair_fraction=grown_hair_fraction, **extra)
 
 
-def _encode_chunk(indices):
+def _encode_chunk(job):
+    indices, grown_hair_fraction = job
     torch.set_num_threads(1)
     from hairwarp.training.data import TrainingSampler
 
-    sampler = TrainingSampler(data_config(), device="cpu")
-    return [(i, sampler.latent(i).numpy()) for i in indices]
+    sampler = TrainingSampler(data_config(grown_hair_fraction=grown_hair_fraction), device="cpu")
+    out = []
+    for i in indices:
+        if sampler.is_grown(i):  # grown around the body: ~0.4-1 s each
+            z, strands = sampler.grown_hairstyle(i)
+            out.append((i, z.numpy(), strands.numpy()))
+        else:
+            out.append((i, sampler.latent(i).numpy(), None))
+    return out
 
 
 def precompute_latents(sampler, count: int, workers: int) -> float:
-    """Fill the sampler's corpus-latent cache for hairstyles 0..count-1 in parallel; seconds."""
+    """Fill the sampler's corpus-latent cache (and its grown hairstyles', when
+    `grown_hair_fraction` > 0) for hairstyles 0..count-1 in parallel; seconds."""
     start = time.perf_counter()
-    chunks = [list(range(count))[k::workers] for k in range(workers)]
+    fraction = sampler.config.grown_hair_fraction
+    chunks = [(list(range(count))[k::workers], fraction) for k in range(workers)]
     with mp.get_context("fork").Pool(workers) as pool:
         for part in pool.map(_encode_chunk, chunks):
-            for i, z in part:
-                sampler._latents[i] = torch.as_tensor(z, dtype=torch.float64)
+            for i, z, strands in part:
+                if strands is None:
+                    sampler._latents[i] = torch.as_tensor(z, dtype=torch.float64)
+                else:
+                    sampler._grown[i] = (torch.as_tensor(z, dtype=torch.float64),
+                                         torch.as_tensor(strands, dtype=torch.float64))
     return time.perf_counter() - start
 
 
@@ -164,7 +181,8 @@ def train_static(args) -> None:
 
     start = time.perf_counter()
     device = torch.device(args.device)
-    sampler = TrainingSampler(data_config(args.long_hair_fraction), seed=args.seed, device=device)
+    data = data_config(args.long_hair_fraction, grown_hair_fraction=args.grown_hair_fraction)
+    sampler = TrainingSampler(data, seed=args.seed, device=device)
     enc_s = precompute_latents(sampler, PHASE3_HAIRSTYLES, args.workers)
     print(f"encoded {PHASE3_HAIRSTYLES} corpus latents in {enc_s:.1f} s", flush=True)
 
@@ -176,7 +194,7 @@ def train_static(args) -> None:
                                     loss_normalization=args.loss_normalization, grad_clip_norm=args.grad_clip_norm,
                                     energy=_overrides("--energy", args.energy),
                                     model=_overrides("--model", args.model, _number_or_text), checkpoint_every=0,
-                                    data=data_config(args.long_hair_fraction), curve_every=0)
+                                    data=data, curve_every=0)
 
     from hairwarp.evaluation.scenes import comparison_scene
 
@@ -222,13 +240,20 @@ def train_dynamic(args) -> None:
 
     start = time.perf_counter()
     device = torch.device(args.device)
-    sampler = TrainingSampler(data_config(), seed=args.seed, device=device)
+    # The dynamic data: the static run's sizes; --motions (repeat a name to draw it more often)
+    # and --long-hair-fraction (share of the sequences given a long hairstyle) are the dynamic
+    # run's own (both default to the shipped run's: every motion once, uniform hairstyles).
+    motions = args.motions.split(",") if args.motions else None
+    data = data_config(motions=motions, grown_hair_fraction=args.grown_hair_fraction)
+    sampler = TrainingSampler(data, seed=args.seed, device=device)
     enc_s = precompute_latents(sampler, PHASE3_HAIRSTYLES, args.workers)
+    print(f"encoded {PHASE3_HAIRSTYLES} corpus latents in {enc_s:.1f} s", flush=True)
 
     def config(steps):
-        return DynamicTrainingConfig(static_checkpoint=args.static, model_preset="shipped", steps=steps,
+        return DynamicTrainingConfig(static_checkpoint=args.static or "", model_preset="shipped", steps=steps,
                                      hairstyles=PHASE3_HAIRSTYLES, batch_size=args.batch, checkpoint_every=0,
-                                     learning_rate=args.lr, grad_clip_norm=args.grad_clip_norm, data=data_config(),
+                                     learning_rate=args.lr, grad_clip_norm=args.grad_clip_norm, data=data,
+                                     long_hair_fraction=args.long_hair_fraction,
                                      model=_overrides("--model", args.model, _number_or_text))
 
     # The dynamic run has no schedule over its steps (one phase, constant b_p), so the
@@ -238,10 +263,16 @@ def train_dynamic(args) -> None:
     print(f"training up to {total} steps within {args.minutes} minutes", flush=True)
     run = os.path.join(args.out, "dynamic_run")
     shutil.rmtree(run, ignore_errors=True)
-    trainer = DynamicTrainer(config(total), out=run, device=device, seed=args.seed, sampler=sampler)
+    # --init: fine-tune the weights of a dynamic checkpoint (its own network config and frozen
+    # static network; a fresh optimizer) instead of building a new network around --static.
+    trainer = DynamicTrainer(config(total), out=run, device=device, seed=args.seed, sampler=sampler,
+                             init=args.init or None)
     _loop(trainer, args.minutes * 60 - 20, start, device)
     _finish(trainer, args, "dynamic", {"steps": total, "probe_ms_per_step": s_step * 1e3, "batch": args.batch,
-                                       "strand_stride": STRAND_STRIDE, "encode_s": enc_s}, start)
+                                       "strand_stride": STRAND_STRIDE, "encode_s": enc_s, "init": args.init,
+                                       "motions": data.motions, "long_hair_fraction": args.long_hair_fraction,
+                                       "grown_hair_fraction": args.grown_hair_fraction},
+            start)
 
 
 def main(argv=None) -> None:
@@ -275,7 +306,17 @@ def main(argv=None) -> None:
                         help="static: override a network config field (repeatable), e.g. grid_height=16 "
                              "grid_width=16 length_projection=follow_the_leader")
     parser.add_argument("--long-hair-fraction", type=float, default=None,
-                        help="static: share of phase-2/3 samples drawn from the pool's long hairstyles (>= 0.4 m)")
+                        help="static: share of phase-2/3 samples drawn from the pool's long hairstyles (>= 0.4 m); "
+                             "dynamic: share of the sequences (default 0, the shipped dynamic run's)")
+    parser.add_argument("--grown-hair-fraction", type=float, default=0.0,
+                        help="share of the corpus hairstyles whose P_init are their strands grown around the rest "
+                             "body (as the comparison scenes'), z their encoding, instead of decode(z) (default 0)")
+    parser.add_argument("--motions", default=None,
+                        help="dynamic: comma-separated procedural motions of the pool; a name repeated is drawn "
+                             "that many times as often (default: every motion once)")
+    parser.add_argument("--init", default=None,
+                        help="dynamic: fine-tune this dynamic checkpoint (e.g. src/hairwarp/assets/"
+                             "hairformer_dynamic.pt) with a fresh optimizer; --static is then not needed")
     parser.add_argument("--lr", type=float, default=None, help="Adam step size")
     parser.add_argument("--curve-every", type=int, default=250,
                         help="static/quaffure: learning curve every this many steps (0: off): "
@@ -299,13 +340,18 @@ def main(argv=None) -> None:
             args.model = [f"{k}={v}" for k, v in RECIPES_DYNAMIC_MODEL[args.recipe].items()] + args.model
         elif name == "lr":
             args.lr = args.lr if args.lr is not None else value[args.kind == "dynamic"]
+        elif name == "long_hair_fraction" and args.kind == "dynamic":
+            args.long_hair_fraction = 0.0 if args.long_hair_fraction is None else args.long_hair_fraction
         elif getattr(args, name) is None:
             setattr(args, name, value)
     os.makedirs(args.out, exist_ok=True)
     if args.kind in ("static", "quaffure"):  # Quaffure (adapted): the static curriculum, Section 4.3.1
         train_static(args)
     else:
-        if not args.static or not os.path.isfile(args.static):
+        if args.init:
+            if not os.path.isfile(args.init):
+                raise SystemExit(f"--init: expected a dynamic checkpoint file, got {args.init!r}")
+        elif not args.static or not os.path.isfile(args.static):
             raise SystemExit(f"--static: expected the static checkpoint file, got {args.static!r}")
         train_dynamic(args)
 

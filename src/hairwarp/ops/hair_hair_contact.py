@@ -425,6 +425,8 @@ def _broad_phase(x4, cutoff, capacity, skip_root_segments, on_overflow, max_pair
     x_flat = x4.detach().reshape(-1, 3)
     kind = _broad_phase_kind(device)
     if kind == "cpu-grid":
+        if device.type != "cpu":
+            raise ValueError(f"x: the CPU grid runs on the CPU only, got a tensor on {device}")
         grid = _CpuGrid(x4, cutoff)
         count = torch.zeros(1, dtype=torch.int32, device=device)
 
@@ -515,6 +517,8 @@ def _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy=None):
     box_lo = torch.empty(num_segments, 3, dtype=torch.float32, device=device)
     box_hi = torch.empty(num_segments, 3, dtype=torch.float32, device=device)
     long_flags = torch.empty(num_segments, dtype=torch.int32, device=device)
+    long_count = torch.zeros(1, dtype=torch.int32, device=device)
+    long_list = torch.empty(num_segments, dtype=torch.int32, device=device)
     ranks = torch.empty(entries, dtype=torch.int32, device=device)
     slot_count = torch.zeros(table, dtype=torch.int32, device=device)
     sorted_entries = torch.empty(entries, dtype=torch.int32, device=device)
@@ -528,7 +532,8 @@ def _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy=None):
     with _warp.launch_scope(device):
         wp.launch(hh_kernels.segment_boxes_kernel, dim=num_segments,
                   inputs=[x_wp, n, m, skip_root_segments, params_wp, half_cutoff32, _RADIUS_SLACK, table - 1],
-                  outputs=boxes + [_warp.as_warp(ranks), _warp.as_warp(slot_count)], device=wp_device)
+                  outputs=boxes + [_warp.as_warp(ranks), _warp.as_warp(slot_count), _warp.as_warp(long_count),
+                                   _warp.as_warp(long_list)], device=wp_device)
     slot_end = torch.cumsum(slot_count, 0, dtype=torch.int32)
     table_wp = [_warp.as_warp(slot_end), _warp.as_warp(slot_count)]
     sorted_wp = [_warp.as_warp(sorted_entries), wp.from_torch(sorted_lo, dtype=wp.vec3),
@@ -537,6 +542,9 @@ def _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy=None):
         wp.launch(hh_kernels.scatter_entries_kernel, dim=entries,
                   inputs=boxes + [_warp.as_warp(ranks)] + table_wp + [params_wp, n, m, table - 1],
                   outputs=sorted_wp, device=wp_device)
+
+    lanes = int(hh_kernels.LONG_LANES)
+    list_stride = max(1, num_segments // lanes)  # long segments served at once (more: in turn)
 
     def run(room):
         count.zero_()
@@ -548,9 +556,10 @@ def _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy=None):
                       inputs=[x_wp] + sorted_wp + table_wp + [params_wp, n, m, skip_root_segments, table - 1]
                       + pair_inputs,
                       outputs=common_out, device=wp_device)
-            wp.launch(hh_kernels.hair_hair_long_pairs_kernel, dim=num_segments,
-                      inputs=[x_wp] + boxes + sorted_wp + table_wp
-                      + [params_wp, n, m, skip_root_segments, table - 1, half_cutoff32] + pair_inputs,
+            wp.launch(hh_kernels.hair_hair_long_pairs_kernel, dim=list_stride * lanes,
+                      inputs=[x_wp, boxes[0], boxes[1], _warp.as_warp(long_count), _warp.as_warp(long_list)]
+                      + sorted_wp + table_wp
+                      + [params_wp, n, m, skip_root_segments, table - 1, half_cutoff32, list_stride] + pair_inputs,
                       outputs=common_out, device=wp_device)
         return pairs
 

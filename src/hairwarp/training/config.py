@@ -171,6 +171,13 @@ class DataConfig(_TrainingConfig):
             long, deep-start hair of phase 0-1 grows rare later and is forgotten
             (docs/training_diagnosis.md, H7).
         long_hair_length: the length [m] from which a corpus hairstyle counts as long.
+        grown_hair_fraction: share of the corpus hairstyles (picked per index, the same on
+            every rank and run) whose P_init are their generated strands grown around the rest
+            body (`generate_hairstyle(..., body=...)`, as the comparison scenes' hairstyles
+            are), with z = encode(those strands), instead of decode(z). The networks then meet
+            the hair they drape at evaluation: strands resting on the shoulders and back, which
+            the latent reconstructs only to ~2-5 cm, its decode lying inside the body
+            (docs/training_diagnosis.md, H20). 0 (the paper): P_init = decode(z) always.
         head_rotation_radii: semi-axes [rad] of the phase-1 ellipsoid of head rotation vectors
             about x (nod), y (turn) and z (tilt), reached at the end of phase 1.
         phase1_rest_fraction: share of phase-1 samples kept at the rest pose (no rotation),
@@ -195,6 +202,7 @@ class DataConfig(_TrainingConfig):
     beta_noise_std: float = 0.1
     long_hair_fraction: float = 0.0
     long_hair_length: float = 0.4
+    grown_hair_fraction: float = 0.0
     head_rotation_radii: tuple = (0.6, 1.0, 0.5)
     phase1_rest_fraction: float = 0.1
     fps: float = DEFAULT_FPS
@@ -226,6 +234,10 @@ class DataConfig(_TrainingConfig):
         if self.long_hair_fraction > 0 and self.latent_source != "corpus":
             _fail(owner, "long_hair_fraction", "0 unless latent_source is 'corpus' (sampled latents have no length)",
                   self.long_hair_fraction)
+        _number(owner, "grown_hair_fraction", self.grown_hair_fraction, maximum=1.0)
+        if self.grown_hair_fraction > 0 and self.latent_source != "corpus":
+            _fail(owner, "grown_hair_fraction", "0 unless latent_source is 'corpus' (sampled latents have no strands)",
+                  self.grown_hair_fraction)
         _number(owner, "beta_noise_std", self.beta_noise_std)
         self.head_rotation_radii = tuple(self.head_rotation_radii)
         if len(self.head_rotation_radii) != 3:

@@ -7,7 +7,9 @@ Hair (Section 3.1). Hairstyle i of the corpus is a procedural hairstyle with ran
 of `hairwarp.scene.hair_latent` ("corpus"), or z_i ~ N(0, s^2 I) ("sample"). Either way the
 initial hair is P_init = decode(z_i) on the scalp grid, as the paper generates P_init from z:
 what the network reads (z) and what the physics measures (P_init, its rest lengths) agree
-exactly. Decode gives a strand for every one of the 32 x 32 grid roots, so every hairstyle has
+exactly (`DataConfig.grown_hair_fraction` > 0: that share of the corpus uses its generated
+strands grown around the rest body instead, z their encoding, as evaluation meets them).
+Decode gives a strand for every one of the 32 x 32 grid roots, so every hairstyle has
 the same M strands with the same roots and root UVs, and a batch of different hairstyles is one
 (B, M, N, 3) tensor. `DataConfig.strand_stride` keeps a sub-grid (and `num_vertices` resamples
 the strands by arc length) for CPU-sized runs; the code path is the same.
@@ -79,6 +81,7 @@ _STREAM_SEQUENCE = 2
 _STREAM_CORPUS = 3
 _STREAM_SUBJECTS = 4
 _STREAM_THRESHOLD = 5
+_STREAM_GROWN = 6
 # Head rotation shares of the neck and head joints (as the procedural head motions split them).
 _NECK_SHARE = 0.35
 _HEAD_SHARE = 0.65
@@ -314,6 +317,8 @@ class TrainingSampler:
         self._thresholds: dict = {}
         self._phase0: HairBatch | None = None
         self._long_pools: dict = {}
+        # Grown corpus hairstyles: index -> (z (512,) float64, P_init (M, N_basis, 3) float64).
+        self._grown: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
 
     # ------------------------------------------------------------------------------ sizes
     @property
@@ -395,16 +400,49 @@ class TrainingSampler:
             self._long_pools[key] = [i for i in range(num_hairstyles) if self.corpus_length(i) >= threshold]
         return self._long_pools[key]
 
+    def is_grown(self, index: int) -> bool:
+        """Whether corpus hairstyle `index` is one of the `grown_hair_fraction` share (a draw of
+        its own generator: the same on every rank and run)."""
+        fraction = self.config.grown_hair_fraction
+        if fraction <= 0:
+            return False
+        return bool(_generator(self.config.corpus_seed, _STREAM_GROWN, int(index)).uniform() < fraction)
+
+    def grown_hairstyle(self, index: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """(z (512,), P_init (M, N_basis, 3)) of corpus hairstyle `index` grown around the rest
+        body: its generated strands (the sub-grid's, each on its grid root), z = their encoding.
+        float64 on the CPU, cached (growing one costs ~0.4-1 s on a CPU).
+        """
+        index = int(index)
+        if index not in self._grown:
+            params = sample_hairstyle_params(_generator(self.config.corpus_seed, _STREAM_CORPUS, index))
+            style = generate_hairstyle(self.scalp, params, num_vertices=self.basis.num_vertices,
+                                       body=(self.body.rest_vertices, self.body.faces))
+            if style.num_strands == 0:
+                raise ValueError(f"index: corpus hairstyle {index} has no strand left after filtering")
+            strands = style.strands.double()
+            z = self.basis.encode(strands, style.root_uv)
+            # Each grid root takes the strand nearest in UV (as `encode` maps them), moved onto
+            # the root: a strand filtered as too short is replaced by its neighbour.
+            picked = strands[self.basis.nearest_strands(style.root_uv)[self.strand_index]]
+            picked = picked - picked[:, :1] + self.roots.detach().cpu().double()[:, None, :]
+            self._grown[index] = (z.to(torch.float64), picked)
+        return self._grown[index]
+
     def hairstyle(self, index: int) -> tuple[torch.Tensor, torch.Tensor]:
         """(z (512,), P_init (M, N, 3)) of corpus hairstyle `index`, on the sampler's device and
-        dtype, cached (LRU).
+        dtype, cached (LRU). P_init = decode(z), or the strands grown around the body for the
+        `grown_hair_fraction` share (`is_grown`).
         """
         cached = self._hairstyles.get(index)
         if cached is not None:
             self._hairstyles.move_to_end(index)
             return cached
-        z = self.latent(index)
-        strands = self.basis.decode(z, self.scalp)[0][self.strand_index]  # (M, 100, 3) float64
+        if self.is_grown(index):
+            z, strands = self.grown_hairstyle(index)
+        else:
+            z = self.latent(index)
+            strands = self.basis.decode(z, self.scalp)[0][self.strand_index]  # (M, 100, 3) float64
         if strands.shape[1] != self.num_vertices:
             from hairwarp.scene.hairstyles import resample_strands
 
