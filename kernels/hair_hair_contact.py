@@ -294,8 +294,9 @@ def _write_pair_if_close(
 ):
     """Count and write (min(i, j), max(i, j)) if segment j is of another strand, past the root
     segments, and closer than sqrt(cutoff2) to segment i = (p0, p1) (first vertex vi; the exact
-    test, input precision); with `with_energy` != 0 also add the pair's energy and gradient
-    (`_add_pair_energy`), the broad phase's distance reused (no second pass over the pairs).
+    test, input precision); with `with_energy` 1 also add the pair's energy and gradient
+    (`_add_pair_energy`), the broad phase's distance reused (no second pass over the pairs);
+    with 2 only for a pair kept in the buffer (n < capacity: the pairs a narrow phase would sum).
 
     The lower id's segment goes first into the distance, as in `hair_hair_energy_kernel`, so
     the test and the energy are the same numbers whichever segment's query finds the pair.
@@ -326,7 +327,7 @@ def _write_pair_if_close(
         if n < capacity:
             pairs_out[2 * n] = wp.min(i, j)
             pairs_out[2 * n + 1] = wp.max(i, j)
-        if with_energy != 0:
+        if with_energy == 1 or (with_energy == 2 and n < capacity):
             _add_pair_energy(va, vb, a0, a1, b0, b1, s, t, strand_i // num_strands, num_vertices, xi, dhat, bp,
                              weight, variant, energy_out, gradient_out)
 

@@ -366,12 +366,13 @@ class _PairEnergyArgs:
     gradient: torch.Tensor
 
     @staticmethod
-    def inputs(args: _PairEnergyArgs | None, dtype: torch.dtype) -> list:
-        """with_energy, xi, dhat, bp, weight, variant of the kernels (zeros without `args`)."""
+    def inputs(args: _PairEnergyArgs | None, dtype: torch.dtype, kept_only: bool = False) -> list:
+        """with_energy, xi, dhat, bp, weight, variant of the kernels (zeros without `args`);
+        `kept_only`: only the pairs that fit the buffer add their energy (as a narrow phase)."""
         if args is None:
             zero = _warp.scalar(0.0, dtype)
             return [0, zero, zero, zero, zero, 0]
-        return [1, _warp.scalar(args.xi, dtype), _warp.scalar(args.dhat, dtype), _warp.scalar(args.bp, dtype),
+        return [2 if kept_only else 1, _warp.scalar(args.xi, dtype), _warp.scalar(args.dhat, dtype), _warp.scalar(args.bp, dtype),
                 _warp.scalar(args.weight, dtype), args.variant_id]
 
     @staticmethod
@@ -402,8 +403,9 @@ def _arange_int32(n: int) -> torch.Tensor:
     return r
 
 
-def _broad_phase(x4, cutoff, capacity, skip_root_segments, on_overflow, max_pairs=None):
-    """Broad phase on (B, M, N, 3) contiguous detached hair.
+def _broad_phase(x4, cutoff, capacity, skip_root_segments, on_overflow, max_pairs=None, energy=None):
+    """Broad phase on (B, M, N, 3) contiguous detached hair. With `energy` (a `_PairEnergyArgs`;
+    the "cells" kind only) the pairs kept in the buffer also add their energy and gradient to it.
 
     Returns:
         pairs (P, 2) int32 flat segment ids (unordered; in eager calls a view of the shared pair
@@ -439,7 +441,7 @@ def _broad_phase(x4, cutoff, capacity, skip_root_segments, on_overflow, max_pair
         return _collect(run, count, requested, cap, capacity, num_segments, on_overflow)
 
     if kind == "cells":
-        run, count = _cell_broad_phase(x4, cutoff, skip_root_segments, cap)
+        run, count = _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy)
         return _collect(run, count, requested, cap, capacity, num_segments, on_overflow)
     params = _grid_params(x4, cutoff)
     wp_device = _warp.warp_device(device)
@@ -548,9 +550,12 @@ def _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy=None):
 
     def run(room):
         count.zero_()
+        if energy is not None:  # a rerun ("grow") starts the sums again
+            energy.energy.zero_()
+            energy.gradient.zero_()
         pairs = _pair_buffer(device, room, cap)
         common_out = [_warp.as_warp(count), _warp.as_warp(pairs)] + _PairEnergyArgs.outputs(energy, x4.dtype)
-        pair_inputs = [_warp.scalar(cutoff, x4.dtype), room] + _PairEnergyArgs.inputs(energy, x4.dtype)
+        pair_inputs = [_warp.scalar(cutoff, x4.dtype), room] + _PairEnergyArgs.inputs(energy, x4.dtype, True)
         with _warp.launch_scope(device):
             wp.launch(hh_kernels.hair_hair_cell_pairs_kernel, dim=entries,
                       inputs=[x_wp] + sorted_wp + table_wp + [params_wp, n, m, skip_root_segments, table - 1]
@@ -958,10 +963,22 @@ def hair_hair_contact_energy(
         if x.dim() == 3:
             energy = energy[0]
         return energy, HairHairContactInfo(found, requested)
-    else:
-        pairs, count, found, requested = _broad_phase(
-            x4c.detach(), xi + dhat, capacity, skip_root_segments, on_overflow, max_pairs
+    if _broad_phase_kind(x4c.device) == "cells" and x4c.shape[1] >= 2 and x4c.shape[2] >= 2:
+        # The pair energies added by the pairs kernels as they find each pair: no pair list to
+        # read back, no second launch (the same pairs, sums and overflow rule as below).
+        args = _PairEnergyArgs(xi, dhat, bp, weight, variant_id,
+                               torch.zeros(x4c.shape[0], dtype=torch.float64, device=x4c.device),
+                               torch.zeros_like(x4c, memory_format=torch.contiguous_format))
+        _, count, found, requested = _broad_phase(
+            x4c.detach(), xi + dhat, capacity, skip_root_segments, on_overflow, max_pairs, energy=args
         )
+        energy = _PrecomputedContactEnergy.apply(x4c, args.energy, args.gradient)
+        if x.dim() == 3:
+            energy = energy[0]
+        return energy, HairHairContactInfo(count if found is None else found, requested)
+    pairs, count, found, requested = _broad_phase(
+        x4c.detach(), xi + dhat, capacity, skip_root_segments, on_overflow, max_pairs
+    )
     energy = _HairHairContactEnergy.apply(x4c, pairs.contiguous(), count, xi, dhat, bp, weight, variant_id)
     if x.dim() == 3:
         energy = energy[0]
