@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 
 import torch
 
@@ -167,7 +168,7 @@ def main(argv=None):
     probe = _kernel_probe(device, batches) if args.probe_kernels else {}
     lbfgs = _lbfgs_rows(device, args.lbfgs_iterations) if args.lbfgs_iterations else []
     record = {"machine": machine_name(device), "device": str(device), "energy": rows, "profiles": profiles,
-              "kernel_probe": probe, "lbfgs": lbfgs, "command": "python benchmarks/bm_captured_energy.py " + " ".join(argv or [])}
+              "kernel_probe": probe, "lbfgs": lbfgs, "command": "python benchmarks/bm_captured_energy.py " + " ".join(sys.argv[1:] if argv is None else argv)}
     with open(os.path.join(args.out, "captured_energy.json"), "w") as f:
         json.dump(record, f, indent=1)
     print(f"\n{record['machine']}\n\n| batch | eager fwd+bwd (ms) | graph replay (ms) |\n|---:|---:|---:|")

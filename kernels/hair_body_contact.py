@@ -300,7 +300,8 @@ def chain_query_radius(x: wp.array(dtype=Any), i: int, v: int, floor: Any):
     """Query radius of point i, index v along its polyline: max(floor, |p_i - p_{i-1}|), with
     slack for the float32 query. A miss within it proves |d(p_i)| > |p_i - p_{i-1}|, so the
     open ball around p_i of radius |d| holds p_{i-1} and no surface: p_i is on p_{i-1}'s side
-    of the body (the sign rule of the module docstring, link by link along the polyline)."""
+    of the body (the sign rule of the module docstring, link by link along the polyline).
+    """
     radius = floor
     if v > 0:
         radius = wp.max(floor, wp.length(x[i] - x[i - 1]))
@@ -311,7 +312,8 @@ def chain_query_radius(x: wp.array(dtype=Any), i: int, v: int, floor: Any):
 def chain_hit_before(side: wp.array(dtype=wp.int32), i: int, v: int):
     """Index of the nearest point before i on its polyline whose capped query found the surface
     (side +1 outside, -1 inside), -1 when none did. Every point in between missed its own capped
-    query, so all of them, and point i, are on that point's side (`chain_query_radius`)."""
+    query, so all of them, and point i, are on that point's side (`chain_query_radius`).
+    """
     j = i - 1
     first = i - v
     hit = int(-1)
@@ -326,7 +328,8 @@ def chain_hit_before(side: wp.array(dtype=wp.int32), i: int, v: int):
 @wp.func
 def depth_query_radius(points: wp.array(dtype=Any), hit_distance: wp.array(dtype=float), i: int, hit: int):
     """Radius of the exact query of a point i that missed inside: |d(p_hit)| + |p_i - p_hit| bounds
-    |d(p_i)| (the distance is 1-Lipschitz), so the BVH walk prunes to it; unbounded without a hit."""
+    |d(p_i)| (the distance is 1-Lipschitz), so the BVH walk prunes to it; unbounded without a hit.
+    """
     if hit < 0:
         return wp.float32(FAR)
     r = hit_distance[hit] + wp.float32(wp.length(points[i] - points[hit]))
@@ -362,8 +365,9 @@ def hair_body_energy_vertex_kernel(
 ):
     """One thread per vertex (wide GPU launches), pass 1 of 2: weight * B(d) and its gradient
     (Eq. 12) for every vertex whose query, capped at max(reach, its segment's length), finds
-    the surface (the root, vertex 0, is measured at any distance on a miss); `side_out` = +1/-1 for those (fixed vertices 0, 1 included: they carry the
-    side along the strand), 0 for a miss (energy and gradient 0 until pass 2 decides).
+    the surface (the root, vertex 0, is measured at any distance on a miss); `side_out` = +1/-1
+    for those (fixed vertices 0, 1 included: they carry the side along the strand), 0 for a miss
+    (energy and gradient 0 until pass 2 decides); `hit_distance_out` their |d|.
 
     The cap keeps the BVH walk short: an unbounded query from a vertex far outside visits most
     of the tree, and most hair is far outside.
@@ -488,7 +492,8 @@ def signed_distance_capped_kernel(
 ):
     """Signed distance of points on polylines, pass 1 of 2: a query capped at
     max(max_distance, the point's link length) (`chain_query_radius`); a hit writes d clamped
-    to at most max_distance (gradient zero where clamped) and its side, a miss side 0."""
+    to at most max_distance (gradient zero where clamped) and its side, a miss side 0.
+    """
     i = wp.tid()
     v = i % points_per_line
     zero = zero_dist * type(zero_dist)(0.0)
@@ -541,7 +546,8 @@ def signed_distance_far_kernel(
     gradient_out: wp.array(dtype=Any),
 ):
     """Pass 2 of 2: a point that missed is outside beyond max_distance (reported as
-    max_distance, gradient zero) or inside, where an unbounded query gives its depth."""
+    max_distance, gradient zero) or inside, where an unbounded query gives its depth.
+    """
     i = wp.tid()
     if side[i] != 0:
         return

@@ -696,7 +696,8 @@ def segment_boxes_kernel(
 @wp.func
 def entry_id(s: int, k: int, long_segment: int):
     """Packed entry of the sorted table: 8 s + k for entry k of a short segment s, -(8 s) - 1 for
-    a long one (entered once)."""
+    a long one (entered once).
+    """
     if long_segment != 0:
         return -(s * MAX_CELLS_PER_SEGMENT) - 1
     return s * MAX_CELLS_PER_SEGMENT + k
@@ -721,7 +722,8 @@ def scatter_entries_kernel(
     sorted_hi_out: wp.array(dtype=wp.vec3),
 ):
     """Counting sort: entry k of segment s goes to position start(slot) + its rank in the slot,
-    with its box, so a slot's candidates are read contiguously."""
+    with its box, so a slot's candidates are read contiguously.
+    """
     e = wp.tid()
     rank = entry_rank[e]
     if rank < 0:
@@ -774,7 +776,8 @@ def hair_hair_cell_pairs_kernel(
     """Short-short pairs, one thread per sorted entry (segment i, cell c; threads of a slot side
     by side, reading the same candidates): each higher-id short segment entered in the same
     cell c whose box meets i's with the intersection's low corner in c, tested exactly
-    (`_write_pair_if_close`). Each pair is tested once: by its lower id, in one cell."""
+    (`_write_pair_if_close`). Each pair is tested once: by its lower id, in one cell.
+    """
     pos = wp.tid()
     if pos >= slot_end[table_mask]:
         return  # past the entries (launched over the bound of 8 per segment)
@@ -829,6 +832,7 @@ def box_cell(lo_cell: wp.vec3i, hi_cell: wp.vec3i, c: int):
 
 @wp.func
 def box_cell_count(lo_cell: wp.vec3i, hi_cell: wp.vec3i):
+    """Cells in the cell box [lo_cell, hi_cell]."""
     return (hi_cell[0] - lo_cell[0] + 1) * (hi_cell[1] - lo_cell[1] + 1) * (hi_cell[2] - lo_cell[2] + 1)
 
 
@@ -870,7 +874,8 @@ def hair_hair_long_pairs_kernel(
     list_stride x LONG_LANES threads, striding over the list). Lane l walks the cells l, l + 32, ...
     of i's box for short partners (each met in the cell of the boxes' low corner, as between
     short ones), then of i's box grown by the longest half length for long partners (entered at
-    their box centre's cell), keeping those shorter than i (ties: the higher id)."""
+    their box centre's cell), keeping those shorter than i (ties: the higher id).
+    """
     t = wp.tid()
     lane = t % LONG_LANES
     segs_per_strand = num_vertices - 1

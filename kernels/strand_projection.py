@@ -50,7 +50,8 @@ def follow_the_leader_kernel(
     The walk is sequential, so its speed is the latency of its loads: they are issued four
     vertices at a time, ahead of the stores (a store before a load of another array could
     alias it, which keeps the compiler from hoisting the load: one memory round trip per vertex,
-    125 us for 1024 x 100 hair on an H100, against ~4x less in chunks)."""
+    125 us for 1024 x 100 hair on an H100, against ~4x less in chunks).
+    """
     base = wp.tid() * num_vertices
     for k in range(FIRST_PROJECTED_VERTEX):
         out[base + k] = target[base + k]

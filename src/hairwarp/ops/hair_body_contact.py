@@ -34,13 +34,16 @@ INDEX_DTYPES = (torch.int32, torch.int64)
 # gradient: in float32 the closest point carries ~1e-7 m of rounding at body scale.
 _ZERO_DISTANCE = {torch.float32: 1.0e-6, torch.float64: 1.0e-12}
 
-# Kernel choice. The per-strand walk skips most mesh queries: it wins on the single-threaded
-# CPU backend (1024 x 100 hair on a 27k-triangle body: ~40 ms against ~350 ms per-vertex). On
-# the GPU one thread per vertex wins at every batch: on an H100, 1024 x 100 hair at batch 32,
-# the per-strand kernel took 21.7 ms (one thread walking 100 vertices, 32k threads: the GPU
-# is a tenth full); benchmarks/bm_captured_energy.py --profile.
+# Kernel choice: one thread per vertex in two passes (capped queries, then the misses' sides
+# along each strand; `kernels.hair_body_contact`) on every device. It replaced, on the CPU, the
+# per-strand walk that skips the queries of vertices proven outside by wide Lipschitz balls:
+# as fast there (1024 x 100 hair, head turn, one CPU thread: 77 vs 75 ms per call; the L-BFGS
+# drape of docs/contact.md 1 024-1 031 vs 1 174 ms per frame), 3x faster on an H100, and exact
+# on a body cropped to the hair's reach, where a wide ball can pass through the crop's open
+# border and the walk called 604 vertices inside the torso "outside" (docs/contact.md). The
+# walk stays selectable ("strand") for the benchmarks.
 def _strategy(device: torch.device, num_strands: int) -> str:
-    return "vertex" if device.type == "cuda" else "strand"
+    return "vertex"
 
 
 def _check_mesh(vertices: torch.Tensor, faces: torch.Tensor, *, require_watertight: bool) -> None:
@@ -456,7 +459,8 @@ def _signed_distance_forward(points: torch.Tensor, body: BodyMesh, points_per_ba
 
     With `max_distance`, the points are polylines of `points_per_line` consecutive points and
     distances above max_distance are reported as max_distance with a zero gradient (capped
-    queries, the side of a miss read along its polyline; see the kernels)."""
+    queries, the side of a miss read along its polyline; see the kernels).
+    """
     batch = points.shape[0] // points_per_batch
     stride = _body_stride(body, batch)
     distance = torch.empty(points.shape[0], dtype=points.dtype, device=points.device)
@@ -678,9 +682,9 @@ def hair_body_contact_energy(
     E_b = weight * sum over strands s and moving vertices v >= 2 of B(d(p_{s,v})): a sum over
     vertices (not a mean), per batch item; the fixed vertices 0 and 1 contribute nothing and
     get zero gradient. B is the barrier of `hairwarp.ops.barrier` (zero for d >= xi + dhat).
-    Vertices inside the body get the extrapolated barrier at any depth. One kernel pass writes
-    the energy per strand (CPU; GPU at large batch) or per vertex (GPU) and the gradient per
-    vertex; torch sums the partial energies per batch item (no atomics).
+    Vertices inside the body get the extrapolated barrier at any depth. Two kernel passes write
+    the energy and gradient per vertex (`kernels.hair_body_contact`); torch sums the partial
+    energies per batch item (no atomics).
 
     Args:
         x: (M, N, 3) or (B, M, N, 3) hair vertices [m], float32/float64.

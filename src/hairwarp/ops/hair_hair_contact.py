@@ -368,12 +368,13 @@ class _PairEnergyArgs:
     @staticmethod
     def inputs(args: _PairEnergyArgs | None, dtype: torch.dtype, kept_only: bool = False) -> list:
         """with_energy, xi, dhat, bp, weight, variant of the kernels (zeros without `args`);
-        `kept_only`: only the pairs that fit the buffer add their energy (as a narrow phase)."""
+        `kept_only`: only the pairs that fit the buffer add their energy (as a narrow phase).
+        """
         if args is None:
             zero = _warp.scalar(0.0, dtype)
             return [0, zero, zero, zero, zero, 0]
-        return [2 if kept_only else 1, _warp.scalar(args.xi, dtype), _warp.scalar(args.dhat, dtype), _warp.scalar(args.bp, dtype),
-                _warp.scalar(args.weight, dtype), args.variant_id]
+        return [2 if kept_only else 1, _warp.scalar(args.xi, dtype), _warp.scalar(args.dhat, dtype),
+                _warp.scalar(args.bp, dtype), _warp.scalar(args.weight, dtype), args.variant_id]
 
     @staticmethod
     def outputs(args: _PairEnergyArgs | None, dtype: torch.dtype) -> list:
@@ -489,13 +490,15 @@ def _broad_phase(x4, cutoff, capacity, skip_root_segments, on_overflow, max_pair
 
 def _broad_phase_kind(device: torch.device) -> str:
     """"cpu-grid" (`_CpuGrid`) on the CPU, `_DEVICE_BROAD_PHASE` on CUDA (the tests run the
-    device kinds on the CPU by replacing this)."""
+    device kinds on the CPU by replacing this).
+    """
     return "cpu-grid" if device.type == "cpu" else _DEVICE_BROAD_PHASE
 
 
 def _cell_table_size(num_segments: int) -> int:
     """Slots of the cell table: a power of two >= 4 slots per segment (a drape enters ~3 cells
-    per segment, so most slots hold one cell)."""
+    per segment, so most slots hold one cell).
+    """
     return 1 << max(10, (4 * num_segments - 1).bit_length())
 
 

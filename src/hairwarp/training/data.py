@@ -402,7 +402,8 @@ class TrainingSampler:
 
     def is_grown(self, index: int) -> bool:
         """Whether corpus hairstyle `index` is one of the `grown_hair_fraction` share (a draw of
-        its own generator: the same on every rank and run)."""
+        its own generator: the same on every rank and run).
+        """
         fraction = self.config.grown_hair_fraction
         if fraction <= 0:
             return False
