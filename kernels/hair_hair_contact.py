@@ -774,9 +774,10 @@ def hair_hair_cell_pairs_kernel(
     gradient_out: wp.array(dtype=Any),
 ):
     """Short-short pairs, one thread per sorted entry (segment i, cell c; threads of a slot side
-    by side, reading the same candidates): each higher-id short segment entered in the same
-    cell c whose box meets i's with the intersection's low corner in c, tested exactly
-    (`_write_pair_if_close`). Each pair is tested once: by its lower id, in one cell.
+    by side, reading the same candidates): each short segment entered after it in the slot, in
+    the same cell c, whose box meets i's with the intersection's low corner in c, tested exactly
+    (`_write_pair_if_close`, which orders the two by id). Each pair is tested once: in one cell,
+    by the entry that comes first in its slot.
     """
     pos = wp.tid()
     if pos >= slot_end[table_mask]:
@@ -797,20 +798,20 @@ def hair_hair_cell_pairs_kernel(
     p0 = x_in[vi]
     p1 = x_in[vi + 1]
     cutoff2 = cutoff * cutoff
-    end = slot_end[slot]
-    for q in range(end - slot_count[slot], end):
+    # The entries after this one in the slot: each pair of entries is met once, by the earlier.
+    for q in range(pos + 1, slot_end[slot]):
         other = sorted_entries[q]
         j = other // MAX_CELLS_PER_SEGMENT
-        if other < 0 or j <= i:
+        if other < 0 or j == i:
             continue
-        if (j // segs_per_strand) // num_strands != group:
-            continue  # a slot shared with another batch item's cell
         lo_j = sorted_lo[q]
         if not boxes_meet_in_cell(lo_i, hi_i, lo_j, sorted_hi[q], cell, inv_width):
             continue
         c = entry_cell(grid_cell(lo_j, inv_width), other % MAX_CELLS_PER_SEGMENT)
         if c[0] != cell[0] or c[1] != cell[1] or c[2] != cell[2]:
             continue  # j's entry of another cell sharing this slot: the pair is met in c only
+        if (j // segs_per_strand) // num_strands != group:
+            continue  # another batch item's cell sharing this slot
         _write_pair_if_close(x_in, i, j, strand_i, vi, p0, p1, num_vertices, num_strands, skip_root_segments,
                              cutoff2, capacity, with_energy, xi, dhat, bp, weight, variant, count_out, pairs_out,
                              energy_out, gradient_out)
