@@ -296,32 +296,34 @@ def hair_body_energy_strand_kernel(
 
 
 @wp.func
-def chain_query_radius(x: wp.array(dtype=Any), i: int, v: int, floor: Any):
-    """Query radius of point i, index v along its polyline: max(floor, |p_i - p_{i-1}|), with
-    slack for the float32 query. A miss within it proves |d(p_i)| > |p_i - p_{i-1}|, so the
-    open ball around p_i of radius |d| holds p_{i-1} and no surface: p_i is on p_{i-1}'s side
-    of the body (the sign rule of the module docstring, link by link along the polyline).
+def chain_query_radius(x: wp.array(dtype=Any), i: int, v: int, stride: int, floor: Any):
+    """Query radius of point i, index v along its polyline (its predecessor at i - stride):
+    max(floor, |p_i - p_{i-1}|), with slack for the float32 query. A miss within it proves
+    |d(p_i)| > |p_i - p_{i-1}|, so the open ball around p_i of radius |d| holds p_{i-1} and no
+    surface: p_i is on p_{i-1}'s side of the body (the sign rule of the module docstring, link by
+    link along the polyline).
     """
     radius = floor
     if v > 0:
-        radius = wp.max(floor, wp.length(x[i] - x[i - 1]))
+        radius = wp.max(floor, wp.length(x[i] - x[i - stride]))
     return wp.float32(radius * type(floor)(1.001) + type(floor)(1.0e-6))
 
 
 @wp.func
-def chain_hit_before(side: wp.array(dtype=wp.int32), i: int, v: int):
-    """Index of the nearest point before i on its polyline whose capped query found the surface
-    (side +1 outside, -1 inside), -1 when none did. Every point in between missed its own capped
-    query, so all of them, and point i, are on that point's side (`chain_query_radius`).
+def chain_hit_before(side: wp.array(dtype=wp.int32), i: int, v: int, stride: int):
+    """Index of the nearest point before i on its polyline (points i - stride, i - 2 stride, ...)
+    whose capped query found the surface (side +1 outside, -1 inside), -1 when none did. Every
+    point in between missed its own capped query, so all of them, and point i, are on that
+    point's side (`chain_query_radius`).
     """
-    j = i - 1
-    first = i - v
+    j = i - stride
+    first = i - v * stride
     hit = int(-1)
     while j >= first:
         if side[j] != 0:
             hit = j
             break
-        j -= 1
+        j -= stride
     return hit
 
 
@@ -379,7 +381,7 @@ def hair_body_energy_vertex_kernel(
     body = (i // (num_strands * num_vertices)) * body_batch_stride
     found, d, g = body_signed_distance(
         mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, body * body_vertex_count,
-        body * body_face_count * 3, p, chain_query_radius(x, i, v, xi + dhat), zero_dist
+        body * body_face_count * 3, p, chain_query_radius(x, i, v, 1, xi + dhat), zero_dist
     )
     queries = int(1)
     if found == 0 and v == 0:
@@ -444,7 +446,7 @@ def hair_body_energy_far_kernel(
     v = i % num_vertices
     if side[i] != 0 or v < 2:
         return
-    hit = chain_hit_before(side, i, v)
+    hit = chain_hit_before(side, i, v, 1)
     if hit >= 0 and side[hit] > 0:
         return
     body = (i // (num_strands * num_vertices)) * body_batch_stride
@@ -478,6 +480,7 @@ def signed_distance_capped_kernel(
     vertex_normals: wp.array(dtype=Any),
     edge_normals: wp.array(dtype=Any),
     points_per_line: int,
+    line_stride: int,
     points_per_batch: int,
     body_vertex_count: int,
     body_face_count: int,
@@ -495,13 +498,13 @@ def signed_distance_capped_kernel(
     to at most max_distance (gradient zero where clamped) and its side, a miss side 0.
     """
     i = wp.tid()
-    v = i % points_per_line
+    v = (i // line_stride) % points_per_line
     zero = zero_dist * type(zero_dist)(0.0)
     body = (i // points_per_batch) * body_batch_stride
     p = points[i]
     found, d, g = body_signed_distance(
         mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, body * body_vertex_count,
-        body * body_face_count * 3, p, chain_query_radius(points, i, v, max_distance), zero_dist
+        body * body_face_count * 3, p, chain_query_radius(points, i, v, line_stride, max_distance), zero_dist
     )
     if found == 0 and v == 0:
         # The first point anchors its polyline's sides: measured at any distance.
@@ -533,6 +536,7 @@ def signed_distance_far_kernel(
     vertex_normals: wp.array(dtype=Any),
     edge_normals: wp.array(dtype=Any),
     points_per_line: int,
+    line_stride: int,
     points_per_batch: int,
     body_vertex_count: int,
     body_face_count: int,
@@ -551,10 +555,10 @@ def signed_distance_far_kernel(
     i = wp.tid()
     if side[i] != 0:
         return
-    v = i % points_per_line
+    v = (i // line_stride) % points_per_line
     zero = zero_dist * type(zero_dist)(0.0)
     p = points[i]
-    hit = chain_hit_before(side, i, v)
+    hit = chain_hit_before(side, i, v, line_stride)
     if hit >= 0 and side[hit] > 0:
         distance_out[i] = max_distance
         gradient_out[i] = p * zero

@@ -454,12 +454,13 @@ def _body_stride(body: BodyMesh, batch: int) -> int:
 
 
 def _signed_distance_forward(points: torch.Tensor, body: BodyMesh, points_per_batch: int,
-                             max_distance: float | None = None, points_per_line: int = 1):
+                             max_distance: float | None = None, points_per_line: int = 1, line_stride: int = 1):
     """Flat (P, 3) points -> (P,) signed distances and (P, 3) gradients (no autograd).
 
-    With `max_distance`, the points are polylines of `points_per_line` consecutive points and
-    distances above max_distance are reported as max_distance with a zero gradient (capped
-    queries, the side of a miss read along its polyline; see the kernels).
+    With `max_distance`, the points are polylines of `points_per_line` points, `line_stride`
+    apart in the flat order, and distances above max_distance are reported as max_distance with
+    a zero gradient (capped queries, the side of a miss read along its polyline; see the
+    kernels).
     """
     batch = points.shape[0] // points_per_batch
     stride = _body_stride(body, batch)
@@ -483,7 +484,7 @@ def _signed_distance_forward(points: torch.Tensor, body: BodyMesh, points_per_ba
             wp.launch(kernels.signed_distance_kernel, dim=points.shape[0], inputs=mesh + counts + [zero_dist],
                       outputs=outputs, device=device)
         else:
-            inputs = mesh + [points_per_line] + counts + [_warp.scalar(max_distance, points.dtype), zero_dist]
+            inputs = mesh + [points_per_line, line_stride] + counts + [_warp.scalar(max_distance, points.dtype), zero_dist]
             hits = [_warp.as_warp(torch.empty(points.shape[0], dtype=torch.int32, device=points.device)),
                     _warp.as_warp(torch.empty(points.shape[0], dtype=torch.float32, device=points.device))]
             wp.launch(kernels.signed_distance_capped_kernel, dim=points.shape[0], inputs=inputs,
@@ -596,11 +597,16 @@ def hair_body_signed_distance_and_normal(
     _check_hair(x, body)
     if max_distance is not None and not (float(max_distance) > 0.0 and math.isfinite(float(max_distance))):
         raise ValueError(f"max_distance: expected a finite number > 0 or None, got {max_distance}")
-    points = x.contiguous().reshape(-1, 3)
-    distance, direction = _signed_distance_forward(
-        points, body, x.shape[-3] * x.shape[-2], None if max_distance is None else float(max_distance), x.shape[-2]
-    )
-    return distance.reshape(x.shape[:-1]), direction.reshape(x.shape)
+    if max_distance is None:
+        points = x.contiguous().reshape(-1, 3)
+        distance, direction = _signed_distance_forward(points, body, x.shape[-3] * x.shape[-2])
+        return distance.reshape(x.shape[:-1]), direction.reshape(x.shape)
+    # Capped: threads in (vertex, strand) order, so a warp queries neighbouring strands' points
+    # (near each other, similar BVH walks) rather than one strand's, centimetres apart.
+    m, n = x.shape[-3], x.shape[-2]
+    points = x.transpose(-3, -2).contiguous()
+    distance, direction = _signed_distance_forward(points.reshape(-1, 3), body, m * n, float(max_distance), n, m)
+    return distance.reshape(points.shape[:-1]).transpose(-2, -1), direction.reshape(points.shape).transpose(-3, -2)
 
 
 def _energy_forward(x, body, xi, dhat, bp, weight, variant_id, strategy):
