@@ -15,10 +15,13 @@ where the penetrating vertices are (vertex index along the strand, the body part
 largest skin weight of the nearest body vertex, the root's side of the head, depth), the static
 energy (Eq. 5) and the inertia term (Eq. 16) of each drape sequence, and, with --draws, what
 the shipped dynamic run's batches held (motion shares, forward lean of the torso_bend frames,
-long hair). Writes OUT/diagnose_dynamic_<scene>.json and, for the first scene, OUT/
-diagnose_dynamic.png.
+long hair), with --hair-variants the first scene's motion with other hair (the decode of its
+hair latent, blends towards the scene's hair, the preset not grown around the body), and with
+--training-samples the networks on training-like sequences of the scene's motion. Writes
+OUT/diagnose_dynamic_<scene>.json and, for the first scene, OUT/diagnose_dynamic.png.
 
-    python tools/diagnose_dynamic.py --scenes torso_bend,whiplash --draws 373 --out OUT
+    python tools/diagnose_dynamic.py --scenes torso_bend,whiplash --draws 373 --hair-variants \
+        --training-samples 3 --out OUT
 """
 
 from __future__ import annotations
@@ -183,13 +186,91 @@ def training_draws(steps: int, seed: int = 0) -> dict:
             "torso_bend_rollout_lean_deg": lean, "torso_bend_rollout_long_hair": long_hair}
 
 
+def hair_variants(sim, name: str, strand_stride: int, device) -> dict:
+    """The scene's motion with other hair: the preset grown without the body, the decode of the
+    scene's hair latent, and the blends decode + a (grown - decode): rigid / static / dynamic
+    penetration % each (the networks read the hair through z = encode(strands) only)."""
+    import hairwarp.evaluation.scenes as scenes
+    from hairwarp.metrics import penetration_percent
+    from hairwarp.scene.hairstyles import generate_hairstyle, hairstyle_preset
+    from hairwarp.scene.scene import Scene
+
+    spec = scenes.SCENE_SPECS[name]
+    base, grown = scenes._grown_hairstyle(spec.hairstyle)
+    motion = scenes.comparison_scene(name, strand_stride=strand_stride).scene.motion
+    free = generate_hairstyle(base.scalp, hairstyle_preset(spec.hairstyle, seed=scenes.SCENE_SEED),
+                              num_vertices=grown.strands.shape[1])
+    basis = sim.basis
+    z = basis.encode(grown.strands.double(), grown.root_uv.double())
+    decoded, _ = basis.decode(z, scalp=base.scalp)
+    grid = basis.nearest_strands(grown.root_uv)  # grid root -> strand
+    order = torch.empty_like(grid)
+    order[grid] = torch.arange(grid.numel())
+    decoded = decoded[order].float()
+    keep = torch.arange(0, grown.num_strands, strand_stride)
+    err = (decoded - grown.strands).norm(dim=-1)
+    out = {"decode_error_mm": {"mean": float(err.mean() * 1e3), "tip_mean": float(err[:, -1].mean() * 1e3),
+                               "tip_p90": float(err[:, -1].quantile(0.9) * 1e3)}, "rows": {}}
+    styles = {}
+    if free.num_strands == grown.num_strands:
+        styles["preset grown without the body"] = free.strands
+    for a in (0.0, 0.25, 0.5, 0.75, 1.0):
+        styles[f"decode + {a:g} (grown - decode)"] = decoded + a * (grown.strands - decoded)
+    for label, strands in styles.items():
+        hair = dataclasses.replace(grown, strands=strands.contiguous()).subset(keep)
+        frames = Scene(body=base.body, scalp=base.scalp, hairstyle=hair, motion=motion, name=name).frames(device=device)
+        with torch.no_grad():
+            drapes = {"rigid": frames.rigid.positions, "static": sim.drape(frames), "dynamic": sim.simulate(frames)}
+        out["rows"][label] = {k: float(penetration_percent(x, frames.body_mesh).mean()) for k, x in drapes.items()}
+        print(f"{name:11s} hair: {label:34s} " + "  ".join(f"{k} {v:.2f} %" for k, v in out["rows"][label].items()),
+              flush=True)
+    return out
+
+
+def training_samples(checkpoint: str | None, steps: int, motion: str = "torso_bend", batch: int = 8) -> dict:
+    """Rigid / static / dynamic penetration % on training-like sequences: the checkpoint's own
+    dynamic-training data (its stored config) restricted to `motion` played as recorded (k = 1,
+    nominal motion), long corpus hairstyles only (P_init = decode(z), as training sees them),
+    64 strands, the rollout frames of `steps` batches of `batch` sequences."""
+    from hairwarp.methods.networks import DYNAMIC_CHECKPOINT, shipped_checkpoint
+    from hairwarp.metrics import penetration_percent
+    from hairwarp.models.checkpoint import load_checkpoint
+    from hairwarp.training import DynamicTrainer, DynamicTrainingConfig
+    from hairwarp.training.config import energy_config
+    from hairwarp.training.dynamic import dynamic_loss
+
+    path = checkpoint or shipped_checkpoint(DYNAMIC_CHECKPOINT)
+    base = DynamicTrainingConfig.from_dict(load_checkpoint(path, "cpu").extra["training_config"])
+    cfg = base.replace(batch_size=batch, hairstyles=128, long_hair_fraction=1.0, subsample_min=1, subsample_max=1,
+                       dynamic_filter=False, data=base.data.replace(strand_stride=4, motions=[motion], motion_variants=1))
+    trainer = DynamicTrainer(cfg, init=path)
+    model = trainer.model.eval()
+    energy = energy_config(cfg.energy, barrier_join_fraction=cfg.barrier_join_fraction, time_step=1.0 / cfg.data.fps)
+    pen = collections.defaultdict(list)
+    for step in range(steps):
+        seq = trainer.next_batch(step)
+        b, r, w = seq.batch_size, seq.rollout_frames, seq.warmup_frames
+        with torch.no_grad():
+            _, _, positions = dynamic_loss(model, seq, energy, None, cfg.inertia_time_step)
+            rigid = seq.rollout.rigid
+            contact = model.static.contact_features(rigid, seq.rollout.root_uv, seq.rollout.inputs.body)
+            static = model.static.drape(seq.z.repeat_interleave(r, 0), seq.betas.repeat_interleave(r, 0),
+                                        seq.poses[:, w:].reshape(b * r, -1), rigid, seq.rollout.root_uv, None, contact)
+        for name, x in (("rigid", rigid), ("static", static), ("dynamic", positions.reshape(rigid.shape))):
+            pen[name].extend(penetration_percent(x, seq.rollout.inputs.body).tolist())
+    out = {k: {"mean": float(np.mean(v)), "max": float(np.max(v)), "frames": len(v)} for k, v in pen.items()}
+    print(f"training-like {motion} sequences (long decoded hair, k = 1): "
+          + "  ".join(f"{k} {v['mean']:.2f} % (max {v['max']:.2f})" for k, v in out.items()), flush=True)
+    return out
+
+
 def figure(path, scene, record, draws):
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(2, 2, figsize=(13, 8.5))
+    fig, ax = plt.subplots(2, 3, figsize=(19, 8.5))
     a = ax[0, 0]
     styles = {"rigid": ("k", "-"), "static": ("tab:blue", "-"), "dynamic": ("tab:red", "-"),
               "reset 1": ("tab:orange", "--"), "motion x0": ("tab:purple", ":"),
@@ -241,6 +322,33 @@ def figure(path, scene, record, draws):
         d.legend(fontsize=7)
     else:
         d.axis("off")
+    e = ax[0, 2]
+    hair = record.get("hair_variants")
+    if hair:
+        blends = [(float(k.split(" + ")[1].split(" ")[0]), v) for k, v in hair["rows"].items() if k.startswith("decode")]
+        a = [x for x, _ in blends]
+        for name, col in (("rigid", "k"), ("static", "tab:blue"), ("dynamic", "tab:red")):
+            e.plot(a, [v[name] for _, v in blends], "o-", color=col, label=name)
+        e.set_yscale("log")
+        e.set_xlabel("hair = decode(z) + a (scene's grown hair - decode(z))")
+        e.set_ylabel("penetration %, mean over frames")
+        free = hair["rows"].get("preset grown without the body")
+        note = "" if free is None else (f"\npreset not grown around the body: rigid {free['rigid']:.1f}, "
+                                        f"static {free['static']:.2f}, dynamic {free['dynamic']:.2f} %")
+        e.set_title(f"e) {scene}: the same motion, other hair (a = 1: the scene){note}", fontsize=9)
+        e.legend(fontsize=8)
+    else:
+        e.axis("off")
+    f = ax[1, 2]
+    where = record["where"]["dynamic"]
+    dec = where["vertex_index_decile"]
+    f.axis("off")
+    lines = [f"{v}: {r['penetration_mean']:.2f} % (length {r['length_change_mean']:.3f} %)"
+             for v, r in record["variants"].items()]
+    f.text(0.0, 1.0, f"f) {scene}, penetration % (mean over frames)\n" + "\n".join(lines)
+           + f"\n\ndynamic: inside vertices {where['count']}, tips (index >= 70) "
+           f"{100 * sum(dec[7:]) / max(1, sum(dec)):.0f} %, depth median {where['depth_mm_median']:.1f} mm",
+           va="top", family="monospace", fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -259,6 +367,11 @@ def main(argv=None) -> int:
     p.add_argument("--strand-stride", type=int, default=4, help="4: the harness's reduced size (256 strands)")
     p.add_argument("--checkpoint", default=None, help="a dynamic checkpoint (default: the shipped one)")
     p.add_argument("--draws", type=int, default=0, help="replay this many steps of the shipped run's draws (373)")
+    p.add_argument("--hair-variants", action="store_true",
+                   help="first scene: also its motion with other hair (decode of its latent, blends, not grown)")
+    p.add_argument("--training-samples", type=int, default=0,
+                   help="also score this many batches of 8 training-like sequences of each scene's motion "
+                        "(long decoded corpus hair, k = 1)")
     p.add_argument("--out", default="hairwarp-out")
     args = p.parse_args(argv)
     device = resolve_device(args.device, argument="--device")
@@ -306,6 +419,10 @@ def main(argv=None) -> int:
             print(f"{name:11s} {v:8s} where {json.dumps(record['where'][v])}\n"
                   f"{'':11s} {'':8s} static energy mean {np.mean(e['static_energy_per_frame']):.3f} "
                   f"(contact {e['terms_mean']['hair_body_contact']:.3f}), inertia {e['inertia_mean']:.2e}", flush=True)
+        if k == 0 and args.hair_variants:
+            record["hair_variants"] = hair_variants(sim, name, args.strand_stride, device)
+        if args.training_samples:
+            record["training_samples"] = training_samples(args.checkpoint, args.training_samples, name)
         if draws:
             record["training_draws"] = draws
         with open(os.path.join(args.out, f"diagnose_dynamic_{name}.json"), "w") as f:

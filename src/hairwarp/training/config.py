@@ -177,7 +177,7 @@ class DataConfig(_TrainingConfig):
             are), with z = encode(those strands), instead of decode(z). The networks then meet
             the hair they drape at evaluation: strands resting on the shoulders and back, which
             the latent reconstructs only to ~2-5 cm, its decode lying inside the body
-            (docs/training_diagnosis.md, H20). 0 (the paper): P_init = decode(z) always.
+            (docs/training_diagnosis.md, H20-H21). 0 (the paper): P_init = decode(z) always.
         head_rotation_radii: semi-axes [rad] of the phase-1 ellipsoid of head rotation vectors
             about x (nod), y (turn) and z (tilt), reached at the end of phase 1.
         phase1_rest_fraction: share of phase-1 samples kept at the rest pose (no rotation),
@@ -466,8 +466,9 @@ class DynamicTrainingConfig(_TrainingConfig):
         barrier_join_fraction: b_p of the contact barrier (the static curriculum's final 0.01).
         long_hair_fraction: share of each batch's sequences whose hairstyle is drawn from the
             pool's long hairstyles (corpus parameter length >= `data.long_hair_length`); 0 (the
-            paper): uniform over the pool, which holds ~16 % long hair, so long hair on a bent
-            torso is ~0.7 % of the rollout frames (docs/training_diagnosis.md, H17-H19).
+            paper): uniform over the pool, which holds ~16 % long hair, so long hair on the
+            torso bend is ~1 % of the rollout frames (docs/training_diagnosis.md, H17; on its
+            own it did not help there, H21).
         inertia_time_step: the h of Eq. 16 between two drapes of a sequence: "interval" (k / fps
             for a sequence sampled every k frames: the time that passed) or "frame" (1 / fps
             whatever k: inertia weighted k^2 = 4-25 times too much, which trained networks that
