@@ -774,10 +774,10 @@ def hair_hair_cell_pairs_kernel(
     gradient_out: wp.array(dtype=Any),
 ):
     """Short-short pairs, one thread per sorted entry (segment i, cell c; threads of a slot side
-    by side, reading the same candidates): each short segment entered after it in the slot, in
-    the same cell c, whose box meets i's with the intersection's low corner in c, tested exactly
+    by side, reading the same candidates): each short segment entered in the same slot and cell
+    c whose box meets i's with the intersection's low corner in c, tested exactly
     (`_write_pair_if_close`, which orders the two by id). Each pair is tested once: in one cell,
-    by the entry that comes first in its slot.
+    by one of its two entries there (a round robin over the slot).
     """
     pos = wp.tid()
     if pos >= slot_end[table_mask]:
@@ -798,8 +798,17 @@ def hair_hair_cell_pairs_kernel(
     p0 = x_in[vi]
     p1 = x_in[vi + 1]
     cutoff2 = cutoff * cutoff
-    # The entries after this one in the slot: each pair of entries is met once, by the earlier.
-    for q in range(pos + 1, slot_end[slot]):
+    # Each pair of entries of the slot is met once, the work dealt evenly (a round robin): entry r
+    # of n meets the entries r + 1 ... r + (n - 1) / 2 (mod n), and for even n the one n / 2 on
+    # if r < n / 2. (Meeting every later entry halves the reads but not a warp's longest loop.)
+    n = slot_count[slot]
+    start = slot_end[slot] - n
+    r = pos - start
+    meets = (n - 1) // 2
+    if n % 2 == 0 and r < n // 2:
+        meets = n // 2
+    for t in range(1, meets + 1):
+        q = start + (r + t) % n
         other = sorted_entries[q]
         j = other // MAX_CELLS_PER_SEGMENT
         if other < 0 or j == i:
