@@ -545,6 +545,20 @@ def test_torch_reference_matches_numpy_reference(rng):
 # ---------------------------------------------------------------------------- bad input
 
 
+def test_bvh_choice_gives_the_same_distances(rng, device):
+    """The BVH ("sah", or "lbvh" built on the GPU; the CPU falls back to "sah") changes only the
+    speed of the queries; a bad choice is an error naming `bvh`."""
+    v, f, vt, ft = _sphere(device=device)
+    x = _hair_near_sphere(rng, 2, 6, 9)
+    xt = _t(x, device=device)
+    results = [hair_body_signed_distance(xt, BodyMesh(vt, ft, bvh=bvh)) for bvh in ("sah", "lbvh")]
+    torch.testing.assert_close(results[0], results[1], rtol=0, atol=F64_ATOL)  # ties may pick other faces
+    np.testing.assert_allclose(results[0].cpu().numpy().reshape(-1),
+                               ref.signed_distance(x.reshape(-1, 3), v, f)[0], atol=F64_ATOL)
+    with pytest.raises(ValueError, match="bvh"):
+        BodyMesh(vt, ft, bvh="octree")
+
+
 def test_bad_meshes_raise_naming_the_argument():
     v, f, vt, ft = _sphere(frequency=2)
     p = _t([[0.0, 0.0, 0.0]])

@@ -534,7 +534,8 @@ class TrainingSampler:
         if build_body:
             from hairwarp.ops import BodyMesh
 
-            body_mesh = BodyMesh(posed.vertices, self._faces, require_watertight=False)  # checked at setup
+            # Checked at setup; a BVH built on the GPU (new bodies every step: build time counts).
+            body_mesh = BodyMesh(posed.vertices, self._faces, require_watertight=False, bvh="lbvh")
             if self.config.crop_body:
                 # One reach per strand for the batch: the longest of its hairstyles' strands.
                 body_mesh = body_mesh.crop_for_hair(rigid[:, :, 0], rest_lengths.sum(-1).amax(0))
