@@ -338,7 +338,7 @@ class BodyMesh:
                 mesh.refit()
         self._normals = {}
 
-    def crop(self, reach_centers: torch.Tensor, reach_radii: torch.Tensor) -> "BodyMesh":
+    def crop(self, reach_centers: torch.Tensor, reach_radii: torch.Tensor, bvh: str | None = None) -> "BodyMesh":
         """A BodyMesh with only the triangles that meet the union of balls B(center_k, radius_k).
 
         The test is conservative (a triangle's bounding box against each ball): it may keep a
@@ -351,6 +351,7 @@ class BodyMesh:
         Args:
             reach_centers: (K, 3), or (B, K, 3) per pose, ball centres [m].
             reach_radii: (K,) ball radii [m], >= 0.
+            bvh: the crop's BVH ("sah" or "lbvh", see the class); None: the body's.
 
         Returns:
             The cropped BodyMesh (same batch size; `face_indices` maps its faces back).
@@ -359,6 +360,9 @@ class BodyMesh:
             ValueError: naming the argument for bad inputs, or `reach_centers` when no triangle
                 lies within reach.
         """
+        if bvh is not None and bvh not in BVH_CONSTRUCTORS:
+            raise ValueError(f"bvh: expected one of {list(BVH_CONSTRUCTORS)} or None, got {bvh!r}")
+        bvh = self._bvh if bvh is None or self.device.type != "cuda" else bvh
         check_tensor("reach_centers", reach_centers, device=self.device, allow_empty=False)
         if reach_centers.dim() not in (2, 3) or reach_centers.shape[-1] != 3:
             raise ValueError(
@@ -427,11 +431,11 @@ class BodyMesh:
         vertex_map = used if self._vertex_map is None else self._vertex_map[used]
         face_map = kept if self._face_map is None else self._face_map[kept]
         return BodyMesh._from_parts(
-            source[:, used], new_faces, self._batched, False, vertex_map, face_map, normal_faces, face_rows, self._bvh
+            source[:, used], new_faces, self._batched, False, vertex_map, face_map, normal_faces, face_rows, bvh
         )
 
     def crop_for_hair(
-        self, roots: torch.Tensor, strand_lengths: torch.Tensor, margin: float = 0.1
+        self, roots: torch.Tensor, strand_lengths: torch.Tensor, margin: float = 0.1, bvh: str | None = None
     ) -> "BodyMesh":
         """Crop to the triangles any vertex of the given strands can be nearest to.
 
@@ -445,13 +449,14 @@ class BodyMesh:
             roots: (M, 3) or (B, M, 3) strand roots [m] (vertex 0 of each strand).
             strand_lengths: (M,) arc length of each strand [m] (e.g. its rest length).
             margin: relative safety margin on the radius, >= 0.
+            bvh: the crop's BVH ("sah" or "lbvh"); None: the body's.
 
         Returns:
             The cropped BodyMesh.
         """
         check_tensor("strand_lengths", strand_lengths, device=self.device)
         margin = check_positive("margin", margin, allow_zero=True)
-        return self.crop(roots, 2.0 * strand_lengths * (1.0 + margin))
+        return self.crop(roots, 2.0 * strand_lengths * (1.0 + margin), bvh=bvh)
 
     def __repr__(self) -> str:
         kind = "watertight" if self._watertight else "cropped/open"

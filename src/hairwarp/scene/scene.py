@@ -139,9 +139,10 @@ class Scene:
         rigid = rigid_placement(cache["strands"], posed, self.body, scalp=self.scalp,
                                 root_uv=cache["root_uv"], search=cache["search"])
         faces = self.body.faces.to(device=device, dtype=torch.int32)
-        body_mesh = BodyMesh(posed.vertices.to(dtype), faces)
+        # The full body is only cropped (a tree fast to build), the crop is queried (the better tree).
+        body_mesh = BodyMesh(posed.vertices.to(dtype), faces, bvh="lbvh" if crop else "sah")
         if crop:
-            body_mesh = body_mesh.crop_for_hair(rigid.positions[:, :, 0], cache["strand_lengths"])
+            body_mesh = body_mesh.crop_for_hair(rigid.positions[:, :, 0], cache["strand_lengths"], bvh="sah")
         inputs = EnergyInputs(
             rest_lengths=cache["rest_lengths"],
             rigid=rigid.positions,
