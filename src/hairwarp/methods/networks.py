@@ -71,6 +71,9 @@ class HairFormerSimulator:
         # eager forward is launch-bound: 4.2 ms for the paper's static network on an H100).
         self.use_cuda_graphs = True
         self._graphs: dict[tuple, tuple] = {}  # key -> (CapturedCall or None, the body it queries)
+        # Turn every input to face +z and the drape back (`hairwarp.models.heading`): the networks
+        # were trained on bodies facing +z, and draping does not depend on the heading.
+        self.canonical_heading = True
 
     @property
     def num_vertices(self) -> int:
@@ -108,12 +111,23 @@ class HairFormerSimulator:
         belongs to that body (its BVH): graphs are kept per input shapes and body, the last
         `MAX_GRAPHS` of them.
         """
-        if body is None:
-            fn = self.static.drape
-        else:
-            def fn(z, beta, theta, rigid, root_uv):
+        from hairwarp.models.deformation import apply_deformation
+        from hairwarp.models.heading import heading, turn_contact_features, turn_pose, turn_vectors
+
+        canonical = self.canonical_heading
+        projection = self.static.config.length_projection
+
+        def fn(z, beta, theta, rigid, root_uv):
+            angle = heading(theta) if canonical else torch.zeros_like(theta[:, 0])
+            kwargs = {}
+            if body is not None:
                 contact = self.static.contact_features(rigid, root_uv, body)
-                return self.static.drape(z, beta, theta, rigid, root_uv, None, contact)
+                kwargs["contact"] = turn_contact_features(contact, -angle) if canonical else contact
+            deformation = self.static(z, beta, turn_pose(theta, -angle) if canonical else theta, **kwargs)
+            if canonical:
+                deformation = turn_vectors(deformation, angle)
+            return apply_deformation(rigid, deformation, root_uv, projection)
+
         if not (inputs[0].is_cuda and self.use_cuda_graphs):
             return fn(*inputs)
         key = (tuple((tuple(t.shape), t.dtype, str(t.device)) for t in inputs), None if body is None else id(body))
@@ -154,19 +168,29 @@ class HairFormerSimulator:
         t = rigid.shape[0]
         if poses.shape[0] != t:
             raise ValueError(f"poses: expected {t} frames (as rigid), got {poses.shape[0]}")
+        from hairwarp.models.heading import heading, turn_contact_features, turn_pose, turn_vectors
+
         z = self.latent(hairstyle, rigid.device, dtype)
         betas = betas.reshape(1, -1)
         window = self.dynamic.config.window
-        motion = motion_descriptor_windows(poses.detach().cpu().double(), betas[0].detach().cpu().double(),
-                                           1.0 / fps, window, include_betas=False)
+        poses64 = poses.detach().cpu().double()
+        # One turn for the whole sequence (the first frame's heading): a body that turns during
+        # the motion keeps turning, as the dynamics need.
+        angle = heading(poses64[:1]) if self.canonical_heading else torch.zeros(1, dtype=torch.float64)
+        poses64 = turn_pose(poses64, -angle.expand(t))
+        motion = motion_descriptor_windows(poses64, betas[0].detach().cpu().double(), 1.0 / fps, window,
+                                           include_betas=False)
         motion = motion.to(device=rigid.device, dtype=dtype)[None]
         root_uv = hairstyle.root_uv.to(rigid.device)
+        angles = angle.to(device=rigid.device, dtype=dtype).expand(t)
         if contact is None and self.dynamic.config.static.contact_samples > 0:
             contact = self.dynamic.contact_features(rigid.to(dtype), root_uv, body)
+        if contact is not None:
+            contact = turn_contact_features(contact, -angles)
         out = self.dynamic.simulate(z, betas.to(device=rigid.device, dtype=dtype),
-                                    poses.to(device=rigid.device, dtype=dtype)[None], motion,
+                                    poses64.to(device=rigid.device, dtype=dtype)[None], motion,
                                     contact=None if contact is None else contact[None])
-        maps = out.deformation_map.reshape(t, *out.deformation_map.shape[2:])
+        maps = turn_vectors(out.deformation_map.reshape(t, *out.deformation_map.shape[2:]), angles)
         projection = self.dynamic.config.static.length_projection
         return apply_deformation(rigid.to(dtype), maps, root_uv, projection).to(rigid.dtype)
 

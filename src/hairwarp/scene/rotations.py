@@ -78,17 +78,17 @@ def matrix_to_axis_angle(matrix: torch.Tensor) -> torch.Tensor:
     out = vee * scale[..., None]
     # Near pi the antisymmetric part vanishes: the axis a comes from the symmetric part,
     # (R + R^T) / 2 - cos(t) I = (1 - cos t) a a^T, as its column of largest norm.
+    # Computed for every matrix, no test read back: the function runs inside CUDA graphs (the
+    # networks' heading, `hairwarp.models.heading`).
     near_pi = (sin < 1e-4) & (cos < 0)
-    if bool(near_pi.any()):
-        eye = torch.eye(3, dtype=matrix.dtype, device=matrix.device)
-        sym = (matrix + matrix.transpose(-1, -2)) / 2 - cos[..., None, None] * eye
-        col = sym.diagonal(dim1=-2, dim2=-1).argmax(-1)
-        axis = torch.gather(sym, -1, col[..., None, None].expand(*col.shape, 3, 1))[..., 0]
-        axis = axis / axis.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        # Sign: agree with the antisymmetric part where it is not exactly zero.
-        sign = torch.where((axis * vee).sum(-1) < 0, -1.0, 1.0).to(matrix.dtype)
-        out = torch.where(near_pi[..., None], axis * (sign * angle)[..., None], out)
-    return out
+    eye = torch.eye(3, dtype=matrix.dtype, device=matrix.device)
+    sym = (matrix + matrix.transpose(-1, -2)) / 2 - cos[..., None, None] * eye
+    col = sym.diagonal(dim1=-2, dim2=-1).argmax(-1)
+    axis = torch.gather(sym, -1, col[..., None, None].expand(*col.shape, 3, 1))[..., 0]
+    axis = axis / axis.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    # Sign: agree with the antisymmetric part where it is not exactly zero.
+    sign = torch.where((axis * vee).sum(-1) < 0, -1.0, 1.0).to(matrix.dtype)
+    return torch.where(near_pi[..., None], axis * (sign * angle)[..., None], out)
 
 
 def rigid_transform(rotation: torch.Tensor, translation: torch.Tensor) -> torch.Tensor:
