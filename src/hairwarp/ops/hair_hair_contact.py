@@ -17,13 +17,14 @@ Which segment pairs count:
 Normalisation: energy = weight * sum over pairs of B(d), a sum (not a mean), per batch item;
 `weight` is lambda_hh of Eq. 12 [J per pair at B = 1].
 
-Broad phase: one grid over all segment midpoints of the whole batch, the batch item part of
-each cell's slot, so a query only visits its own item: one sort and one launch for any batch
-size, with no cross-item candidates to reject (one grid per item would cost B builds and B
-launches; one grid without the item over items that overlap in space, as poses of one hairstyle
-do, would make every query visit B times the candidates). Segments are sorted by slot with
-`torch.sort`; cells are as wide as a typical query's radius (max segment length capped at
-1.5 x the mean, + xi + dhat), computed on the device with the other scales of the grid.
+Broad phase, on CUDA (`_DEVICE_BROAD_PHASE = "cells"`, `_cell_broad_phase`): each segment's
+bounding box grown by (xi + dhat) / 2 is entered in the <= 8 cells it touches (cells as wide as a
+typical box, hashed with the batch item into one table for the whole batch); two segments closer
+than xi + dhat have overlapping boxes and are tested once, in the cell of the low corner of the
+boxes' intersection; segments wider than two cells are listed and walk their own box. The pairs
+kernels add each kept pair's energy as they find it. The midpoint grid it replaced (one grid over
+all segment midpoints, `torch.sort` by slot, each segment walking the cells of its query box)
+stays selectable as "midpoints"; the CPU has its own grid (`_CpuGrid`) and pair cache.
 
 Host synchronisations: none to launch. With `on_overflow` "grow", "raise" or "warn" the pair
 count is read back once (to size the narrow phase and handle overflow). With "defer" nothing is
@@ -35,9 +36,9 @@ Memory: the pair buffer is one per device, reused across eager calls (grown to 1
 need, never shrunk), capped at `max_pairs` pairs of 8 bytes (default 64 per segment: 1.6 GiB for
 1024 x 100 hair at batch 32, of which a drape touches ~1 pair per segment, 26 MiB); a call being
 captured in a CUDA graph gets buffers of its own, sized by its capacity (the graph keeps them).
-Besides it, a call holds ~36 bytes per segment (midpoint, half length, group, slot, sorted order),
-the grid's slot table (2 MiB per batch item: 64^3 start and end indices) and the gradient (the
-size of `x`). See docs/contact.md.
+Besides it, a call of the cells kind holds ~360 bytes per segment (room for 8 entries with their
+boxes, the table; `_cell_broad_phase`) and the gradient (the size of `x`); the midpoint kind
+~36 bytes per segment and a 2 MiB slot table per batch item. See docs/contact.md.
 """
 
 from __future__ import annotations
