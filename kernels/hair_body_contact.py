@@ -45,7 +45,8 @@ fills it) use the same rule link by link: pass 1 queries each vertex within max(
 length of the segment that ends at it); a miss proves the vertex farther from the surface than
 that segment is long, hence on its predecessor's side. Pass 2 gives each missed vertex the side
 of the last vertex before it whose query hit: outside, it is beyond the reach and costs nothing
-more; inside, one query capped at that vertex's |d| plus the way to it gives its depth. An
+more; inside, it is listed, and one query per listed vertex, capped at that hit's |d| plus the
+way to it, gives its depth. An
 unbounded query from far outside walks most of the BVH, and most hair is far outside: this is
 what the caps save (on an H100, 1024 x 100 hair at batch 32: 14.3 -> 7.7 ms with the inside
 queries unbounded; docs/contact.md).
@@ -410,6 +411,34 @@ def hair_body_energy_vertex_kernel(
 
 
 @wp.kernel
+def hair_body_deep_list_kernel(
+    # In:
+    side: wp.array(dtype=wp.int32),
+    num_vertices: int,
+    # Out:
+    deep_count_out: wp.array(dtype=wp.int32),
+    deep_list_out: wp.array(dtype=wp.int32),
+    deep_hit_out: wp.array(dtype=wp.int32),
+):
+    """Pass 2a, one thread per vertex: a moving vertex that missed its capped query is beyond it
+    on the side of the strand's last vertex before it that found the surface
+    (`chain_hit_before`). Outside, it is beyond the reach: zero, as pass 1 wrote. Inside, it
+    joins the list of deep vertices (with that hit) for pass 2b: listed, the deep queries fill
+    whole warps.
+    """
+    i = wp.tid()
+    v = i % num_vertices
+    if side[i] != 0 or v < 2:
+        return
+    hit = chain_hit_before(side, i, v, 1)
+    if hit >= 0 and side[hit] > 0:
+        return
+    k = wp.atomic_add(deep_count_out, 0, 1)
+    deep_list_out[k] = i
+    deep_hit_out[k] = hit
+
+
+@wp.kernel
 def hair_body_energy_far_kernel(
     # In:
     x: wp.array(dtype=Any),
@@ -429,26 +458,24 @@ def hair_body_energy_far_kernel(
     weight: Any,
     variant: int,
     zero_dist: Any,
-    side: wp.array(dtype=wp.int32),
     hit_distance: wp.array(dtype=float),
+    deep_count: wp.array(dtype=wp.int32),
+    deep_list: wp.array(dtype=wp.int32),
+    deep_hit: wp.array(dtype=wp.int32),
     # Out:
     vertex_energy_out: wp.array(dtype=Any),
     gradient_out: wp.array(dtype=Any),
     query_count_out: wp.array(dtype=wp.int32),
 ):
-    """Pass 2 of 2, one thread per vertex: a moving vertex that missed its capped query is
-    beyond it on the side of the strand's last vertex before it that found the surface
-    (`chain_hit_before`). Outside, it is beyond the reach: zero, as pass 1 wrote. Inside, an
-    exact query capped by that vertex's distance plus the way to it (`depth_query_radius`)
-    gives its depth.
+    """Pass 2b, one thread per listed deep vertex (launched over every vertex, threads past the
+    list's count return): an exact query capped by its hit's distance plus the way to it
+    (`depth_query_radius`) gives its depth.
     """
-    i = wp.tid()
-    v = i % num_vertices
-    if side[i] != 0 or v < 2:
+    t = wp.tid()
+    if t >= deep_count[0]:
         return
-    hit = chain_hit_before(side, i, v, 1)
-    if hit >= 0 and side[hit] > 0:
-        return
+    i = deep_list[t]
+    hit = deep_hit[t]
     body = (i // (num_strands * num_vertices)) * body_batch_stride
     p = x[i]
     radius = depth_query_radius(x, hit_distance, i, hit)

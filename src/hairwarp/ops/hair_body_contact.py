@@ -677,11 +677,16 @@ def _energy_forward(x, body, xi, dhat, bp, weight, variant_id, strategy):
                       device=device)
         else:
             # Capped queries, then the misses' sides along each strand (kernel docstrings).
-            hits = [_warp.as_warp(torch.empty(count, dtype=torch.int32, device=x.device)),
-                    _warp.as_warp(torch.empty(count, dtype=torch.float32, device=x.device))]
+            side = _warp.as_warp(torch.empty(count, dtype=torch.int32, device=x.device))
+            hit_distance = _warp.as_warp(torch.empty(count, dtype=torch.float32, device=x.device))
+            deep = [_warp.as_warp(torch.zeros(1, dtype=torch.int32, device=x.device)),
+                    _warp.as_warp(torch.empty(count, dtype=torch.int32, device=x.device)),
+                    _warp.as_warp(torch.empty(count, dtype=torch.int32, device=x.device))]
             wp.launch(kernels.hair_body_energy_vertex_kernel, dim=count, inputs=common,
-                      outputs=outputs + hits, device=device)
-            wp.launch(kernels.hair_body_energy_far_kernel, dim=count, inputs=common + hits,
+                      outputs=outputs + [side, hit_distance], device=device)
+            wp.launch(kernels.hair_body_deep_list_kernel, dim=count, inputs=[side, num_vertices], outputs=deep,
+                      device=device)
+            wp.launch(kernels.hair_body_energy_far_kernel, dim=count, inputs=common + [hit_distance] + deep,
                       outputs=outputs, device=device)
     # Per-strand (or per-vertex) partial sums, reduced per batch item here: no atomics.
     return partial.view(batch, -1).sum(dim=1), gradient, queries
