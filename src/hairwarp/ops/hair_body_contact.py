@@ -237,6 +237,14 @@ class BodyMesh:
             ids = [m.id for m in self._meshes]
             self._mesh_ids = wp.array(ids, dtype=wp.uint64, device=_warp.warp_device(device))
 
+    def _kernel_arrays(self, dtype: torch.dtype) -> list:
+        """The body's arrays as the kernels take them, after the query points: mesh ids,
+        vertices, faces, vertex and edge pseudo-normals (`kernels.hair_body_contact`).
+        """
+        vertex_normals, edge_normals = self._normals_as(dtype)
+        return [self._mesh_ids, _warp.as_warp(self._vertices_as(dtype), vec3=True), self._faces_wp,
+                _warp.as_warp(vertex_normals, vec3=True), _warp.as_warp(edge_normals, vec3=True)]
+
     def _normals_as(self, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
         """(B V, 3) vertex and (3 B F, 3) face-edge pseudo-normals in `dtype`, contiguous."""
         if dtype not in self._normals:
@@ -493,15 +501,7 @@ def _signed_distance_forward(points: torch.Tensor, body: BodyMesh, points_per_ba
     stride = _body_stride(body, batch)
     distance = torch.empty(points.shape[0], dtype=points.dtype, device=points.device)
     gradient = torch.empty_like(points)
-    vertex_normals, edge_normals = body._normals_as(points.dtype)
-    mesh = [
-        _warp.as_warp(points, vec3=True),
-        body._mesh_ids,
-        _warp.as_warp(body._vertices_as(points.dtype), vec3=True),
-        body._faces_wp,
-        _warp.as_warp(vertex_normals, vec3=True),
-        _warp.as_warp(edge_normals, vec3=True),
-    ]
+    mesh = [_warp.as_warp(points, vec3=True)] + body._kernel_arrays(points.dtype)
     counts = [points_per_batch, body.num_vertices, body.num_faces, stride]
     zero_dist = _warp.scalar(_ZERO_DISTANCE[points.dtype], points.dtype)
     outputs = [_warp.as_warp(distance), _warp.as_warp(gradient, vec3=True)]
@@ -642,14 +642,7 @@ def _energy_forward(x, body, xi, dhat, bp, weight, variant_id, strategy):
     stride = _body_stride(body, batch)
     gradient = torch.empty_like(x)
     device = _warp.warp_device(x.device)
-    vertex_normals, edge_normals = body._normals_as(x.dtype)
-    common = [
-        _warp.as_warp(x, vec3=True),
-        body._mesh_ids,
-        _warp.as_warp(body._vertices_as(x.dtype), vec3=True),
-        body._faces_wp,
-        _warp.as_warp(vertex_normals, vec3=True),
-        _warp.as_warp(edge_normals, vec3=True),
+    common = [_warp.as_warp(x, vec3=True)] + body._kernel_arrays(x.dtype) + [
         num_strands,
         num_vertices,
         body.num_vertices,
