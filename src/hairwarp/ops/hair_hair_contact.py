@@ -131,6 +131,11 @@ class HairHairContactInfo:
     def overflow(self) -> bool:
         return self.pair_count > self.capacity
 
+    @property
+    def device_count(self) -> torch.Tensor | int:
+        """The pair count as the call left it: a device tensor (not read back) or an int."""
+        return self._count
+
     def check(self) -> None:
         """Raise `HairHairCapacityError` if pairs were dropped (reads the device once).
 

@@ -58,6 +58,19 @@ class DirectOptimizationConfig:
         pair_cache: on the CPU, keep the hair-hair pair list across the energy evaluations
             (`hairwarp.ops.hair_hair_contact.HairHairPairCache`: the same energy and gradient,
             fewer grid queries). No effect on CUDA.
+        lbfgs_line_search: "strong_wolfe": torch.optim.LBFGS's line search (reads the loss back
+            at every trial step); "backtracking": an Armijo backtracking search whose iterations
+            never read the device (`hairwarp.solvers.device_lbfgs`: on CUDA one iteration is a
+            CUDA graph replayed `lbfgs_chunk` times between host reads); there an iteration is
+            one energy evaluation. "auto" (default): backtracking on CUDA with `cuda_graph`
+            (full-size Table 1 to strong-Wolfe's accuracy in ~0.5 s against ~1.6-1.9 s on one
+            H100, docs/contact.md section 7), strong-Wolfe elsewhere (no host/device boundary
+            to save on the CPU; the paper's baseline).
+        lbfgs_max_step: "backtracking": the farthest a trial step moves any vertex [m].
+        lbfgs_curvature_eps: "backtracking": a curvature pair enters the memory when s.y exceeds
+            this times |s|^2 [J/m^2] (torch's strong-Wolfe search has its own rule: s.y > 1e-10).
+        lbfgs_chunk: "backtracking": iterations per graph replay (the host reads the losses, the
+            stopping rule's input, once per chunk; `record_every` replaces it when recording).
         divergence_factor: the run counts as diverged when the loss exceeds the initial loss
             by more than this factor times max(|initial loss|, 1) (an absurd step size sends
             the hair kilometres away long before float32 overflows).
@@ -77,10 +90,19 @@ class DirectOptimizationConfig:
     lbfgs_restart: int = 5
     cuda_graph: bool = True
     pair_cache: bool = True
+    lbfgs_line_search: str = "auto"
+    lbfgs_max_step: float = 0.02
+    lbfgs_curvature_eps: float = 1e-10
+    lbfgs_chunk: int = 10
 
     def __post_init__(self):
         if self.method not in ("adam", "lbfgs"):
             raise ValueError(f"method: expected 'adam' or 'lbfgs', got {self.method!r}")
+        if self.lbfgs_line_search not in ("auto", "strong_wolfe", "backtracking"):
+            raise ValueError("lbfgs_line_search: expected 'auto', 'strong_wolfe' or 'backtracking', "
+                             f"got {self.lbfgs_line_search!r}")
+        if self.lbfgs_chunk < 1:
+            raise ValueError(f"lbfgs_chunk: expected >= 1, got {self.lbfgs_chunk}")
         if self.max_iterations < 0:
             raise ValueError(f"max_iterations: expected >= 0, got {self.max_iterations}")
         if self.patience < 1:
@@ -89,7 +111,7 @@ class DirectOptimizationConfig:
             raise ValueError(f"lbfgs_line_search_evals: expected >= 1, got {self.lbfgs_line_search_evals}")
         if self.record_every < 0:
             raise ValueError(f"record_every: expected >= 0, got {self.record_every}")
-        for name in ("adam_lr", "lbfgs_lr", "divergence_factor"):
+        for name in ("adam_lr", "lbfgs_lr", "divergence_factor", "lbfgs_max_step"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name}: expected a finite positive number, got {value}")
@@ -119,6 +141,13 @@ class OptimizationResult:
     time_s: float
     history: list[dict] = field(default_factory=list)
     evaluations: int = 0
+
+
+def line_search(solver: DirectOptimizationConfig, device: torch.device) -> str:
+    """The L-BFGS line search `solver` runs on `device` ("auto" resolved)."""
+    if solver.lbfgs_line_search != "auto":
+        return solver.lbfgs_line_search
+    return "backtracking" if device.type == "cuda" and solver.cuda_graph else "strong_wolfe"
 
 
 # Evaluations the closure remembers (L-BFGS re-asks for the point its line search ended on).
@@ -163,6 +192,11 @@ def optimize_drape(
         raise ValueError(f"x0: expected shape (B, M, N, 3) or (M, N, 3), got {tuple(x0.shape)}")
     if x0.shape[2] < 3:
         raise ValueError(f"x0: expected N >= 3 vertices per strand (0 and 1 are fixed), got {x0.shape[2]}")
+    if solver.method == "lbfgs" and line_search(solver, x0.device) == "backtracking":
+        from hairwarp.solvers.device_lbfgs import optimize_drape_on_device
+
+        return optimize_drape_on_device(x0, inputs, energy_config, solver, dynamic=dynamic, progress=progress,
+                                        metrics=metrics)
     fixed = x0[:, :, :NUM_FIXED_VERTICES].detach()
     free = x0[:, :, NUM_FIXED_VERTICES:].detach().clone().requires_grad_(True)
 

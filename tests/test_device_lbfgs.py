@@ -1,0 +1,198 @@
+"""L-BFGS with the device-resident backtracking line search (`hairwarp.solvers.device_lbfgs`)."""
+
+import pytest
+import torch
+
+from hairwarp.config import EnergyConfig
+from hairwarp.energy import total_energy
+from hairwarp.evaluation.scenes import comparison_scene
+from hairwarp.metrics import length_change_percent, penetration_percent
+from hairwarp.solvers.device_lbfgs import DeviceLBFGS, lbfgs_direction
+from hairwarp.solvers.direct import DirectOptimizationConfig, optimize_drape
+
+# The tiny Table 1 scene of tests/test_direct.py (and its quartic barrier, for the same reason).
+_STRIDE, _NV = 32, 12
+_CONFIG = EnergyConfig(barrier_variant="monotone")
+
+
+@pytest.fixture(scope="module")
+def table1():
+    return comparison_scene("table1", strand_stride=_STRIDE, num_vertices=_NV).frames([0])
+
+
+def _two_loop(g, pairs, gamma):
+    """The textbook two-loop recursion (Nocedal & Wright, Algorithm 7.4), float64, pairs oldest first."""
+    q = g.clone()
+    alphas = []
+    for s, y in reversed(pairs):
+        a = (s @ q) / (s @ y)
+        alphas.append(a)
+        q = q - a * y
+    r = gamma * q
+    for (s, y), a in zip(pairs, reversed(alphas)):
+        b = (y @ r) / (s @ y)
+        r = r + s * (a - b)
+    return -r
+
+
+@pytest.mark.parametrize("filled", [0, 1, 3, 5])
+@pytest.mark.parametrize("head", [0, 3])
+def test_lbfgs_direction_equals_the_two_loop_recursion(filled, head):
+    """Rows newest first from `head` backwards around the ring (the solver's layout), stale rows
+    (rho = 0) holding garbage that must be ignored."""
+    gen = torch.Generator().manual_seed(filled)
+    n, m = 40, 5
+    hessian = torch.randn(n, n, generator=gen, dtype=torch.float64)
+    hessian = hessian @ hessian.T / n + torch.eye(n, dtype=torch.float64)
+    pairs = []  # oldest first, with y = H s (so s.y > 0)
+    for _ in range(filled):
+        s = torch.randn(n, generator=gen, dtype=torch.float64)
+        pairs.append((s, hessian @ s))
+    g = torch.randn(n, generator=gen, dtype=torch.float64)
+    gamma = float(pairs[-1][0] @ pairs[-1][1] / (pairs[-1][1] @ pairs[-1][1])) if pairs else 0.3
+    expected = _two_loop(g, pairs, gamma)
+    S = torch.randn(m, n, generator=gen)  # stale rows: ignored where rho = 0
+    Y = torch.randn(m, n, generator=gen)
+    rho = torch.zeros(m)
+    order = (head - torch.arange(m)) % m
+    for k, (s, y) in enumerate(reversed(pairs)):  # newest first
+        row = int(order[k])
+        S[row], Y[row], rho[row] = s.float(), y.float(), float(1.0 / (s @ y))
+    d = lbfgs_direction(g.float(), S, Y, rho, torch.tensor(gamma), order=order)
+    torch.testing.assert_close(d.double(), expected, rtol=2e-4, atol=2e-5 * float(expected.abs().max()))
+    assert float(g.float() @ d) < 0  # a descent direction
+
+
+def _rosenbrock(x, graph_safe):
+    """Sum of 2-D Rosenbrock valleys over consecutive pairs, NaN where any x > 3 (a trial step
+    that far must be rejected, never taken)."""
+    x = x.detach().requires_grad_(True)
+    with torch.enable_grad():
+        a, b = x[0::2], x[1::2]
+        f = (100.0 * (b - a * a) ** 2 + (1.0 - a) ** 2).sum()
+        f = torch.where((x > 3.0).any(), torch.full_like(f, float("nan")), f)
+        (g,) = torch.autograd.grad(f, x)
+    return f.detach(), g, 0
+
+
+def test_backtracking_lbfgs_minimises_rosenbrock_and_never_climbs():
+    x0 = torch.tensor([-1.2, 1.0, -0.5, 2.0, 0.0, 0.0], dtype=torch.float64)
+    solver = DirectOptimizationConfig(lbfgs_line_search="backtracking", lbfgs_history=5, lbfgs_max_step=10.0)
+    opt = DeviceLBFGS(_rosenbrock, x0, solver, chunk=1, point_size=2)
+    losses = [float(opt.f)]
+    for _ in range(300):
+        opt.iterate()
+        losses.append(float(opt.trace[0]))
+    assert all(b <= a for a, b in zip(losses, losses[1:]))  # Armijo: never an increase
+    assert all(torch.isfinite(torch.tensor(losses)))  # NaN trials rejected, not taken
+    assert losses[0] > 10.0
+    torch.testing.assert_close(opt.x, torch.ones(6, dtype=torch.float64), atol=1e-4, rtol=0)
+
+
+def test_max_step_bounds_every_trial():
+    seen = []
+
+    def energy(x, graph_safe):
+        seen.append(x.detach().clone())
+        return _rosenbrock(x, graph_safe)
+
+    x0 = torch.tensor([-1.2, 1.0, 2.5, -2.0], dtype=torch.float64)
+    solver = DirectOptimizationConfig(lbfgs_line_search="backtracking", lbfgs_max_step=0.05)
+    opt = DeviceLBFGS(energy, x0, solver, chunk=1, point_size=2)
+    for _ in range(20):
+        before = opt.x.clone()
+        opt.iterate()
+        move = (seen[-1] - before).reshape(-1, 2).norm(dim=1).max()
+        assert float(move) <= 0.05 * (1 + 1e-9)
+    assert float(opt.f) < float(_rosenbrock(x0, False)[0])
+
+
+def test_backtracking_drape_lowers_energy_like_strong_wolfe(table1):
+    x0 = table1.rigid.positions
+    pen0 = float(penetration_percent(x0, table1.body_mesh))
+    assert pen0 > 30.0
+    runs = {}
+    for line_search in ("strong_wolfe", "backtracking"):
+        solver = DirectOptimizationConfig(max_iterations=80, patience=80, lbfgs_line_search=line_search)
+        runs[line_search] = optimize_drape(x0, table1.inputs, _CONFIG, solver)
+    result = runs["backtracking"]
+    x = result.positions
+    assert torch.equal(x[:, :, :2], x0[:, :, :2])
+    with torch.no_grad():
+        e0 = float(total_energy(x0, table1.inputs, _CONFIG).total.sum())
+        e = float(total_energy(x, table1.inputs, _CONFIG).total.sum())
+    assert result.loss == pytest.approx(e, rel=1e-4)
+    assert result.iterations == 80 and result.evaluations == 81
+    losses = [h["loss"] for h in result.history]
+    assert losses[0] == pytest.approx(e0, rel=1e-5)
+    assert all(b <= a for a, b in zip(losses, losses[1:]))
+    # As good as torch's strong-Wolfe L-BFGS for the same number of energy evaluations (within 50 %).
+    assert result.loss < 0.01 * e0
+    assert result.loss < 1.5 * runs["strong_wolfe"].loss
+    assert float(penetration_percent(x, table1.body_mesh)) < 0.5 * pen0
+    assert float(length_change_percent(x, table1.inputs.rest_lengths)) < 2.0
+
+
+def test_backtracking_records_metrics_every_chunk_and_stops_on_patience(table1):
+    calls = []
+
+    def metrics(x):
+        calls.append(x.shape)
+        return {"penetration": float(penetration_percent(x, table1.body_mesh))}
+
+    solver = DirectOptimizationConfig(max_iterations=40, patience=500, record_every=10,
+                                      lbfgs_line_search="backtracking")
+    result = optimize_drape(table1.rigid.positions, table1.inputs, _CONFIG, solver, metrics=metrics)
+    assert [h["iteration"] for h in result.history] == [0, 10, 20, 30, 40]
+    assert all("penetration" in h for h in result.history) and len(calls) == 5
+    times = [h["time_s"] for h in result.history]
+    assert all(b >= a for a, b in zip(times, times[1:]))
+    # Patience: a drape already at its optimum stops after `patience` iterations without decrease.
+    stalled = optimize_drape(result.positions, table1.inputs, _CONFIG, DirectOptimizationConfig(
+        max_iterations=400, patience=5, lbfgs_chunk=5, min_decrease=1e-2, lbfgs_line_search="backtracking"))
+    assert stalled.stop_reason == "patience" and stalled.iterations < 400
+
+
+def test_line_search_option_is_checked():
+    with pytest.raises(ValueError, match="lbfgs_line_search"):
+        DirectOptimizationConfig(lbfgs_line_search="wolfe")
+    with pytest.raises(ValueError, match="lbfgs_chunk"):
+        DirectOptimizationConfig(lbfgs_chunk=0)
+    with pytest.raises(ValueError, match="lbfgs_max_step"):
+        DirectOptimizationConfig(lbfgs_max_step=0.0)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device; this machine has none")
+def test_cuda_graph_backtracking_equals_eager():
+    frames = comparison_scene("table1", strand_stride=_STRIDE, num_vertices=_NV).frames([0], device="cuda")
+    runs = []
+    for graph in (False, True):
+        solver = DirectOptimizationConfig(max_iterations=30, patience=100, lbfgs_chunk=10, cuda_graph=graph,
+                                          lbfgs_line_search="backtracking")
+        runs.append(optimize_drape(frames.rigid.positions, frames.inputs, _CONFIG, solver))
+    eager, graph = runs
+    assert graph.iterations == eager.iterations == 30
+    assert graph.loss == pytest.approx(eager.loss, rel=1e-3)
+    torch.testing.assert_close(graph.positions, eager.positions, atol=1e-4, rtol=0)
+
+
+def test_kept_curvature_products_equal_recomputed_ones():
+    """The solver keeps s_k . y_j as pairs enter (two products per step); after many steps,
+    stores, skips and clears it equals S Y^T computed afresh."""
+    x0 = torch.tensor([-1.2, 1.0, -0.5, 2.0, 0.0, 0.0], dtype=torch.float64)
+    solver = DirectOptimizationConfig(lbfgs_line_search="backtracking", lbfgs_history=4, lbfgs_max_step=10.0)
+    opt = DeviceLBFGS(_rosenbrock, x0, solver, chunk=1, point_size=2)
+    for _ in range(25):
+        opt.iterate()
+        torch.testing.assert_close(opt.SY, opt.S @ opt.Y.T, rtol=1e-9, atol=1e-12)
+    assert bool((opt.rho > 0).all())  # the memory filled up, so the shifts were exercised
+
+
+def test_auto_line_search_is_backtracking_only_on_cuda_graphs():
+    from hairwarp.solvers.direct import line_search
+
+    auto = DirectOptimizationConfig()
+    assert line_search(auto, torch.device("cpu")) == "strong_wolfe"
+    assert line_search(auto, torch.device("cuda")) == "backtracking"
+    assert line_search(DirectOptimizationConfig(cuda_graph=False), torch.device("cuda")) == "strong_wolfe"
+    assert line_search(DirectOptimizationConfig(lbfgs_line_search="backtracking"), torch.device("cpu")) == "backtracking"
