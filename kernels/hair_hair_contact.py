@@ -296,7 +296,9 @@ def _write_pair_if_close(
     segments, and closer than sqrt(cutoff2) to segment i = (p0, p1) (first vertex vi; the exact
     test, input precision); with `with_energy` 1 also add the pair's energy and gradient
     (`_add_pair_energy`), the broad phase's distance reused (no second pass over the pairs);
-    with 2 only for a pair kept in the buffer (n < capacity: the pairs a narrow phase would sum).
+    with 2 only for a pair kept in the buffer (n < capacity: the pairs a narrow phase would sum);
+    with 3 write no pair: count_out and energy_out are per segment, the pair counted and its
+    energy added at min(i, j) (every pair, whatever the capacity).
 
     The lower id's segment goes first into the distance, as in `hair_hair_energy_kernel`, so
     the test and the energy are the same numbers whichever segment's query finds the pair.
@@ -323,6 +325,14 @@ def _write_pair_if_close(
         return
     s, t, dist2 = edge_edge_closest_parameters(a0, a1, b0, b1)
     if dist2 < cutoff2:
+        if with_energy == 3:
+            # Per-segment sums, no list: the pair counted and its energy added at its lower id
+            # (spread addresses: no single counter or energy that every thread's atomics queue on).
+            low = wp.min(i, j)
+            wp.atomic_add(count_out, low, 1)
+            _add_pair_energy(va, vb, a0, a1, b0, b1, s, t, low, num_vertices, xi, dhat, bp, weight, variant,
+                             energy_out, gradient_out)
+            return
         n = wp.atomic_add(count_out, 0, 1)
         if n < capacity:
             pairs_out[2 * n] = wp.min(i, j)
@@ -367,6 +377,37 @@ def segment_keys_kernel(
     bounds_out[seg] = wp.vec4(m[0], m[1], m[2], wp.float32(wp.length(x_in[v0 + 1] - x_in[v0])) * 0.5)
     c = dense_cell(m, origin, inv_width, dims)
     key_out[seg] = dense_key(c[0], c[1], c[2], strand // num_strands, dims)
+
+
+@wp.kernel
+def dense_counting_sort_kernel(
+    # In:
+    keys: wp.array(dtype=wp.int32),
+    bounds_in: wp.array(dtype=wp.vec4),
+    num_cells: int,
+    # Out:
+    cell_start: wp.array(dtype=wp.int32),
+    sorted_ids: wp.array(dtype=wp.int32),
+    sorted_bounds: wp.array(dtype=wp.vec4),
+):
+    """The CPU grid's sort, one thread (launch with dim 1): segments ordered by dense-grid key
+    (a stable counting sort, ids ascending within a cell) with their packed bounds, and
+    cell_start[k] the first sorted index of key k (cell_start[num_cells] = all; the array holds
+    num_cells + 2, zeroed). One pass of counts, one of sums, one of scatter: on Warp's CPU
+    backend cheaper than torch's sort, gather, bincount and cumsum over the cells.
+    """
+    for s in range(keys.shape[0]):
+        cell_start[keys[s] + 2] = cell_start[keys[s] + 2] + 1
+    for c in range(2, num_cells + 2):
+        cell_start[c] = cell_start[c] + cell_start[c - 1]
+    # cell_start[k + 1] is now key k's first index: used as its cursor, it ends at key k's end,
+    # which is key k + 1's first index.
+    for s in range(keys.shape[0]):
+        k = keys[s] + 1
+        p = cell_start[k]
+        cell_start[k] = p + 1
+        sorted_ids[p] = s
+        sorted_bounds[p] = bounds_in[s]
 
 
 @wp.kernel
@@ -881,7 +922,7 @@ def hair_hair_long_pairs_kernel(
     gradient_out: wp.array(dtype=Any),
 ):
     """The long segments' pairs: LONG_LANES threads per listed long segment i (launched as
-    list_stride x LONG_LANES threads, striding over the list). Lane l walks the cells l, l + 32, ...
+    list_stride x LONG_LANES threads, striding over the list). Lane l walks the cells l, l + LONG_LANES, ...
     of i's box for short partners (each met in the cell of the boxes' low corner, as between
     short ones), then of i's box grown by the longest half length for long partners (entered at
     their box centre's cell), keeping those shorter than i (ties: the higher id).

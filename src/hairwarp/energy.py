@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 import torch
 
 from hairwarp.config import ALL_TERMS, EnergyConfig
+from hairwarp.runtime import StreamFork
 
 
 @dataclass
@@ -137,20 +138,25 @@ def total_energy(
     )
     result = EnergyResult(total=total, terms=dict(parts))
 
-    if "hair_body_contact" in wanted and inputs.body is not None and config.hair_body_weight != 0.0:
-        e_hb = ops.hair_body_contact_energy(
-            xb,
-            inputs.body,
-            config.hair_body_xi,
-            config.hair_body_dhat,
-            config.barrier_join_fraction,
-            weight=config.hair_body_weight,
-            variant=config.barrier_variant,
-        )
-        result.total = result.total + e_hb
-        result.terms["hair_body_contact"] = e_hb.detach()
+    with_hair_body = "hair_body_contact" in wanted and inputs.body is not None and config.hair_body_weight != 0.0
+    with_hair_hair = "hair_hair_contact" in wanted and config.hair_hair_weight != 0.0
+    # On CUDA hair-body runs on a side stream beside hair-hair: at batch 1 its deep queries are
+    # a few thousand long BVH walks that leave most of the GPU idle (docs/contact.md 7).
+    fork = StreamFork(xb.device, "hair_body", enabled=with_hair_body and with_hair_hair)
+    e_hb = None
+    if with_hair_body:
+        with fork:
+            e_hb = ops.hair_body_contact_energy(
+                xb,
+                inputs.body,
+                config.hair_body_xi,
+                config.hair_body_dhat,
+                config.barrier_join_fraction,
+                weight=config.hair_body_weight,
+                variant=config.barrier_variant,
+            )
 
-    if "hair_hair_contact" in wanted and config.hair_hair_weight != 0.0:
+    if with_hair_hair:
         segments = xb.shape[1] * (xb.shape[2] - 1)
         if hair_hair_capacity is None:
             hair_hair_capacity = config.hair_hair_capacity_per_segment * segments * xb.shape[0]
@@ -168,6 +174,11 @@ def total_energy(
         result.total = result.total + e_hh
         result.terms["hair_hair_contact"] = e_hh.detach()
         result.hair_hair_info = info
+
+    if e_hb is not None:
+        fork.join(e_hb)
+        result.total = result.total + e_hb
+        result.terms["hair_body_contact"] = e_hb.detach()
 
     if x.dim() == 3:
         result.total = result.total.reshape(1)

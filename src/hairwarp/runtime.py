@@ -212,3 +212,67 @@ class CapturedCall:
         if isinstance(self.output, tuple):
             return tuple(t.clone() for t in self.output)
         return self.output.clone()
+
+
+# Side streams by (device index, name): created once, reused by every call (and by captures).
+_SIDE_STREAMS: dict[tuple[int, str], torch.cuda.Stream] = {}
+# Whether `StreamFork` forks at all (set False to run every term on the current stream).
+STREAM_FORKS = True
+
+
+class StreamFork:
+    """Work that may run beside the current CUDA stream: forked from it, joined back later.
+
+    On one GPU at batch 1 the contact kernels are short and some are latency-bound (a few
+    thousand deep hair-body queries), so independent terms overlap instead of queueing. Use as
+
+        fork = StreamFork(device, "hair_body")
+        with fork:
+            a = f(x)          # on the side stream, after everything queued before the fork
+        b = g(x)              # on the current stream, meanwhile
+        fork.join(a)          # the current stream waits for the side one; `a` usable there
+
+    Every use of the side stream starts after the current stream's work queued so far, so
+    memory freed on the current stream before a fork is never reused under the side stream's
+    feet; `join` records its tensors on the current stream. Graph captures follow forks and
+    joins (both streams are captured). On the CPU, or with `enabled` False, nothing forks.
+
+    Args:
+        device: the tensors' device.
+        name: which side stream (one per name and device).
+        enabled: fork at all (and `hairwarp.runtime.STREAM_FORKS`, True unless set off).
+    """
+
+    def __init__(self, device: torch.device, name: str, *, enabled: bool = True):
+        self.active = enabled and STREAM_FORKS and device.type == "cuda"
+        self._context = None
+        if not self.active:
+            return
+        index = device.index if device.index is not None else torch.cuda.current_device()
+        key = (index, name)
+        if key not in _SIDE_STREAMS:
+            _SIDE_STREAMS[key] = torch.cuda.Stream(device=index)
+        self.side = _SIDE_STREAMS[key]
+        self.main = torch.cuda.current_stream(index)
+        self.side.wait_stream(self.main)
+
+    def __enter__(self):
+        if self.active:
+            self._context = torch.cuda.stream(self.side)
+            self._context.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        if self._context is not None:
+            self._context.__exit__(*exc)
+            self._context = None
+        return False
+
+    def join(self, *tensors: torch.Tensor) -> None:
+        """Make the current stream wait for the side one; `tensors` (made there) are then safe to use here."""
+        if not self.active:
+            return
+        self.main.wait_stream(self.side)
+        for t in tensors:
+            if isinstance(t, torch.Tensor) and t.is_cuda:
+                t.record_stream(self.main)

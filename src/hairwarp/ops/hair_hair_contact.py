@@ -55,6 +55,7 @@ from hairwarp._validate import check_positive, check_tensor
 from hairwarp.config import EnergyConfig
 from hairwarp.kernels import hair_hair_contact as hh_kernels
 from hairwarp.ops.barrier import barrier_variant_id, check_barrier_parameters
+from hairwarp.runtime import StreamFork
 
 OVERFLOW_POLICIES = ("grow", "raise", "warn", "defer")
 DEFAULT_SKIP_ROOT_SEGMENTS = 2
@@ -316,12 +317,15 @@ class _CpuGrid:
         wp.launch(hh_kernels.segment_keys_kernel, dim=self.num_segments,
                   inputs=[self.x_wp, n, m, self.origin, self.inv_width, self.dims],
                   outputs=[wp.from_torch(bounds, dtype=wp.vec4), _warp.as_warp(keys)], device="cpu")
-        _, order = torch.sort(keys)
-        self.ids = order.to(torch.int32)
+        self.ids = torch.empty(self.num_segments, dtype=torch.int32)
         self.half_lengths = bounds[:, 3]
-        self.bounds = bounds[order]
-        self.cell_start = torch.zeros(num_cells + 1, dtype=torch.int32)
-        torch.cumsum(torch.bincount(keys, minlength=num_cells), dim=0, out=self.cell_start[1:])
+        self.bounds = torch.empty_like(bounds)
+        cell_start = torch.zeros(num_cells + 2, dtype=torch.int32)
+        wp.launch(hh_kernels.dense_counting_sort_kernel, dim=1,
+                  inputs=[_warp.as_warp(keys), wp.from_torch(bounds, dtype=wp.vec4), num_cells],
+                  outputs=[_warp.as_warp(cell_start), _warp.as_warp(self.ids),
+                           wp.from_torch(self.bounds, dtype=wp.vec4)], device="cpu")
+        self.cell_start = cell_start[:num_cells + 1]
 
     def long_segments(self) -> torch.Tensor:
         """(S,) bool by segment id: half length above the grid's long threshold H (as the kernel decides)."""
@@ -372,14 +376,15 @@ class _PairEnergyArgs:
     gradient: torch.Tensor
 
     @staticmethod
-    def inputs(args: _PairEnergyArgs | None, dtype: torch.dtype, kept_only: bool = False) -> list:
+    def inputs(args: _PairEnergyArgs | None, dtype: torch.dtype, mode: int = 1) -> list:
         """with_energy, xi, dhat, bp, weight, variant of the kernels (zeros without `args`);
-        `kept_only`: only the pairs that fit the buffer add their energy (as a narrow phase).
+        `mode` the kernels' with_energy (1: every pair found adds to energy[batch item]; 3: to
+        energy[lower segment id], counted per segment, no pair list).
         """
         if args is None:
             zero = _warp.scalar(0.0, dtype)
             return [0, zero, zero, zero, zero, 0]
-        return [2 if kept_only else 1, _warp.scalar(args.xi, dtype), _warp.scalar(args.dhat, dtype),
+        return [mode, _warp.scalar(args.xi, dtype), _warp.scalar(args.dhat, dtype),
                 _warp.scalar(args.bp, dtype), _warp.scalar(args.weight, dtype), args.variant_id]
 
     @staticmethod
@@ -410,9 +415,8 @@ def _arange_int32(n: int) -> torch.Tensor:
     return r
 
 
-def _broad_phase(x4, cutoff, capacity, skip_root_segments, on_overflow, max_pairs=None, energy=None):
-    """Broad phase on (B, M, N, 3) contiguous detached hair. With `energy` (a `_PairEnergyArgs`;
-    the "cells" kind only) the pairs kept in the buffer also add their energy and gradient to it.
+def _broad_phase(x4, cutoff, capacity, skip_root_segments, on_overflow, max_pairs=None):
+    """Broad phase on (B, M, N, 3) contiguous detached hair: the pair list.
 
     Returns:
         pairs (P, 2) int32 flat segment ids (unordered; in eager calls a view of the shared pair
@@ -448,7 +452,7 @@ def _broad_phase(x4, cutoff, capacity, skip_root_segments, on_overflow, max_pair
         return _collect(run, count, requested, cap, capacity, num_segments, on_overflow)
 
     if kind == "cells":
-        run, count = _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy)
+        run, count = _cell_broad_phase(x4, cutoff, skip_root_segments, cap)
         return _collect(run, count, requested, cap, capacity, num_segments, on_overflow)
     params = _grid_params(x4, cutoff)
     wp_device = _warp.warp_device(device)
@@ -513,6 +517,10 @@ def _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy=None):
     `segment_boxes_kernel` ...): returns (run, count) as `_collect` takes them. Any device
     (the CPU runs it in the tests); nothing read back to launch, so it can be captured.
 
+    With `energy` (a `_PairEnergyArgs` whose `energy` holds one float64 per segment) the kernels
+    write no pair list: every pair adds its energy and gradient, counted per segment
+    (with_energy 3); `count` is then (S,) per segment and `run`'s room unused.
+
     Memory per call: room for 8 entries per segment (rank, packed id and box: 288 bytes), the
     segment's box and long flag (28 bytes) and the table (8 bytes per slot, 4-8 slots per
     segment): ~360 bytes per segment (1.1 GiB for 1024 x 100 hair at batch 32), besides the pair
@@ -535,7 +543,7 @@ def _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy=None):
     sorted_entries = torch.empty(entries, dtype=torch.int32, device=device)
     sorted_lo = torch.empty(entries, 3, dtype=torch.float32, device=device)
     sorted_hi = torch.empty(entries, 3, dtype=torch.float32, device=device)
-    count = torch.zeros(1, dtype=torch.int32, device=device)
+    count = torch.zeros(1 if energy is None else num_segments, dtype=torch.int32, device=device)
     x_wp = _warp.as_warp(x4.reshape(-1, 3), vec3=True)
     params_wp = _warp.as_warp(params)
     half_cutoff32 = 0.5 * float(cutoff)
@@ -562,22 +570,57 @@ def _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy=None):
         if energy is not None:  # a rerun ("grow") starts the sums again
             energy.energy.zero_()
             energy.gradient.zero_()
+        if energy is not None:
+            room = 0  # no pair list
         pairs = _pair_buffer(device, room, cap)
         common_out = [_warp.as_warp(count), _warp.as_warp(pairs)] + _PairEnergyArgs.outputs(energy, x4.dtype)
-        pair_inputs = [_warp.scalar(cutoff, x4.dtype), room] + _PairEnergyArgs.inputs(energy, x4.dtype, True)
-        with _warp.launch_scope(device):
-            wp.launch(hh_kernels.hair_hair_cell_pairs_kernel, dim=entries,
-                      inputs=[x_wp] + sorted_wp + table_wp + [params_wp, n, m, skip_root_segments, table - 1]
-                      + pair_inputs,
-                      outputs=common_out, device=wp_device)
+        pair_inputs = [_warp.scalar(cutoff, x4.dtype), room] + _PairEnergyArgs.inputs(energy, x4.dtype, 3)
+        # The long segments' kernel beside the cells kernel (CUDA): a few hundred threads
+        # walking wide boxes, latency more than work (both add to the sums atomically).
+        fork = StreamFork(device, "hair_hair_long")
+        with fork, _warp.launch_scope(device):
             wp.launch(hh_kernels.hair_hair_long_pairs_kernel, dim=list_stride * lanes,
                       inputs=[x_wp, boxes[0], boxes[1], _warp.as_warp(long_count), _warp.as_warp(long_list)]
                       + sorted_wp + table_wp
                       + [params_wp, n, m, skip_root_segments, table - 1, half_cutoff32, list_stride] + pair_inputs,
                       outputs=common_out, device=wp_device)
+        with _warp.launch_scope(device):
+            wp.launch(hh_kernels.hair_hair_cell_pairs_kernel, dim=entries,
+                      inputs=[x_wp] + sorted_wp + table_wp + [params_wp, n, m, skip_root_segments, table - 1]
+                      + pair_inputs,
+                      outputs=common_out, device=wp_device)
+        fork.join()
         return pairs
 
     return run, count
+
+
+def _overflow_policy(count, capacity, num_segments, on_overflow, max_pairs) -> int:
+    """`_collect`'s rules for a broad phase that summed every pair without a list (the cells
+    energy): returns the capacity the call was given; reads `count` ((1,) device) except with
+    "defer"; raises or warns as `_collect` does (the energy is complete either way).
+    """
+    cap = default_max_pairs(num_segments) if max_pairs is None else max_pairs
+    requested = min(default_capacity(num_segments) if capacity is None else capacity, cap)
+    if on_overflow == "defer":
+        return requested
+    found = int(count.item())  # the one host read of an eager call
+    if found > requested:
+        if on_overflow == "raise":
+            raise HairHairCapacityError(found, requested)
+        if found > cap:
+            raise HairHairCapacityError(found, requested, cap)
+        if on_overflow == "grow":
+            if capacity is None:
+                _learned_capacity[num_segments] = max(_learned_capacity.get(num_segments, 0), found + found // 4)
+        else:
+            warnings.warn(
+                f"hair-hair contact: {found} segment pairs found but capacity is {requested}; the energy "
+                f"holds them all (the cells broad phase keeps no list). Pass capacity >= {found}.",
+                RuntimeWarning,
+                stacklevel=4,
+            )
+    return requested
 
 
 def _collect(run, count, requested, cap, capacity, num_segments, on_overflow):
@@ -972,19 +1015,26 @@ def hair_hair_contact_energy(
         if x.dim() == 3:
             energy = energy[0]
         return energy, HairHairContactInfo(found, requested)
-    if _broad_phase_kind(x4c.device) == "cells" and x4c.shape[1] >= 2 and x4c.shape[2] >= 2:
-        # The pair energies added by the pairs kernels as they find each pair: no pair list to
-        # read back, no second launch (the same pairs, sums and overflow rule as below).
+    if _broad_phase_kind(x4c.device) == "cells" and x4c.shape[0] >= 1 and x4c.shape[1] >= 2 and x4c.shape[2] >= 2:
+        # The pair energies added by the pairs kernels as they find each pair, summed per segment:
+        # no pair list (so no buffer to fill: the energy holds every pair, whatever the capacity),
+        # no second launch, no counter or energy that every thread's atomics queue on. The count
+        # is compared with the capacity as the other broad phases do (the same errors, warnings
+        # and `info`), only the energy is never partial.
+        b, m, n = x4c.shape[:3]
+        num_segments = b * m * (n - 1)
         args = _PairEnergyArgs(xi, dhat, bp, weight, variant_id,
-                               torch.zeros(x4c.shape[0], dtype=torch.float64, device=x4c.device),
+                               torch.zeros(num_segments, dtype=torch.float64, device=x4c.device),
                                torch.zeros_like(x4c, memory_format=torch.contiguous_format))
-        _, count, found, requested = _broad_phase(
-            x4c.detach(), xi + dhat, capacity, skip_root_segments, on_overflow, max_pairs, energy=args
-        )
-        energy = _PrecomputedContactEnergy.apply(x4c, args.energy, args.gradient)
+        run, per_segment = _cell_broad_phase(x4c.detach(), xi + dhat, skip_root_segments,
+                                             default_max_pairs(num_segments) if max_pairs is None else max_pairs, args)
+        run(0)
+        count = per_segment.sum(dtype=torch.int32).reshape(1)
+        requested = _overflow_policy(count, capacity, num_segments, on_overflow, max_pairs)
+        energy = _PrecomputedContactEnergy.apply(x4c, args.energy.view(b, -1).sum(dim=1), args.gradient)
         if x.dim() == 3:
             energy = energy[0]
-        return energy, HairHairContactInfo(count if found is None else found, requested)
+        return energy, HairHairContactInfo(count, requested)
     pairs, count, found, requested = _broad_phase(
         x4c.detach(), xi + dhat, capacity, skip_root_segments, on_overflow, max_pairs
     )

@@ -59,13 +59,15 @@ class DirectOptimizationConfig:
             (`hairwarp.ops.hair_hair_contact.HairHairPairCache`: the same energy and gradient,
             fewer grid queries). No effect on CUDA.
         lbfgs_line_search: "strong_wolfe": torch.optim.LBFGS's line search (reads the loss back
-            at every trial step); "backtracking": an Armijo backtracking search whose iterations
-            never read the device (`hairwarp.solvers.device_lbfgs`: on CUDA one iteration is a
-            CUDA graph replayed `lbfgs_chunk` times between host reads); there an iteration is
-            one energy evaluation. "auto" (default): backtracking on CUDA with `cuda_graph`
-            (full-size Table 1 to strong-Wolfe's accuracy in ~0.5 s against ~1.6-1.9 s on one
-            H100, docs/contact.md section 7), strong-Wolfe elsewhere (no host/device boundary
-            to save on the CPU; the paper's baseline).
+            at every trial step; its trial steps are unbounded: on CUDA 2 of 6 runs on Table 1
+            tried steps of metres and took 25-217 s, docs/contact.md 8). "backtracking": an
+            Armijo backtracking search whose iterations never read the device
+            (`hairwarp.solvers.device_lbfgs`: on CUDA one iteration is a CUDA graph replayed
+            `lbfgs_chunk` times between host reads); there an iteration is one energy
+            evaluation. "auto" (default): backtracking on CUDA with `cuda_graph` (full-size
+            Table 1 to strong-Wolfe's accuracy in 0.37-0.46 s against 1.6-1.9 s on one H100,
+            docs/contact.md 7-8), strong-Wolfe elsewhere (no host/device boundary to save on
+            the CPU; the paper's baseline).
         lbfgs_max_step: "backtracking": the farthest a trial step moves any vertex [m].
         lbfgs_curvature_eps: "backtracking": a curvature pair enters the memory when s.y exceeds
             this times |s|^2 [J/m^2] (torch's strong-Wolfe search has its own rule: s.y > 1e-10).
