@@ -887,6 +887,65 @@ def box_cell_count(lo_cell: wp.vec3i, hi_cell: wp.vec3i):
     return (hi_cell[0] - lo_cell[0] + 1) * (hi_cell[1] - lo_cell[1] + 1) * (hi_cell[2] - lo_cell[2] + 1)
 
 
+@wp.func
+def _long_short_partners_in_cell(
+    cell: wp.vec3i,
+    x_in: wp.array(dtype=Any),
+    i: int,
+    group: int,
+    strand_i: int,
+    vi: int,
+    p0: Any,
+    p1: Any,
+    lo_i: wp.vec3,
+    hi_i: wp.vec3,
+    inv_width: float,
+    sorted_entries: wp.array(dtype=wp.int32),
+    sorted_lo: wp.array(dtype=wp.vec3),
+    sorted_hi: wp.array(dtype=wp.vec3),
+    slot_end: wp.array(dtype=wp.int32),
+    slot_count: wp.array(dtype=wp.int32),
+    table_mask: int,
+    num_vertices: int,
+    num_strands: int,
+    skip_root_segments: int,
+    cutoff2: Any,
+    capacity: int,
+    with_energy: int,
+    xi: Any,
+    dhat: Any,
+    bp: Any,
+    weight: Any,
+    variant: int,
+    count_out: wp.array(dtype=wp.int32),
+    pairs_out: wp.array(dtype=wp.int32),
+    energy_out: wp.array(dtype=wp.float64),
+    gradient_out: wp.array(dtype=Any),
+):
+    """The short partners of long segment i whose pair is met in `cell` (the cell of the low
+    corner of the two boxes' intersection), each tested exactly (`_write_pair_if_close`).
+    """
+    segs_per_strand = num_vertices - 1
+    slot = cell_table_slot(cell, group, table_mask)
+    end = slot_end[slot]
+    for q in range(end - slot_count[slot], end):
+        other = sorted_entries[q]
+        if other < 0:
+            continue
+        j = other // MAX_CELLS_PER_SEGMENT
+        if (j // segs_per_strand) // num_strands != group:
+            continue
+        lo_j = sorted_lo[q]
+        if not boxes_meet_in_cell(lo_i, hi_i, lo_j, sorted_hi[q], cell, inv_width):
+            continue
+        cj = entry_cell(grid_cell(lo_j, inv_width), other % MAX_CELLS_PER_SEGMENT)
+        if cj[0] != cell[0] or cj[1] != cell[1] or cj[2] != cell[2]:
+            continue  # j's entry of another cell sharing this slot
+        _write_pair_if_close(x_in, i, j, strand_i, vi, p0, p1, num_vertices, num_strands, skip_root_segments,
+                             cutoff2, capacity, with_energy, xi, dhat, bp, weight, variant, count_out, pairs_out,
+                             energy_out, gradient_out)
+
+
 @wp.kernel
 def hair_hair_long_pairs_kernel(
     # In:
@@ -905,7 +964,6 @@ def hair_hair_long_pairs_kernel(
     num_strands: int,
     skip_root_segments: int,
     table_mask: int,
-    half_cutoff32: float,
     list_stride: int,
     cutoff: Any,
     capacity: int,
@@ -922,19 +980,16 @@ def hair_hair_long_pairs_kernel(
     gradient_out: wp.array(dtype=Any),
 ):
     """The long segments' pairs: LONG_LANES threads per listed long segment i (launched as
-    list_stride x LONG_LANES threads, striding over the list). Lane l walks the cells l, l + LONG_LANES, ...
-    of i's box for short partners (each met in the cell of the boxes' low corner, as between
-    short ones), then of i's box grown by the longest half length for long partners (entered at
-    their box centre's cell), keeping those shorter than i (ties: the higher id).
+    list_stride x LONG_LANES threads, striding over the list). Lane l walks the cells l, l + LONG_LANES,
+    ... of i's box for short partners (each met in the cell of the boxes' low corner, as between
+    short ones), then the listed long segments l, l + LONG_LANES, ... for long partners, keeping
+    those shorter than i (ties: the lower id tests the pair).
     """
     t = wp.tid()
     lane = t % LONG_LANES
     segs_per_strand = num_vertices - 1
     inv_width = 1.0 / grid_params[0]
     cutoff2 = cutoff * cutoff
-    # Long partners: a long j closer than the cutoff has its centre within its half length plus
-    # the cutoff / 2 of i's box (and i's box holds the cutoff / 2 already).
-    grow = wp.vec3(grid_params[3] * (1.0 + 1.0e-4) + half_cutoff32 + grid_params[2])
     for listed in range(t // LONG_LANES, long_count[0], list_stride):
         i = long_list[listed]
         strand_i = i // segs_per_strand
@@ -947,46 +1002,72 @@ def hair_hair_long_pairs_kernel(
         half_i = wp.length(wp.vec3(p1) - wp.vec3(p0)) * 0.5
         lo_cell = grid_cell(lo_i, inv_width)
         hi_cell = grid_cell(hi_i, inv_width)
-        for c in range(lane, box_cell_count(lo_cell, hi_cell), LONG_LANES):
-            cell = box_cell(lo_cell, hi_cell, c)
-            slot = cell_table_slot(cell, group, table_mask)
-            end = slot_end[slot]
-            for q in range(end - slot_count[slot], end):
-                other = sorted_entries[q]
-                if other < 0:
+        # A short partner's pair is met in the cell of the boxes' low corner, which lies in j's
+        # box (< 2 cells a side) within the cutoff of segment i's closest point to i: within
+        # reach = 2 sqrt(3) cells + the cutoff of segment i. A segment stretched to metres has a
+        # box of millions of cells but only a tube of them within that reach: walked slab by slab
+        # along its longest axis when that is fewer cells than the box.
+        width = grid_params[0]
+        reach = (3.4642 * width + wp.float32(cutoff)) * 1.001 + 1.0e-6
+        a0 = wp.vec3(p0)
+        d = wp.vec3(p1) - a0
+        axis = int(0)
+        if wp.abs(d[1]) > wp.abs(d[axis]):
+            axis = 1
+        if wp.abs(d[2]) > wp.abs(d[axis]):
+            axis = 2
+        k_lo = wp.max(lo_cell[axis], int(wp.floor((wp.min(a0[axis], a0[axis] + d[axis]) - reach) * inv_width)))
+        k_hi = wp.min(hi_cell[axis], int(wp.floor((wp.max(a0[axis], a0[axis] + d[axis]) + reach) * inv_width)))
+        across = (4.0 * reach + width) * inv_width + 2.0
+        if float(k_hi - k_lo + 1) * across * across >= float(box_cell_count(lo_cell, hi_cell)):
+            for c in range(lane, box_cell_count(lo_cell, hi_cell), LONG_LANES):
+                _long_short_partners_in_cell(box_cell(lo_cell, hi_cell, c), x_in, i, group, strand_i, vi, p0, p1,
+                                             lo_i, hi_i, inv_width, sorted_entries, sorted_lo, sorted_hi, slot_end,
+                                             slot_count, table_mask, num_vertices, num_strands, skip_root_segments,
+                                             cutoff2, capacity, with_energy, xi, dhat, bp, weight, variant,
+                                             count_out, pairs_out, energy_out, gradient_out)
+        else:
+            for k in range(k_lo + lane, k_hi + 1, LONG_LANES):
+                # The part of segment i within reach of slab k (along `axis`), grown by the reach.
+                u0 = (float(k) * width - reach - a0[axis]) / d[axis]
+                u1 = (float(k + 1) * width + reach - a0[axis]) / d[axis]
+                lo_u = wp.clamp(wp.min(u0, u1), 0.0, 1.0)
+                hi_u = wp.clamp(wp.max(u0, u1), 0.0, 1.0)
+                q0 = a0 + d * lo_u
+                q1 = a0 + d * hi_u
+                cl = grid_cell(wp.min(q0, q1) - wp.vec3(reach), inv_width)
+                ch = grid_cell(wp.max(q0, q1) + wp.vec3(reach), inv_width)
+                cl = wp.max(cl, lo_cell)
+                ch = wp.min(ch, hi_cell)
+                if axis == 0:
+                    cl = wp.vec3i(k, cl[1], cl[2])
+                    ch = wp.vec3i(k, ch[1], ch[2])
+                elif axis == 1:
+                    cl = wp.vec3i(cl[0], k, cl[2])
+                    ch = wp.vec3i(ch[0], k, ch[2])
+                else:
+                    cl = wp.vec3i(cl[0], cl[1], k)
+                    ch = wp.vec3i(ch[0], ch[1], k)
+                if ch[0] < cl[0] or ch[1] < cl[1] or ch[2] < cl[2]:
                     continue
-                j = other // MAX_CELLS_PER_SEGMENT
-                if (j // segs_per_strand) // num_strands != group:
-                    continue
-                lo_j = sorted_lo[q]
-                if not boxes_meet_in_cell(lo_i, hi_i, lo_j, sorted_hi[q], cell, inv_width):
-                    continue
-                cj = entry_cell(grid_cell(lo_j, inv_width), other % MAX_CELLS_PER_SEGMENT)
-                if cj[0] != cell[0] or cj[1] != cell[1] or cj[2] != cell[2]:
-                    continue  # j's entry of another cell sharing this slot
-                _write_pair_if_close(x_in, i, j, strand_i, vi, p0, p1, num_vertices, num_strands,
-                                     skip_root_segments, cutoff2, capacity, with_energy, xi, dhat, bp, weight,
-                                     variant, count_out, pairs_out, energy_out, gradient_out)
-        lo_cell = grid_cell(lo_i - grow, inv_width)
-        hi_cell = grid_cell(hi_i + grow, inv_width)
-        for c in range(lane, box_cell_count(lo_cell, hi_cell), LONG_LANES):
-            cell = box_cell(lo_cell, hi_cell, c)
-            slot = cell_table_slot(cell, group, table_mask)
-            end = slot_end[slot]
-            for q in range(end - slot_count[slot], end):
-                other = sorted_entries[q]
-                if other >= 0:
-                    continue
-                j = (-other - 1) // MAX_CELLS_PER_SEGMENT
-                if j == i or (j // segs_per_strand) // num_strands != group:
-                    continue
-                cj = box_center_cell(sorted_lo[q], sorted_hi[q], inv_width)
-                if cj[0] != cell[0] or cj[1] != cell[1] or cj[2] != cell[2]:
-                    continue  # entered in another cell sharing this slot
-                vj = (j // segs_per_strand) * num_vertices + j % segs_per_strand
-                half_j = wp.length(wp.vec3(x_in[vj + 1]) - wp.vec3(x_in[vj])) * 0.5
-                if half_j > half_i or (half_j == half_i and j < i):
-                    continue  # the longer one's thread (ties: the lower id's) tests the pair
-                _write_pair_if_close(x_in, i, j, strand_i, vi, p0, p1, num_vertices, num_strands,
-                                     skip_root_segments, cutoff2, capacity, with_energy, xi, dhat, bp, weight,
-                                     variant, count_out, pairs_out, energy_out, gradient_out)
+                for c in range(box_cell_count(cl, ch)):
+                    _long_short_partners_in_cell(box_cell(cl, ch, c), x_in, i, group, strand_i, vi, p0, p1, lo_i,
+                                                 hi_i, inv_width, sorted_entries, sorted_lo, sorted_hi, slot_end,
+                                                 slot_count, table_mask, num_vertices, num_strands,
+                                                 skip_root_segments, cutoff2, capacity, with_energy, xi, dhat, bp,
+                                                 weight, variant, count_out, pairs_out, energy_out, gradient_out)
+        # Long partners: every other listed long segment, the longer of the two testing the pair
+        # (ties: the lower id). A walk of i's box grown by the longest half length cost every
+        # long segment a metre-wide box once one line-search trial stretched a segment to metres
+        # (0.7-1.6 s per evaluation, docs/contact.md 8); the list is a few hundred in a drape.
+        for k in range(lane, long_count[0], LONG_LANES):
+            j = long_list[k]
+            if j == i or (j // segs_per_strand) // num_strands != group:
+                continue
+            vj = (j // segs_per_strand) * num_vertices + j % segs_per_strand
+            half_j = wp.length(wp.vec3(x_in[vj + 1]) - wp.vec3(x_in[vj])) * 0.5
+            if half_j > half_i or (half_j == half_i and j < i):
+                continue  # the longer one's thread (ties: the lower id's) tests the pair
+            _write_pair_if_close(x_in, i, j, strand_i, vi, p0, p1, num_vertices, num_strands,
+                                 skip_root_segments, cutoff2, capacity, with_energy, xi, dhat, bp, weight,
+                                 variant, count_out, pairs_out, energy_out, gradient_out)

@@ -170,3 +170,29 @@ def test_many_long_segments_share_the_long_lanes(rng, monkeypatch):
     found = hair_hair_contact_pairs(torch.tensor(x), XI, DHAT)
     assert expected.shape[0] > 20
     np.testing.assert_array_equal(found.pairs.numpy(), expected)
+
+
+def test_a_segment_stretched_to_metres_walks_a_tube_and_finds_every_pair(rng, monkeypatch):
+    """A wild line-search trial stretches a segment to metres: its box spans millions of cells,
+    so the cells broad phase walks only the cells within reach of the segment, slab by slab
+    (and long partners from the list of long segments). Two metre-long segments through a dense
+    cluster, crossing 1 mm apart: exactly the brute force's pairs."""
+    monkeypatch.setattr(hh, "_broad_phase_kind", lambda device: "cells")
+    x = ref.random_hair(rng, batch=1, strands=8, vertices=12, extent=0.01, segment=2e-3)
+    centre = x[0, :, 2:].reshape(-1, 3).mean(axis=0)
+    for strand, direction, offset in ((0, np.array([1.2, 0.9, -0.7]), 0.0), (1, np.array([-0.8, 1.1, 0.6]), 1e-3)):
+        # Segment 5 of the strand runs through the cluster's centre, ~1.5 m long.
+        half = 0.5 * direction
+        shift = centre + np.array([0.0, 0.0, offset]) - 0.5 * (x[0, strand, 5] + x[0, strand, 6])
+        x[0, strand] += shift
+        x[0, strand, :6] -= half
+        x[0, strand, 6:] += half
+    lengths = np.linalg.norm(np.diff(x, axis=2), axis=-1)
+    assert lengths[0, 0, 5] > 1.4 and lengths[0, 1, 5] > 1.4
+    _, expected = ref.energy(x, XI, DHAT, BP)
+    found = hair_hair_contact_pairs(torch.tensor(x), XI, DHAT)
+    assert expected.shape[0] > 20
+    assert [5, 16] in expected.tolist()  # the two metre-long segments cross within the cutoff
+    assert any(5 in pair and 16 not in pair for pair in expected.tolist())  # and meet short ones
+    np.testing.assert_array_equal(found.pairs.numpy(), expected)
+    assert found.pair_count == expected.shape[0]

@@ -582,7 +582,7 @@ def _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy=None):
             wp.launch(hh_kernels.hair_hair_long_pairs_kernel, dim=list_stride * lanes,
                       inputs=[x_wp, boxes[0], boxes[1], _warp.as_warp(long_count), _warp.as_warp(long_list)]
                       + sorted_wp + table_wp
-                      + [params_wp, n, m, skip_root_segments, table - 1, half_cutoff32, list_stride] + pair_inputs,
+                      + [params_wp, n, m, skip_root_segments, table - 1, list_stride] + pair_inputs,
                       outputs=common_out, device=wp_device)
         with _warp.launch_scope(device):
             wp.launch(hh_kernels.hair_hair_cell_pairs_kernel, dim=entries,
