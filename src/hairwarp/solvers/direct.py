@@ -60,7 +60,8 @@ class DirectOptimizationConfig:
             fewer grid queries). No effect on CUDA.
         lbfgs_line_search: "strong_wolfe": torch.optim.LBFGS's line search (reads the loss back
             at every trial step; its trial steps are unbounded: on CUDA 2 of 6 runs on Table 1
-            tried steps of metres and took 25-217 s, docs/contact.md 8). "backtracking": an
+            tried steps of metres, 25-217 s before long segments walked only their tube,
+            docs/contact.md 8). "backtracking": an
             Armijo backtracking search whose iterations never read the device
             (`hairwarp.solvers.device_lbfgs`: on CUDA one iteration is a CUDA graph replayed
             `lbfgs_chunk` times between host reads); there an iteration is one energy
