@@ -171,8 +171,9 @@ class CapturedCall:
     the graph's buffer (a later replay overwrites it).
 
     Args:
-        fn: a function of CUDA tensors returning a tensor (or a tuple of them); no host synchronisation inside, no
-            data-dependent shapes or control flow (the graph records one path).
+        fn: a function of CUDA tensors returning a tensor, a tuple of them, or None (a step that
+            updates tensors in place); no host synchronisation inside, no data-dependent shapes or
+            control flow (the graph records one path).
         *example: tensors with the shapes, dtypes and device of every later call (none for a
             closure over its tensors: it is then replayed on what they hold at capture).
         warmup: eager calls on a side stream before the capture (allocator, cuBLAS handles).
@@ -205,10 +206,12 @@ class CapturedCall:
         return len(args) == len(self.inputs) and all(
             a.shape == b.shape and a.dtype == b.dtype and a.device == b.device for a, b in zip(args, self.inputs))
 
-    def __call__(self, *args: torch.Tensor) -> torch.Tensor:
+    def __call__(self, *args: torch.Tensor) -> torch.Tensor | tuple[torch.Tensor, ...] | None:
         for buffer, value in zip(self.inputs, args):
             buffer.copy_(value)
         self.graph.replay()
+        if self.output is None:
+            return None
         if isinstance(self.output, tuple):
             return tuple(t.clone() for t in self.output)
         return self.output.clone()

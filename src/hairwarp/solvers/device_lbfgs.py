@@ -284,7 +284,7 @@ def optimize_drape_on_device(x0: torch.Tensor, inputs: EnergyInputs, energy_conf
                                   stop_reason=f"diverged: non-finite loss ({initial}) at the start",
                                   time_s=clock(), history=history, evaluations=1)
 
-    graphs: dict[str, torch.cuda.CUDAGraph] = {}
+    graphs: dict = {}  # "one": the captured iteration
 
     def run(k: int) -> int:
         """K iterations, eager or replayed from a one-iteration graph on CUDA; returns how many ran
@@ -297,25 +297,14 @@ def optimize_drape_on_device(x0: torch.Tensor, inputs: EnergyInputs, energy_conf
             return k
         if "one" in graphs:
             for _ in range(k):  # queued at once: the host does not wait between replays
-                graphs["one"].replay()
+                graphs["one"]()
             return k
-        from hairwarp._validate import set_finite_checks
+        from hairwarp.runtime import CapturedCall
 
-        # A real iteration on a side stream warms the allocator, cuBLAS and the kernels; the
+        # One real iteration warms the allocator, cuBLAS and the kernels (it counts); the
         # capture itself runs nothing.
-        stream = torch.cuda.Stream(device=lbfgs.device)
-        stream.wait_stream(torch.cuda.current_stream(lbfgs.device))
-        with torch.cuda.stream(stream):
-            lbfgs.iterate()
-        torch.cuda.current_stream(lbfgs.device).wait_stream(stream)
-        graph = torch.cuda.CUDAGraph()
-        previous = set_finite_checks(False)
-        try:
-            with torch.cuda.graph(graph):
-                lbfgs.iterate()
-        finally:
-            set_finite_checks(previous)
-        graphs["one"] = graph
+        with torch.cuda.device(lbfgs.device):  # CapturedCall without inputs captures on the current device
+            graphs["one"] = CapturedCall(lbfgs.iterate, warmup=1)
         captures[0] += 1
         return 1
 
