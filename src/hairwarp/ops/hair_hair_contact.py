@@ -595,6 +595,20 @@ def _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy=None):
     return run, count
 
 
+def _over_capacity(found, requested, cap, capacity, num_segments, on_overflow) -> None:
+    """The rules every broad phase applies when it found more pairs than `requested`: "raise"
+    raises; "grow" raises past the cap `max_pairs` and, for a default capacity, learns the count
+    for later calls with as many segments ("warn" warns where the caller knows what was kept).
+    """
+    if on_overflow == "raise":
+        raise HairHairCapacityError(found, requested)
+    if on_overflow == "grow":
+        if found > cap:
+            raise HairHairCapacityError(found, requested, cap)
+        if capacity is None:
+            _learned_capacity[num_segments] = max(_learned_capacity.get(num_segments, 0), found + found // 4)
+
+
 def _overflow_policy(count, capacity, num_segments, on_overflow, max_pairs) -> int:
     """`_collect`'s rules for a broad phase that summed every pair without a list (the cells
     energy): returns the capacity the call was given; reads `count` ((1,) device) except with
@@ -606,14 +620,8 @@ def _overflow_policy(count, capacity, num_segments, on_overflow, max_pairs) -> i
         return requested
     found = int(count.item())  # the one host read of an eager call
     if found > requested:
-        if on_overflow == "raise":
-            raise HairHairCapacityError(found, requested)
-        if found > cap:
-            raise HairHairCapacityError(found, requested, cap)
-        if on_overflow == "grow":
-            if capacity is None:
-                _learned_capacity[num_segments] = max(_learned_capacity.get(num_segments, 0), found + found // 4)
-        else:
+        _over_capacity(found, requested, cap, capacity, num_segments, on_overflow)
+        if on_overflow == "warn":
             warnings.warn(
                 f"hair-hair contact: {found} segment pairs found but capacity is {requested}; the energy "
                 f"holds them all (the cells broad phase keeps no list). Pass capacity >= {found}.",
@@ -633,14 +641,8 @@ def _collect(run, count, requested, cap, capacity, num_segments, on_overflow):
     found = int(count.item())  # the one host read of an eager call
     kept = found
     if found > requested:
-        if on_overflow == "raise":
-            raise HairHairCapacityError(found, requested)
-        if on_overflow == "grow" and found > cap:
-            raise HairHairCapacityError(found, requested, cap)
+        _over_capacity(found, requested, cap, capacity, num_segments, on_overflow)
         if on_overflow == "grow":
-            if capacity is None:
-                learned = max(_learned_capacity.get(num_segments, 0), found + found // 4)
-                _learned_capacity[num_segments] = learned
             # The same positions give the same pairs: one rerun with exactly enough room.
             pairs = run(found)
             again = int(count.item())
