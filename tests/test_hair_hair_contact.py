@@ -266,6 +266,37 @@ def test_deferred_overflow_reads_nothing_until_checked(rng, broad_phase):
         hair_hair_contact_pairs(x, XI, DHAT, on_overflow="defer")
 
 
+def test_grow_without_a_list_reads_nothing_and_needs_no_cap(rng, broad_phase):
+    """The cells broad phase's energy keeps no pair list: under "grow" nothing is read back
+    (an eager CUDA call waits for nothing) and `max_pairs`, which bounds a list's memory, does
+    not apply; the energy holds every pair and `info` reads the count when asked. The broad
+    phases that keep a list still raise past the cap."""
+    import hairwarp.ops.hair_hair_contact as hh
+
+    x = _t(ref.random_hair(rng, batch=2, strands=6, vertices=10))
+    full, info_full = hair_hair_contact_energy(x, XI, DHAT, BP, WEIGHT)
+    needed = info_full.pair_count
+    assert needed > 4
+    if broad_phase != "cells":
+        with pytest.raises(HairHairCapacityError, match="max_pairs"):
+            hair_hair_contact_energy(x, XI, DHAT, BP, WEIGHT, capacity=2, max_pairs=needed - 1)
+        return
+    reads = []
+    real_policy = hh._overflow_policy
+
+    def policy(count, *args):
+        item = count.item
+        count.item = lambda: reads.append(1) or item()
+        return real_policy(count, *args)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(hh, "_overflow_policy", policy)
+        energy, info = hair_hair_contact_energy(x, XI, DHAT, BP, WEIGHT, capacity=2, max_pairs=needed - 1)
+    assert reads == []
+    np.testing.assert_allclose(energy.numpy(), full.numpy(), rtol=1e-12)
+    assert info.pair_count == needed and info.overflow and info.capacity == 2
+
+
 def test_batched_equals_separate_calls(rng):
     x_np = ref.random_hair(rng, batch=3, strands=5, vertices=9)
     x = _t(x_np).requires_grad_(True)
@@ -341,8 +372,10 @@ def test_bad_inputs_raise_naming_the_argument():
             hair_hair_contact_energy(x, **kwargs)
 
 
-def test_default_capacity_learns_from_growth(rng):
-    """capacity=None: a call that had to grow raises the default for later calls of that size."""
+def test_default_capacity_learns_from_growth(rng, broad_phase):
+    """capacity=None: a call that had to grow its pair list raises the default for later calls
+    of that size. The cells broad phase's energy keeps no list: it learns nothing (and needs
+    nothing: its energy holds every pair), its pair list does."""
     from hairwarp.ops.hair_hair_contact import default_capacity
 
     # 10 strands of 13 vertices packed in 3 mm: every pair of strands is in contact.
@@ -351,9 +384,18 @@ def test_default_capacity_learns_from_growth(rng):
     first = default_capacity(num_segments)
     energy, info = hair_hair_contact_energy(x, XI, DHAT, BP)
     assert info.pair_count > first and info.overflow and info.capacity == first
+    if broad_phase == "cells":
+        energy_again, info_again = hair_hair_contact_energy(x, XI, DHAT, BP)
+        assert info_again.capacity == first == default_capacity(num_segments) and info_again.overflow
+        grown = hair_hair_contact_pairs(x, XI, DHAT)
+        assert grown.overflow and grown.pair_count == info.pair_count
     energy_again, info_again = hair_hair_contact_energy(x, XI, DHAT, BP)
-    assert not info_again.overflow and info_again.capacity >= info.pair_count
-    assert default_capacity(num_segments) == info_again.capacity
+    if broad_phase != "cells":
+        assert not info_again.overflow and info_again.capacity >= info.pair_count
+        assert default_capacity(num_segments) == info_again.capacity
+    else:
+        assert default_capacity(num_segments) >= info.pair_count
+        assert not hair_hair_contact_pairs(x, XI, DHAT).overflow
     np.testing.assert_allclose(energy_again.numpy(), energy.numpy(), rtol=1e-13)
 
 

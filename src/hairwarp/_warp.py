@@ -93,8 +93,27 @@ def launch_scope(device: torch.device):
     """
     init()
     if device.type == "cuda":
-        return wp.ScopedStream(wp.stream_from_torch(device), sync_enter=not torch.cuda.is_current_stream_capturing())
+        return wp.ScopedStream(_warp_stream(device), sync_enter=not torch.cuda.is_current_stream_capturing())
     return contextlib.nullcontext()
+
+
+# Warp's view of each torch stream, by (device index, stream handle): `wp.stream_from_torch`
+# registers a new Warp stream on every call (14 us of host time per call on an H100's host,
+# docs/contact.md 9). Each keeps its torch stream alive, so a handle is never reused while here.
+_streams: dict = {}
+_MAX_STREAMS = 64
+
+
+def _warp_stream(device: torch.device) -> wp.Stream:
+    """The Warp stream of torch's current stream on `device`, made once per stream."""
+    stream = torch.cuda.current_stream(device)
+    key = (stream.device_index, stream.cuda_stream)
+    warp_stream = _streams.get(key)
+    if warp_stream is None:
+        if len(_streams) >= _MAX_STREAMS:
+            _streams.clear()
+        warp_stream = _streams[key] = wp.stream_from_torch(stream)
+    return warp_stream
 
 
 _VEC3 = {torch.float32: wp.vec3, torch.float64: wp.vec3d}
@@ -143,14 +162,62 @@ def concrete_kernel(kernel, dtype: torch.dtype, vector_arrays=None, vector_scala
     return _concrete_kernels[key]
 
 
+# The concrete instance of each generic (`Any`-typed) kernel, by its argument types.
+_overloads: dict = {}
+
+
+def _argument_key(value):
+    if isinstance(value, wp.array):
+        return value.dtype, value.ndim
+    return type(value)
+
+
+def launch(kernel, dim, inputs=(), outputs=(), device=None, stream=None) -> None:
+    """`wp.launch`, with a generic kernel's instance looked up once per argument types.
+
+    `wp.launch` infers a generic kernel's argument types and its overload's signature on every
+    call: ~70 us of host time per launch on an H100's host, more than most of our kernels take
+    (docs/contact.md 9). Here the types are keyed by each argument's array dtype and rank, or
+    its Python type, and the instance Warp resolved for them is reused; a kernel that is not
+    generic goes straight to `wp.launch`.
+    """
+    if kernel.is_generic:
+        arguments = [*inputs, *outputs]
+        key = (kernel, tuple(_argument_key(value) for value in arguments))
+        concrete = _overloads.get(key)
+        if concrete is None:
+            concrete = _overloads[key] = kernel.add_overload(kernel.infer_argument_types(arguments))
+        kernel = concrete
+    wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=device, stream=stream)
+
+
+# A Warp view made by `wp.from_torch` for each (address, length, dtype, vec3, device): an eager
+# call wraps ~20 tensors, whose blocks torch's caching allocator hands out again call after
+# call, and `wp.from_torch` costs 10-17 us per tensor on an H100's host (docs/contact.md 9).
+# `as_warp` returns a shallow copy of it (under 1 us) that keeps its own tensor alive, as
+# `wp.from_torch`'s views do; the kept templates hold no tensor.
+_views: dict = {}
+_MAX_VIEWS = 1024
+
+
 def as_warp(t: torch.Tensor, vec3: bool = False) -> wp.array:
-    """Zero-copy Warp view of a contiguous tensor; `vec3=True` views (..., 3) as vec3."""
+    """Zero-copy Warp view of a tensor, flat; `vec3=True` views (..., 3) as vec3. A
+    non-contiguous tensor is copied first (pass only inputs so). The view keeps the tensor alive.
+    """
     init()
     t = t.detach()
     if not t.is_contiguous():
         t = t.contiguous()
-    if vec3:
-        return wp.from_torch(t.reshape(-1, 3), dtype=_VEC3[t.dtype])
-    if t.dtype in _SCALAR:
-        return wp.from_torch(t.reshape(-1), dtype=_SCALAR[t.dtype])
-    return wp.from_torch(t.reshape(-1))
+    key = (t.data_ptr(), t.numel(), t.dtype, vec3, t.device)
+    template = _views.get(key)
+    if template is None:
+        if len(_views) >= _MAX_VIEWS:
+            _views.clear()
+        flat = t.reshape(-1, 3) if vec3 else t.reshape(-1)
+        template = wp.from_torch(flat, dtype=_VEC3[t.dtype] if vec3 else _SCALAR.get(t.dtype), requires_grad=False)
+        template._tensor = None
+        _views[key] = template
+    view = object.__new__(type(template))
+    view.__dict__.update(template.__dict__)
+    view._tensor = t
+    return view

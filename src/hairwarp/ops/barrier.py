@@ -5,7 +5,6 @@
 from __future__ import annotations
 
 import torch
-import warp as wp
 from torch.autograd.function import once_differentiable
 
 from hairwarp import _warp
@@ -38,7 +37,7 @@ def _launch(kernel, d: torch.Tensor, xi: float, dhat: float, bp: float, variant_
     if d.numel() == 0:
         return
     with _warp.launch_scope(d.device):
-        wp.launch(
+        _warp.launch(
             kernel,
             dim=d.numel(),
             inputs=[_warp.as_warp(d), _warp.scalar(xi, d.dtype), _warp.scalar(dhat, d.dtype),

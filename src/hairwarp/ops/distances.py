@@ -9,7 +9,6 @@ along the primitives' common normal, never NaN.
 from __future__ import annotations
 
 import torch
-import warp as wp
 from torch.autograd.function import once_differentiable
 
 from hairwarp import _warp
@@ -41,7 +40,7 @@ def _launch_pairwise(kernel, inputs: list[torch.Tensor], n_params: int):
     gradient = torch.empty(k, 4, 3, dtype=ref.dtype, device=ref.device)
     if k > 0:
         with _warp.launch_scope(ref.device):
-            wp.launch(
+            _warp.launch(
                 kernel,
                 dim=k,
                 inputs=[_warp.as_warp(t.contiguous(), vec3=True) for t in inputs],

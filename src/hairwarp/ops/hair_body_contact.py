@@ -396,7 +396,7 @@ class BodyMesh:
         bound_radii = (bound_radii * (1.0 + 1.0e-5)).expand(batch).contiguous()
         keep = torch.empty(batch * self.num_faces, dtype=torch.int32, device=self.device)
         with _warp.launch_scope(self.device):
-            wp.launch(
+            _warp.launch(
                 kernels.crop_mark_faces_kernel,
                 dim=batch * self.num_faces,
                 inputs=[
@@ -508,15 +508,15 @@ def _signed_distance_forward(points: torch.Tensor, body: BodyMesh, points_per_ba
     device = _warp.warp_device(points.device)
     with _warp.launch_scope(points.device):
         if max_distance is None:
-            wp.launch(kernels.signed_distance_kernel, dim=points.shape[0], inputs=mesh + counts + [zero_dist],
+            _warp.launch(kernels.signed_distance_kernel, dim=points.shape[0], inputs=mesh + counts + [zero_dist],
                       outputs=outputs, device=device)
         else:
             inputs = mesh + [points_per_line, line_stride] + counts + [_warp.scalar(max_distance, points.dtype), zero_dist]
             hits = [_warp.as_warp(torch.empty(points.shape[0], dtype=torch.int32, device=points.device)),
                     _warp.as_warp(torch.empty(points.shape[0], dtype=torch.float32, device=points.device))]
-            wp.launch(kernels.signed_distance_capped_kernel, dim=points.shape[0], inputs=inputs,
+            _warp.launch(kernels.signed_distance_capped_kernel, dim=points.shape[0], inputs=inputs,
                       outputs=outputs + hits, device=device)
-            wp.launch(kernels.signed_distance_far_kernel, dim=points.shape[0], inputs=inputs + hits,
+            _warp.launch(kernels.signed_distance_far_kernel, dim=points.shape[0], inputs=inputs + hits,
                       outputs=outputs, device=device)
     return distance, gradient
 
@@ -666,7 +666,7 @@ def _energy_forward(x, body, xi, dhat, bp, weight, variant_id, strategy):
     outputs = [_warp.as_warp(partial), _warp.as_warp(gradient, vec3=True), _warp.as_warp(queries)]
     with _warp.launch_scope(x.device):
         if strategy == "strand":
-            wp.launch(kernels.hair_body_energy_strand_kernel, dim=count, inputs=common, outputs=outputs,
+            _warp.launch(kernels.hair_body_energy_strand_kernel, dim=count, inputs=common, outputs=outputs,
                       device=device)
         else:
             # Capped queries, then the misses' sides along each strand (kernel docstrings).
@@ -675,11 +675,11 @@ def _energy_forward(x, body, xi, dhat, bp, weight, variant_id, strategy):
             deep = [_warp.as_warp(torch.zeros(1, dtype=torch.int32, device=x.device)),
                     _warp.as_warp(torch.empty(count, dtype=torch.int32, device=x.device)),
                     _warp.as_warp(torch.empty(count, dtype=torch.int32, device=x.device))]
-            wp.launch(kernels.hair_body_energy_vertex_kernel, dim=count, inputs=common,
+            _warp.launch(kernels.hair_body_energy_vertex_kernel, dim=count, inputs=common,
                       outputs=outputs + [side, hit_distance], device=device)
-            wp.launch(kernels.hair_body_deep_list_kernel, dim=count, inputs=[side, num_vertices], outputs=deep,
+            _warp.launch(kernels.hair_body_deep_list_kernel, dim=count, inputs=[side, num_vertices], outputs=deep,
                       device=device)
-            wp.launch(kernels.hair_body_energy_far_kernel, dim=count, inputs=common + [hit_distance] + deep,
+            _warp.launch(kernels.hair_body_energy_far_kernel, dim=count, inputs=common + [hit_distance] + deep,
                       outputs=outputs, device=device)
     # Per-strand (or per-vertex) partial sums, reduced per batch item here: no atomics.
     return partial.view(batch, -1).sum(dim=1), gradient, queries

@@ -314,14 +314,14 @@ class _CpuGrid:
         keys = torch.empty(self.num_segments, dtype=torch.int32)
         self.x_wp = _warp.as_warp(flat, vec3=True)
         self.params_wp = _warp.as_warp(self.params)
-        wp.launch(hh_kernels.segment_keys_kernel, dim=self.num_segments,
+        _warp.launch(hh_kernels.segment_keys_kernel, dim=self.num_segments,
                   inputs=[self.x_wp, n, m, self.origin, self.inv_width, self.dims],
                   outputs=[wp.from_torch(bounds, dtype=wp.vec4), _warp.as_warp(keys)], device="cpu")
         self.ids = torch.empty(self.num_segments, dtype=torch.int32)
         self.half_lengths = bounds[:, 3]
         self.bounds = torch.empty_like(bounds)
         cell_start = torch.zeros(num_cells + 2, dtype=torch.int32)
-        wp.launch(hh_kernels.dense_counting_sort_kernel, dim=1,
+        _warp.launch(hh_kernels.dense_counting_sort_kernel, dim=1,
                   inputs=[_warp.as_warp(keys), wp.from_torch(bounds, dtype=wp.vec4), num_cells],
                   outputs=[_warp.as_warp(cell_start), _warp.as_warp(self.ids),
                            wp.from_torch(self.bounds, dtype=wp.vec4)], device="cpu")
@@ -347,7 +347,7 @@ class _CpuGrid:
             all_queried = 0
         if ranks.shape[0] == 0:
             return
-        wp.launch(
+        _warp.launch(
             hh_kernels.hair_hair_pairs_cpu_kernel,
             dim=ranks.shape[0],
             inputs=[self.x_wp, wp.from_torch(self.bounds, dtype=wp.vec4), _warp.as_warp(self.ids),
@@ -466,16 +466,16 @@ def _broad_phase(x4, cutoff, capacity, skip_root_segments, on_overflow, max_pair
     x_wp = _warp.as_warp(x_flat, vec3=True)
     params_wp = _warp.as_warp(params)
     with _warp.launch_scope(device):
-        mid_wp = wp.from_torch(midpoints, dtype=wp.vec3)
+        mid_wp = _warp.as_warp(midpoints, vec3=True)
         half_wp = _warp.as_warp(half_lengths)
         group_wp = _warp.as_warp(groups)
-        wp.launch(hh_kernels.segment_cells_kernel, dim=num_segments, inputs=[x_wp, n, m, params_wp],
+        _warp.launch(hh_kernels.segment_cells_kernel, dim=num_segments, inputs=[x_wp, n, m, params_wp],
                   outputs=[mid_wp, half_wp, group_wp, _warp.as_warp(slots)], device=wp_device)
     sorted_slots, order = torch.sort(slots)
     sorted_midpoints = midpoints[order]
     sorted_half_lengths = half_lengths[order]
     with _warp.launch_scope(device):
-        wp.launch(hh_kernels.grid_ranges_kernel, dim=num_segments, inputs=[_warp.as_warp(sorted_slots), num_segments],
+        _warp.launch(hh_kernels.grid_ranges_kernel, dim=num_segments, inputs=[_warp.as_warp(sorted_slots), num_segments],
                   outputs=[_warp.as_warp(slot_start), _warp.as_warp(slot_end)], device=wp_device)
     order_wp = _warp.as_warp(order)
 
@@ -483,10 +483,10 @@ def _broad_phase(x4, cutoff, capacity, skip_root_segments, on_overflow, max_pair
         count.zero_()
         pairs = _pair_buffer(device, room, cap)
         with _warp.launch_scope(device):
-            wp.launch(
+            _warp.launch(
                 hh_kernels.hair_hair_pairs_kernel,
                 dim=num_segments,
-                inputs=[x_wp, wp.from_torch(sorted_midpoints, dtype=wp.vec3), _warp.as_warp(sorted_half_lengths),
+                inputs=[x_wp, _warp.as_warp(sorted_midpoints, vec3=True), _warp.as_warp(sorted_half_lengths),
                         group_wp, order_wp, _warp.as_warp(slot_start),
                         _warp.as_warp(slot_end), params_wp, n, skip_root_segments, float(cutoff), _RADIUS_SLACK,
                         _warp.scalar(cutoff, x4.dtype), room],
@@ -547,18 +547,18 @@ def _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy=None):
     x_wp = _warp.as_warp(x4.reshape(-1, 3), vec3=True)
     params_wp = _warp.as_warp(params)
     half_cutoff32 = 0.5 * float(cutoff)
-    boxes = [wp.from_torch(box_lo, dtype=wp.vec3), wp.from_torch(box_hi, dtype=wp.vec3), _warp.as_warp(long_flags)]
+    boxes = [_warp.as_warp(box_lo, vec3=True), _warp.as_warp(box_hi, vec3=True), _warp.as_warp(long_flags)]
     with _warp.launch_scope(device):
-        wp.launch(hh_kernels.segment_boxes_kernel, dim=num_segments,
+        _warp.launch(hh_kernels.segment_boxes_kernel, dim=num_segments,
                   inputs=[x_wp, n, m, skip_root_segments, params_wp, half_cutoff32, _RADIUS_SLACK, table - 1],
                   outputs=boxes + [_warp.as_warp(ranks), _warp.as_warp(slot_count), _warp.as_warp(long_count),
                                    _warp.as_warp(long_list)], device=wp_device)
     slot_end = torch.cumsum(slot_count, 0, dtype=torch.int32)
     table_wp = [_warp.as_warp(slot_end), _warp.as_warp(slot_count)]
-    sorted_wp = [_warp.as_warp(sorted_entries), wp.from_torch(sorted_lo, dtype=wp.vec3),
-                 wp.from_torch(sorted_hi, dtype=wp.vec3)]
+    sorted_wp = [_warp.as_warp(sorted_entries), _warp.as_warp(sorted_lo, vec3=True),
+                 _warp.as_warp(sorted_hi, vec3=True)]
     with _warp.launch_scope(device):
-        wp.launch(hh_kernels.scatter_entries_kernel, dim=entries,
+        _warp.launch(hh_kernels.scatter_entries_kernel, dim=entries,
                   inputs=boxes + [_warp.as_warp(ranks)] + table_wp + [params_wp, n, m, table - 1],
                   outputs=sorted_wp, device=wp_device)
 
@@ -579,13 +579,13 @@ def _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy=None):
         # walking wide boxes, latency more than work (both add to the sums atomically).
         fork = StreamFork(device, "hair_hair_long")
         with fork, _warp.launch_scope(device):
-            wp.launch(hh_kernels.hair_hair_long_pairs_kernel, dim=list_stride * lanes,
+            _warp.launch(hh_kernels.hair_hair_long_pairs_kernel, dim=list_stride * lanes,
                       inputs=[x_wp, boxes[0], boxes[1], _warp.as_warp(long_count), _warp.as_warp(long_list)]
                       + sorted_wp + table_wp
                       + [params_wp, n, m, skip_root_segments, table - 1, list_stride] + pair_inputs,
                       outputs=common_out, device=wp_device)
         with _warp.launch_scope(device):
-            wp.launch(hh_kernels.hair_hair_cell_pairs_kernel, dim=entries,
+            _warp.launch(hh_kernels.hair_hair_cell_pairs_kernel, dim=entries,
                       inputs=[x_wp] + sorted_wp + table_wp + [params_wp, n, m, skip_root_segments, table - 1]
                       + pair_inputs,
                       outputs=common_out, device=wp_device)
@@ -611,12 +611,15 @@ def _over_capacity(found, requested, cap, capacity, num_segments, on_overflow) -
 
 def _overflow_policy(count, capacity, num_segments, on_overflow, max_pairs) -> int:
     """`_collect`'s rules for a broad phase that summed every pair without a list (the cells
-    energy): returns the capacity the call was given; reads `count` ((1,) device) except with
-    "defer"; raises or warns as `_collect` does (the energy is complete either way).
+    energy): returns the capacity the call was given. "raise" and "warn" read `count` ((1,)
+    device) and raise or warn as `_collect` does; "grow" and "defer" read nothing: with no list
+    there is nothing to grow and no memory for `max_pairs` to bound, and the energy is complete
+    either way (the count stays on the device for `HairHairContactInfo`). So an eager call on
+    CUDA waits for nothing (a host read there cost 0.43 ms per call on an H100, docs/contact.md 9).
     """
     cap = default_max_pairs(num_segments) if max_pairs is None else max_pairs
     requested = min(default_capacity(num_segments) if capacity is None else capacity, cap)
-    if on_overflow == "defer":
+    if on_overflow in ("defer", "grow"):
         return requested
     found = int(count.item())  # the one host read of an eager call
     if found > requested:
@@ -787,7 +790,7 @@ def _cached_broad_phase(x4, cutoff, skip_root_segments, max_pairs, cache: HairHa
         if grid is not None and cache.requeried > 0:
             grid.pairs(x4, skip_root_segments, cutoff, queried, count, pairs, room, energy)
         if candidates.shape[0] > 0:
-            wp.launch(hh_kernels.hair_hair_candidates_kernel, dim=candidates.shape[0],
+            _warp.launch(hh_kernels.hair_hair_candidates_kernel, dim=candidates.shape[0],
                       inputs=[x_wp, _warp.as_warp(candidates), _warp.as_warp(queried), n, m,
                               _warp.scalar(cutoff, x4.dtype), room, *_PairEnergyArgs.inputs(energy, x4.dtype)],
                       outputs=[_warp.as_warp(count), _warp.as_warp(pairs),
@@ -816,7 +819,7 @@ def _pair_energies(x4, pairs, count, energy) -> None:
     if pairs.shape[0] == 0:
         return
     with _warp.launch_scope(x4.device):
-        wp.launch(
+        _warp.launch(
             hh_kernels.hair_hair_energy_kernel,
             dim=pairs.shape[0],
             inputs=[_warp.as_warp(x4, vec3=True), _warp.as_warp(pairs.contiguous()), _warp.as_warp(count),
@@ -853,7 +856,7 @@ class _HairHairContactEnergy(torch.autograd.Function):
         num_pairs = pairs.shape[0]
         if num_pairs > 0:
             with _warp.launch_scope(x4.device):
-                wp.launch(
+                _warp.launch(
                     hh_kernels.hair_hair_energy_kernel,
                     dim=num_pairs,
                     inputs=[
@@ -918,7 +921,9 @@ def hair_hair_contact_pairs(
     Raises:
         ValueError: naming the argument, for bad inputs.
         HairHairCapacityError: on overflow with `on_overflow="raise"`, or more pairs than
-            `max_pairs`.
+            `max_pairs` (not with the device's broad phase, boxes in hashed cells: its energy
+            keeps no pair list, so nothing grows and nothing needs a cap; the count is read only
+            when `info` is asked).
     """
     x4 = _check_hair(x)
     xi, dhat, _ = check_barrier_parameters(xi, dhat, 0.5)
@@ -992,7 +997,9 @@ def hair_hair_contact_energy(
         ValueError: naming the argument, for bad inputs (shape, dtype, NaN/Inf, barrier
             parameters, variant, capacity, on_overflow).
         HairHairCapacityError: on overflow with `on_overflow="raise"`, or more pairs than
-            `max_pairs`.
+            `max_pairs` (not with the device's broad phase, boxes in hashed cells: its energy
+            keeps no pair list, so nothing grows and nothing needs a cap; the count is read only
+            when `info` is asked).
     """
     x4 = _check_hair(x)
     xi, dhat, bp = check_barrier_parameters(xi, dhat, bp)

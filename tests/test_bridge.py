@@ -1,0 +1,62 @@
+"""The torch-Warp bridge (`hairwarp._warp`): views reused across calls stay correct, generic
+kernels resolve once per argument types, and neither trades safety for the host time saved."""
+
+import gc
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+import warp as wp
+
+from hairwarp import _warp
+
+_warp.init()  # quietly, before the kernel below is declared
+
+
+@wp.kernel
+def _scale_kernel(a: wp.array(dtype=Any), s: Any, out: wp.array(dtype=Any)):
+    i = wp.tid()
+    out[i] = a[i] * s
+
+
+def test_a_view_keeps_its_tensor_alive_when_the_block_is_handed_out_again():
+    """A view of a temporary keeps the temporary's data even after the tensor's last name is
+    gone and torch hands the same block to a new tensor (the view must own a reference: a
+    cached view that did not would read the new tensor's values)."""
+    view = _warp.as_warp(torch.arange(4096, dtype=torch.float32))
+    gc.collect()
+    others = [torch.full((4096,), 7.0) for _ in range(8)]  # would reuse a freed block
+    np.testing.assert_array_equal(view.numpy(), np.arange(4096, dtype=np.float32))
+    assert all(float(o[0]) == 7.0 for o in others)
+
+
+def test_views_of_tensors_at_one_address_follow_each_tensor():
+    buffer = torch.zeros(12, dtype=torch.float32)
+    first = _warp.as_warp(buffer, vec3=True)
+    buffer.copy_(torch.arange(12.0))
+    again = _warp.as_warp(buffer, vec3=True)
+    assert first is not again and again.dtype == wp.vec3 and again.shape == (4,)
+    np.testing.assert_array_equal(again.numpy().reshape(-1), np.arange(12.0))
+    # Same address, other dtype or length: another view.
+    as_int = _warp.as_warp(buffer.view(torch.int32))
+    assert as_int.dtype == wp.int32 and as_int.shape == (12,)
+    assert _warp.as_warp(buffer[:6]).shape == (6,)
+    # A non-contiguous input is copied (and that copy kept alive by its view).
+    strided = torch.arange(24.0, dtype=torch.float64)[::2]
+    np.testing.assert_array_equal(_warp.as_warp(strided).numpy(), np.arange(0.0, 24.0, 2.0))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_a_generic_kernel_resolves_per_argument_types(dtype):
+    """One cached instance per argument types: float32 and float64 calls, interleaved, each get
+    their own and the right numbers."""
+    for kind in (dtype, torch.float64 if dtype == torch.float32 else torch.float32, dtype):
+        a = torch.arange(5, dtype=kind)
+        out = torch.zeros(5, dtype=kind)
+        _warp.launch(_scale_kernel, dim=5, inputs=[_warp.as_warp(a), _warp.scalar(2.5, kind)],
+                     outputs=[_warp.as_warp(out)], device="cpu")
+        np.testing.assert_allclose(out.numpy(), 2.5 * np.arange(5.0))
+    keys = [key for key in _warp._overloads if key[0] is _scale_kernel]
+    assert len(keys) == 2
+    assert len({id(_warp._overloads[key]) for key in keys}) == 2
