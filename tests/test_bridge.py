@@ -60,3 +60,34 @@ def test_a_generic_kernel_resolves_per_argument_types(dtype):
     keys = [key for key in _warp._overloads if key[0] is _scale_kernel]
     assert len(keys) == 2
     assert len({id(_warp._overloads[key]) for key in keys}) == 2
+
+
+def test_a_replayed_launch_follows_every_changed_parameter_and_keeps_nothing_alive():
+    """`_warp.launch` replays each kernel's recorded launch, packing again only what changed:
+    new arrays (other addresses or lengths), new scalars, a new dim all take effect, and the
+    record holds none of the tensors it was given."""
+    import weakref
+
+    def scale(a, s, out, dim=None):
+        _warp.launch(_scale_kernel, dim=a.numel() if dim is None else dim,
+                     inputs=[_warp.as_warp(a), _warp.scalar(s, a.dtype)], outputs=[_warp.as_warp(out)], device="cpu")
+        return out
+
+    a = torch.arange(6, dtype=torch.float32)
+    np.testing.assert_allclose(scale(a, 2.0, torch.zeros(6)).numpy(), 2.0 * np.arange(6))
+    np.testing.assert_allclose(scale(a, 3.0, torch.zeros(6)).numpy(), 3.0 * np.arange(6))  # new scalar
+    b = torch.arange(10, 20, dtype=torch.float32)
+    np.testing.assert_allclose(scale(b[:4], 3.0, torch.zeros(4)).numpy(), 3.0 * np.arange(10, 14))  # new arrays, dim
+    out = torch.full((6,), -1.0)
+    np.testing.assert_allclose(scale(a, 3.0, out, dim=2).numpy(), [0.0, 3.0, -1, -1, -1, -1])  # dim only
+    a.copy_(torch.arange(6, 12, dtype=torch.float32))  # same addresses, new values: read at launch
+    np.testing.assert_allclose(scale(a, 3.0, out).numpy(), 3.0 * np.arange(6, 12))
+
+    temporary = torch.arange(8, dtype=torch.float32)
+    result = torch.zeros(8)
+    alive = weakref.ref(temporary)
+    scale(temporary, 1.0, result)
+    del temporary
+    gc.collect()
+    assert alive() is None
+    np.testing.assert_allclose(result.numpy(), np.arange(8))

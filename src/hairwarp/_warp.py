@@ -172,23 +172,59 @@ def _argument_key(value):
     return type(value)
 
 
-def launch(kernel, dim, inputs=(), outputs=(), device=None, stream=None) -> None:
-    """`wp.launch`, with a generic kernel's instance looked up once per argument types.
+def _parameter_key(value):
+    """What a launch parameter packs from: an array's address and shape, a scalar's value."""
+    if isinstance(value, wp.array):
+        return value.ptr, value.shape
+    if isinstance(value, (int, float)):
+        return value
+    scalar = getattr(value, "value", None)  # a Warp scalar
+    if scalar is not None:
+        return scalar
+    return tuple(value)  # a Warp vector
 
-    `wp.launch` infers a generic kernel's argument types and its overload's signature on every
-    call: ~70 us of host time per launch on an H100's host, more than most of our kernels take
-    (docs/contact.md 9). Here the types are keyed by each argument's array dtype and rank, or
-    its Python type, and the instance Warp resolved for them is reused; a kernel that is not
-    generic goes straight to `wp.launch`.
+
+# The last recorded launch of each kernel per device, with its parameters' keys and its dim.
+_launches: dict = {}
+
+
+def launch(kernel, dim, inputs=(), outputs=(), device=None, stream=None) -> None:
+    """`wp.launch` with the host work an eager call repeats done once.
+
+    - A generic kernel's instance is looked up per argument types: `wp.launch` infers the types
+      and the overload's signature on every call (~70 us per launch on an H100's host).
+    - Each kernel's launch is recorded once per device (`wp.launch(record_cmd=True)`) and
+      replayed with only the parameters that changed packed again (an array's address and
+      shape, a scalar's value): packing every argument cost 25-75 us per launch there, a
+      replay 6 us (docs/contact.md 9). The record keeps no argument alive.
     """
+    arguments = [*inputs, *outputs]
     if kernel.is_generic:
-        arguments = [*inputs, *outputs]
         key = (kernel, tuple(_argument_key(value) for value in arguments))
         concrete = _overloads.get(key)
         if concrete is None:
             concrete = _overloads[key] = kernel.add_overload(kernel.infer_argument_types(arguments))
         kernel = concrete
-    wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=device, stream=stream)
+    target = wp.get_device(device) if stream is None else stream.device
+    if not isinstance(dim, int) or dim <= 0:
+        wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=target, stream=stream)
+        return
+    record = _launches.get((kernel, target.alias))
+    if record is None:
+        command = wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=target, record_cmd=True)
+        command.fwd_args = None  # retain no argument (they would keep their tensors alive)
+        record = _launches[(kernel, target.alias)] = [command, [_parameter_key(value) for value in arguments], dim]
+    else:
+        command, keys, last_dim = record
+        if dim != last_dim:
+            command.set_dim(dim)
+            record[2] = dim
+        for index, value in enumerate(arguments):
+            value_key = _parameter_key(value)
+            if value_key != keys[index]:
+                command.set_param_at_index(index, value)
+                keys[index] = value_key
+    record[0].launch(stream)
 
 
 # A Warp view made by `wp.from_torch` for each (address, length, dtype, vec3, device): an eager

@@ -219,7 +219,7 @@ def _launch(x4, inputs, scales, layout, *, compute_gradient):
         return _warp.scalar(value, dtype)
 
     with _warp.launch_scope(device):
-        wp.launch(
+        _warp.launch(
             _kernel(layout, dtype),
             dim=batch * rows,
             inputs=[

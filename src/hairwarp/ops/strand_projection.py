@@ -10,7 +10,6 @@ terms in training (`StaticConfig.length_projection = "follow_the_leader"`).
 from __future__ import annotations
 
 import torch
-import warp as wp
 from torch.autograd.function import once_differentiable
 
 from hairwarp import _warp
@@ -30,7 +29,7 @@ def _launch(kernel, target: torch.Tensor, arrays, outputs) -> None:
         return
     inputs = [_warp.as_warp(a, vec3=True) for a in arrays] + [n, _warp.scalar(FOLLOW_THE_LEADER_EPS, target.dtype)]
     with _warp.launch_scope(target.device):
-        wp.launch(_warp.concrete_kernel(kernel, target.dtype), dim=strands, inputs=inputs,
+        _warp.launch(_warp.concrete_kernel(kernel, target.dtype), dim=strands, inputs=inputs,
                   outputs=[_warp.as_warp(o, vec3=True) for o in outputs], device=_warp.warp_device(target.device))
 
 
