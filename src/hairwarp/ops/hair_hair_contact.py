@@ -256,7 +256,7 @@ def default_capacity(num_segments: int) -> int:
     `EnergyConfig.hair_hair_capacity_per_segment` times `num_segments`, or 1.25 times the
     largest pair count an earlier call with as many segments needed, whichever is larger.
     """
-    configured = EnergyConfig().hair_hair_capacity_per_segment * num_segments
+    configured = EnergyConfig.hair_hair_capacity_per_segment * num_segments  # the field's default
     return max(configured, _learned_capacity.get(num_segments, 0))
 
 
