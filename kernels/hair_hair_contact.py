@@ -52,6 +52,78 @@ NUM_FIXED_VERTICES = wp.constant(2)
 GRID_DIM = wp.constant(64)
 
 
+# The broad phase's scales (`grid_params_kernel`) from per-segment statistics gathered in
+# this many slots (spread atomics: no single address that every segment's thread queues on),
+# the lengths summed in fixed point (integer atomics: the same sum in any order, so the same
+# grid run after run).
+SEGMENT_STAT_SLOTS = wp.constant(256)
+LENGTH_FIXED_POINT = wp.constant(1073741824.0)  # units per metre (2^30)
+LENGTH_FIXED_POINT_MAX = wp.constant(1.0e6)  # [m]: a longer segment counts as this in the mean
+
+
+@wp.kernel
+def segment_stats_kernel(
+    # In:
+    x_in: wp.array(dtype=Any),
+    num_vertices: int,
+    # Out:
+    length_sums: wp.array(dtype=wp.int64),
+    maxima: wp.array2d(dtype=float),
+):
+    """Per slot (segment id mod SEGMENT_STAT_SLOTS): the segments' lengths summed in fixed
+    point, the longest length (maxima[slot, 0]) and the largest |coordinate| of their vertices
+    (maxima[slot, 1]) [m]. `maxima` starts at 0, `length_sums` at 0.
+    """
+    seg = wp.tid()
+    strand = seg // (num_vertices - 1)
+    v0 = strand * num_vertices + seg % (num_vertices - 1)
+    a = wp.vec3(x_in[v0])
+    b = wp.vec3(x_in[v0 + 1])
+    length = float(wp.length(x_in[v0 + 1] - x_in[v0]))
+    slot = seg % SEGMENT_STAT_SLOTS
+    fixed = wp.min(length, LENGTH_FIXED_POINT_MAX) * LENGTH_FIXED_POINT
+    wp.atomic_add(length_sums, slot, wp.int64(fixed))
+    wp.atomic_max(maxima, slot, 0, length)
+    largest = wp.max(wp.max(wp.abs(a[0]), wp.abs(a[1])), wp.max(wp.abs(a[2]), wp.abs(b[0])))
+    wp.atomic_max(maxima, slot, 1, wp.max(largest, wp.max(wp.abs(b[1]), wp.abs(b[2]))))
+
+
+@wp.kernel
+def grid_params_kernel(
+    # In:
+    length_sums: wp.array(dtype=wp.int64),
+    maxima: wp.array2d(dtype=float),
+    num_segments: int,
+    cutoff: float,
+    long_factor: float,
+    cell_factor: float,
+    relative_slack: float,
+    # Out:
+    params_out: wp.array(dtype=float),
+):
+    """One thread: the broad phase's scales from `segment_stats_kernel`'s slots (see
+    `ops.hair_hair_contact._grid_params`): cell width, long half length H, absolute slack,
+    longest half length [m].
+    """
+    total = wp.int64(0)
+    longest = float(0.0)
+    largest = float(0.0)
+    for slot in range(SEGMENT_STAT_SLOTS):
+        total = total + length_sums[slot]
+        longest = wp.max(longest, maxima[slot, 0])
+        largest = wp.max(largest, maxima[slot, 1])
+    mean = float(0.0)
+    if num_segments > 0:
+        mean = float(wp.float64(total) / wp.float64(LENGTH_FIXED_POINT) / wp.float64(num_segments))
+    max_half = 0.5 * longest
+    long_half = wp.min(max_half, 0.5 * long_factor * mean)
+    absolute_slack = 4.0 * largest * 1.1920928955078125e-07  # 2^-23
+    params_out[0] = (cutoff + 2.0 * long_half) * cell_factor * (1.0 + relative_slack) + absolute_slack
+    params_out[1] = long_half
+    params_out[2] = absolute_slack
+    params_out[3] = max_half
+
+
 @wp.func
 def grid_slot(ix: int, iy: int, iz: int, group: int):
     """Table slot of cell (ix, iy, iz) of batch item `group` (periodic in GRID_DIM per axis)."""

@@ -262,21 +262,34 @@ def default_capacity(num_segments: int) -> int:
 
 def _grid_params(x4: torch.Tensor, cutoff: float) -> torch.Tensor:
     """(4,) float32 on the device: cell width, long half length H, absolute slack, longest half
-    length [m] (no host read).
+    length [m] (no host read; `segment_stats_kernel` then `grid_params_kernel`: two launches
+    where torch took ten small kernels, the longest path of the energy's graph at batch 1).
 
     Two segments closer than the cutoff have midpoints at most cutoff + (l_i + l_j) / 2 apart;
     the float32 midpoints add up to |coordinate| * 2^-24 each. Segments longer than
     _LONG_FACTOR x the mean are "long": their pairs are found from their own (wider) queries, so
     the others query within cutoff + their length / 2 + H only. Cells are _CELL_FACTOR x a typical
     query's radius. Sizing both by the longest segment made every query pay for it: an L-BFGS
-    trial point with one segment stretched to 72 mm took 0.6-1.2 s (docs/contact.md).
+    trial point with one segment stretched to 72 mm took 0.6-1.2 s (docs/contact.md). The
+    mean length is summed in fixed point (1 nm), so the scales are the same in every run.
     """
-    lengths = (x4[:, :, 1:] - x4[:, :, :-1]).norm(dim=-1)
-    max_half = 0.5 * lengths.max()
-    long_half = torch.minimum(max_half, 0.5 * _LONG_FACTOR * lengths.mean())
-    absolute_slack = 4.0 * x4.abs().max() * 2.0**-23
-    cell_width = (cutoff + 2.0 * long_half) * _CELL_FACTOR * (1.0 + _RADIUS_SLACK) + absolute_slack
-    return torch.stack([cell_width, long_half, absolute_slack, max_half]).to(torch.float32)
+    b, m, n, _ = x4.shape
+    device = x4.device
+    num_segments = b * m * (n - 1)
+    slots = int(hh_kernels.SEGMENT_STAT_SLOTS)
+    length_sums = torch.zeros(slots, dtype=torch.int64, device=device)
+    maxima = torch.zeros(slots, 2, dtype=torch.float32, device=device)
+    params = torch.empty(4, dtype=torch.float32, device=device)
+    wp_device = _warp.warp_device(device)
+    with _warp.launch_scope(device):
+        _warp.launch(hh_kernels.segment_stats_kernel, dim=num_segments,
+                     inputs=[_warp.as_warp(x4, vec3=True), n],
+                     outputs=[_warp.as_warp(length_sums), wp.from_torch(maxima)], device=wp_device)
+        _warp.launch(hh_kernels.grid_params_kernel, dim=1,
+                     inputs=[_warp.as_warp(length_sums), wp.from_torch(maxima), num_segments, float(cutoff),
+                             _LONG_FACTOR, _CELL_FACTOR, _RADIUS_SLACK],
+                     outputs=[_warp.as_warp(params)], device=wp_device)
+    return params
 
 
 class _CpuGrid:
