@@ -199,19 +199,19 @@ def test_a_segment_stretched_to_metres_walks_a_tube_and_finds_every_pair(rng, mo
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_grid_scales_match_their_formula_and_repeat_bit_for_bit(rng, dtype):
+def test_grid_scales_match_their_formula_and_repeat_bit_for_bit(rng, dtype, device):
     """`_grid_params` (two kernels, the lengths summed in fixed point) against its formula in
     float64: cell width, long half length H, absolute slack, longest half length; a segment
     stretched to 3 m included; a second call gives the same bits (no atomic-order noise)."""
     x = ref.random_hair(rng, batch=2, strands=7, vertices=11)
     x[1, 3, 6] += np.array([3.0, 0.0, 0.0])  # two segments of ~3 m
     cutoff = XI + DHAT
-    params = hh._grid_params(torch.tensor(x, dtype=dtype), cutoff)
+    params = hh._grid_params(torch.tensor(x, dtype=dtype, device=device), cutoff)
     lengths = np.linalg.norm(x[:, :, 1:] - x[:, :, :-1], axis=-1)
     max_half = 0.5 * lengths.max()
     long_half = min(max_half, 0.5 * hh._LONG_FACTOR * lengths.mean())
     slack = 4.0 * np.abs(x).max() * 2.0**-23
     width = (cutoff + 2.0 * long_half) * hh._CELL_FACTOR * (1.0 + hh._RADIUS_SLACK) + slack
-    np.testing.assert_allclose(params.numpy(), [width, long_half, slack, max_half], rtol=2e-6)
+    np.testing.assert_allclose(params.cpu().numpy(), [width, long_half, slack, max_half], rtol=2e-6)
     assert max_half > 1.4 and long_half < 0.1
-    assert torch.equal(params, hh._grid_params(torch.tensor(x, dtype=dtype), cutoff))
+    assert torch.equal(params, hh._grid_params(torch.tensor(x, dtype=dtype, device=device), cutoff))
