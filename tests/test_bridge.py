@@ -91,3 +91,35 @@ def test_a_replayed_launch_follows_every_changed_parameter_and_keeps_nothing_ali
     gc.collect()
     assert alive() is None
     np.testing.assert_allclose(result.numpy(), np.arange(8))
+
+
+def test_threads_launching_one_kernel_do_not_share_a_record():
+    """Each thread replays its own record (a record's parameters are rewritten in place)."""
+    import threading
+
+    errors = []
+
+    def work(offset):
+        for k in range(60):
+            a = torch.arange(257, dtype=torch.float64) + offset + k
+            out = torch.zeros(257, dtype=torch.float64)
+            _warp.launch(_scale_kernel, dim=257, inputs=[_warp.as_warp(a), _warp.scalar(-0.5, torch.float64)],
+                         outputs=[_warp.as_warp(out)], device="cpu")
+            if not torch.equal(out, -0.5 * a):
+                errors.append((offset, k))
+
+    threads = [threading.Thread(target=work, args=(1000.0 * t,)) for t in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert errors == []
+
+
+def test_a_scalar_changing_sign_of_zero_is_packed_again():
+    a = torch.ones(4, dtype=torch.float64)
+    out = torch.zeros(4, dtype=torch.float64)
+    for s, negative in ((0.0, False), (-0.0, True), (0.0, False)):
+        _warp.launch(_scale_kernel, dim=4, inputs=[_warp.as_warp(a), _warp.scalar(s, torch.float64)],
+                     outputs=[_warp.as_warp(out)], device="cpu")
+        assert torch.signbit(out).tolist() == [negative] * 4

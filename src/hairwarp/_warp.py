@@ -7,9 +7,11 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import os
 import sys
 import tempfile
+import threading
 
 import torch
 import warp as wp
@@ -176,15 +178,18 @@ def _parameter_key(value):
     """What a launch parameter packs from: an array's address and shape, a scalar's value."""
     if isinstance(value, wp.array):
         return value.ptr, value.shape
-    if isinstance(value, (int, float)):
+    if isinstance(value, int):
         return value
+    if isinstance(value, float):
+        return value, math.copysign(1.0, value)  # -0.0 == 0.0, yet other bits
     scalar = getattr(value, "value", None)  # a Warp scalar
     if scalar is not None:
-        return scalar
+        return _parameter_key(scalar)
     return tuple(value)  # a Warp vector
 
 
-# The last recorded launch of each kernel per device, with its parameters' keys and its dim.
+# The last recorded launch of each kernel per device and thread (a record's parameters are
+# rewritten in place: two threads must not share one), with its parameters' keys and its dim.
 _launches: dict = {}
 
 
@@ -209,11 +214,12 @@ def launch(kernel, dim, inputs=(), outputs=(), device=None, stream=None) -> None
     if not isinstance(dim, int) or dim <= 0:
         wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=target, stream=stream)
         return
-    record = _launches.get((kernel, target.alias))
+    record_key = (kernel, target.alias, threading.get_ident())
+    record = _launches.get(record_key)
     if record is None:
         command = wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=target, record_cmd=True)
         command.fwd_args = None  # retain no argument (they would keep their tensors alive)
-        record = _launches[(kernel, target.alias)] = [command, [_parameter_key(value) for value in arguments], dim]
+        record = _launches[record_key] = [command, [_parameter_key(value) for value in arguments], dim]
     else:
         command, keys, last_dim = record
         if dim != last_dim:
