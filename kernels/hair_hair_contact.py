@@ -68,11 +68,12 @@ def segment_stats_kernel(
     num_vertices: int,
     # Out:
     length_sums: wp.array(dtype=wp.int64),
-    maxima: wp.array2d(dtype=float),
+    longest_out: wp.array(dtype=float),
+    largest_out: wp.array(dtype=float),
 ):
     """Per slot (segment id mod SEGMENT_STAT_SLOTS): the segments' lengths summed in fixed
-    point, the longest length (maxima[slot, 0]) and the largest |coordinate| of their vertices
-    (maxima[slot, 1]) [m]. `maxima` starts at 0, `length_sums` at 0.
+    point, the longest length and the largest |coordinate| of their vertices [m]. All three
+    start at 0.
     """
     seg = wp.tid()
     strand = seg // (num_vertices - 1)
@@ -83,16 +84,17 @@ def segment_stats_kernel(
     slot = seg % SEGMENT_STAT_SLOTS
     fixed = wp.min(length, LENGTH_FIXED_POINT_MAX) * LENGTH_FIXED_POINT
     wp.atomic_add(length_sums, slot, wp.int64(fixed))
-    wp.atomic_max(maxima, slot, 0, length)
+    wp.atomic_max(longest_out, slot, length)
     largest = wp.max(wp.max(wp.abs(a[0]), wp.abs(a[1])), wp.max(wp.abs(a[2]), wp.abs(b[0])))
-    wp.atomic_max(maxima, slot, 1, wp.max(largest, wp.max(wp.abs(b[1]), wp.abs(b[2]))))
+    wp.atomic_max(largest_out, slot, wp.max(largest, wp.max(wp.abs(b[1]), wp.abs(b[2]))))
 
 
 @wp.kernel
 def grid_params_kernel(
     # In:
     length_sums: wp.array(dtype=wp.int64),
-    maxima: wp.array2d(dtype=float),
+    longest_in: wp.array(dtype=float),
+    largest_in: wp.array(dtype=float),
     num_segments: int,
     cutoff: float,
     long_factor: float,
@@ -110,8 +112,8 @@ def grid_params_kernel(
     largest = float(0.0)
     for slot in range(SEGMENT_STAT_SLOTS):
         total = total + length_sums[slot]
-        longest = wp.max(longest, maxima[slot, 0])
-        largest = wp.max(largest, maxima[slot, 1])
+        longest = wp.max(longest, longest_in[slot])
+        largest = wp.max(largest, largest_in[slot])
     mean = float(0.0)
     if num_segments > 0:
         mean = float(wp.float64(total) / wp.float64(LENGTH_FIXED_POINT) / wp.float64(num_segments))

@@ -64,3 +64,20 @@ def test_kernels_are_device_code_only():
                         name.startswith("hairwarp") and not name.startswith(("hairwarp.kernels", "hairwarp.config"))):
                     bad.append(f"{path.name} imports {name}")
     assert bad == []
+
+
+def test_bridges_launch_and_wrap_through_the_one_helper():
+    """Every launch goes through `_warp.launch` (overloads resolved once, launches replayed) and
+    every tensor view through `_warp.as_warp`, except where those helpers live and for the
+    vec4 views of the CPU grid, which `as_warp` does not make."""
+    launches, views = [], []
+    for path in SRC.rglob("*.py"):
+        if path.name == "_warp.py":
+            continue
+        for number, line in enumerate(path.read_text().splitlines(), 1):
+            if "wp.launch(" in line and "_warp.launch(" not in line:
+                launches.append(f"{path.relative_to(SRC)}:{number}")
+            if "wp.from_torch(" in line and "dtype=wp.vec4" not in line:
+                views.append(f"{path.relative_to(SRC)}:{number}")
+    assert launches == []
+    assert views == []

@@ -230,7 +230,7 @@ class BodyMesh:
         with _warp.launch_scope(device):
             self._faces_wp = _warp.as_warp(self._faces)
             self._meshes = [
-                wp.Mesh(points=wp.from_torch(self._points32[b], dtype=wp.vec3), indices=self._faces_wp,
+                wp.Mesh(points=_warp.as_warp(self._points32[b], vec3=True), indices=self._faces_wp,
                         bvh_constructor=self._bvh, bvh_leaf_size=_BVH_LEAF_SIZE[self._bvh])
                 for b in range(self._points32.shape[0])
             ]

@@ -278,15 +278,15 @@ def _grid_params(x4: torch.Tensor, cutoff: float) -> torch.Tensor:
     num_segments = b * m * (n - 1)
     slots = int(hh_kernels.SEGMENT_STAT_SLOTS)
     length_sums = torch.zeros(slots, dtype=torch.int64, device=device)
-    maxima = torch.zeros(slots, 2, dtype=torch.float32, device=device)
+    maxima = torch.zeros(2, slots, dtype=torch.float32, device=device)  # longest length, largest |x|
     params = torch.empty(4, dtype=torch.float32, device=device)
     wp_device = _warp.warp_device(device)
+    stats = [_warp.as_warp(length_sums), _warp.as_warp(maxima[0]), _warp.as_warp(maxima[1])]
     with _warp.launch_scope(device):
         _warp.launch(hh_kernels.segment_stats_kernel, dim=num_segments,
-                     inputs=[_warp.as_warp(x4, vec3=True), n],
-                     outputs=[_warp.as_warp(length_sums), wp.from_torch(maxima)], device=wp_device)
+                     inputs=[_warp.as_warp(x4, vec3=True), n], outputs=stats, device=wp_device)
         _warp.launch(hh_kernels.grid_params_kernel, dim=1,
-                     inputs=[_warp.as_warp(length_sums), wp.from_torch(maxima), num_segments, float(cutoff),
+                     inputs=stats + [num_segments, float(cutoff),
                              _LONG_FACTOR, _CELL_FACTOR, _RADIUS_SLACK],
                      outputs=[_warp.as_warp(params)], device=wp_device)
     return params
