@@ -133,37 +133,6 @@ def scalar(value: float, dtype: torch.dtype):
     return _SCALAR[dtype](value)
 
 
-_concrete_kernels: dict = {}
-
-
-def concrete_kernel(kernel, dtype: torch.dtype, vector_arrays=None, vector_scalars=()):
-    """The float32/float64 instance of a generic (`Any`-typed) kernel, resolved once.
-
-    Launching a generic kernel infers its argument types on every call; on the GPU that host
-    cost is comparable to the kernel itself.
-
-    Args:
-        kernel: a `@wp.kernel` whose float arguments are typed `Any`.
-        dtype: torch.float32 or torch.float64.
-        vector_arrays: labels of the array arguments that hold vec3 (None: every array).
-        vector_scalars: labels of the non-array arguments that are vec3.
-    """
-    key = (kernel.key, dtype)
-    if key not in _concrete_kernels:
-        vec, real = _VEC3[dtype], _SCALAR[dtype]
-        types = {}
-        for arg in kernel.adj.args:
-            if arg.type in (int, wp.int32):
-                types[arg.label] = wp.int32
-            elif hasattr(arg.type, "dtype"):  # wp.array(dtype=Any)
-                vector = vector_arrays is None or arg.label in vector_arrays
-                types[arg.label] = wp.array(dtype=vec if vector else real)
-            else:
-                types[arg.label] = vec if arg.label in vector_scalars else real
-        _concrete_kernels[key] = wp.overload(kernel, types)
-    return _concrete_kernels[key]
-
-
 # The concrete instance of each generic (`Any`-typed) kernel, by its argument types.
 _overloads: dict = {}
 

@@ -167,15 +167,6 @@ _KERNELS = {
     "vertex": strand_kernels.strand_energies_per_vertex_kernel,
 }
 _placeholders: dict = {}
-# Array arguments of the fused kernels that hold vec3 (the others are scalars per element).
-_VECTOR_ARRAYS = ("x", "rigid", "normals", "prev", "prev2", "gradient_out")
-
-
-def _kernel(layout: str, dtype: torch.dtype):
-    """The float32/float64 instance of a layout's generic kernel (31 arguments), resolved once."""
-    return _warp.concrete_kernel(_KERNELS[layout], dtype, _VECTOR_ARRAYS, ("weight_g",))
-
-
 def _placeholder(vec3: bool, dtype: torch.dtype, device: torch.device) -> wp.array:
     """A cached one-element Warp array standing in for the input of a term that is off.
 
@@ -220,7 +211,7 @@ def _launch(x4, inputs, scales, layout, *, compute_gradient):
 
     with _warp.launch_scope(device):
         _warp.launch(
-            _kernel(layout, dtype),
+            _KERNELS[layout],
             dim=batch * rows,
             inputs=[
                 _warp.as_warp(x4, vec3=True),

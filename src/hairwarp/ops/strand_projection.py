@@ -29,8 +29,8 @@ def _launch(kernel, target: torch.Tensor, arrays, outputs) -> None:
         return
     inputs = [_warp.as_warp(a, vec3=True) for a in arrays] + [n, _warp.scalar(FOLLOW_THE_LEADER_EPS, target.dtype)]
     with _warp.launch_scope(target.device):
-        _warp.launch(_warp.concrete_kernel(kernel, target.dtype), dim=strands, inputs=inputs,
-                  outputs=[_warp.as_warp(o, vec3=True) for o in outputs], device=_warp.warp_device(target.device))
+        _warp.launch(kernel, dim=strands, inputs=inputs, outputs=[_warp.as_warp(o, vec3=True) for o in outputs],
+                     device=_warp.warp_device(target.device))
 
 
 class _FollowTheLeader(torch.autograd.Function):
