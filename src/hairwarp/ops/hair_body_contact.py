@@ -509,15 +509,15 @@ def _signed_distance_forward(points: torch.Tensor, body: BodyMesh, points_per_ba
     with _warp.launch_scope(points.device):
         if max_distance is None:
             _warp.launch(kernels.signed_distance_kernel, dim=points.shape[0], inputs=mesh + counts + [zero_dist],
-                      outputs=outputs, device=device)
+                         outputs=outputs, device=device)
         else:
             inputs = mesh + [points_per_line, line_stride] + counts + [_warp.scalar(max_distance, points.dtype), zero_dist]
             hits = [_warp.as_warp(torch.empty(points.shape[0], dtype=torch.int32, device=points.device)),
                     _warp.as_warp(torch.empty(points.shape[0], dtype=torch.float32, device=points.device))]
             _warp.launch(kernels.signed_distance_capped_kernel, dim=points.shape[0], inputs=inputs,
-                      outputs=outputs + hits, device=device)
+                         outputs=outputs + hits, device=device)
             _warp.launch(kernels.signed_distance_far_kernel, dim=points.shape[0], inputs=inputs + hits,
-                      outputs=outputs, device=device)
+                         outputs=outputs, device=device)
     return distance, gradient
 
 
@@ -667,7 +667,7 @@ def _energy_forward(x, body, xi, dhat, bp, weight, variant_id, strategy):
     with _warp.launch_scope(x.device):
         if strategy == "strand":
             _warp.launch(kernels.hair_body_energy_strand_kernel, dim=count, inputs=common, outputs=outputs,
-                      device=device)
+                         device=device)
         else:
             # Capped queries, then the misses' sides along each strand (kernel docstrings).
             side = _warp.as_warp(torch.empty(count, dtype=torch.int32, device=x.device))
@@ -676,11 +676,11 @@ def _energy_forward(x, body, xi, dhat, bp, weight, variant_id, strategy):
                     _warp.as_warp(torch.empty(count, dtype=torch.int32, device=x.device)),
                     _warp.as_warp(torch.empty(count, dtype=torch.int32, device=x.device))]
             _warp.launch(kernels.hair_body_energy_vertex_kernel, dim=count, inputs=common,
-                      outputs=outputs + [side, hit_distance], device=device)
+                         outputs=outputs + [side, hit_distance], device=device)
             _warp.launch(kernels.hair_body_deep_list_kernel, dim=count, inputs=[side, num_vertices], outputs=deep,
-                      device=device)
+                         device=device)
             _warp.launch(kernels.hair_body_energy_far_kernel, dim=count, inputs=common + [hit_distance] + deep,
-                      outputs=outputs, device=device)
+                         outputs=outputs, device=device)
     # Per-strand (or per-vertex) partial sums, reduced per batch item here: no atomics.
     return partial.view(batch, -1).sum(dim=1), gradient, queries
 

@@ -286,8 +286,7 @@ def _grid_params(x4: torch.Tensor, cutoff: float) -> torch.Tensor:
         _warp.launch(hh_kernels.segment_stats_kernel, dim=num_segments,
                      inputs=[_warp.as_warp(x4, vec3=True), n], outputs=stats, device=wp_device)
         _warp.launch(hh_kernels.grid_params_kernel, dim=1,
-                     inputs=stats + [num_segments, float(cutoff),
-                             _LONG_FACTOR, _CELL_FACTOR, _RADIUS_SLACK],
+                     inputs=stats + [num_segments, float(cutoff), _LONG_FACTOR, _CELL_FACTOR, _RADIUS_SLACK],
                      outputs=[_warp.as_warp(params)], device=wp_device)
     return params
 
@@ -328,15 +327,15 @@ class _CpuGrid:
         self.x_wp = _warp.as_warp(flat, vec3=True)
         self.params_wp = _warp.as_warp(self.params)
         _warp.launch(hh_kernels.segment_keys_kernel, dim=self.num_segments,
-                  inputs=[self.x_wp, n, m, self.origin, self.inv_width, self.dims],
-                  outputs=[wp.from_torch(bounds, dtype=wp.vec4), _warp.as_warp(keys)], device="cpu")
+                     inputs=[self.x_wp, n, m, self.origin, self.inv_width, self.dims],
+                     outputs=[wp.from_torch(bounds, dtype=wp.vec4), _warp.as_warp(keys)], device="cpu")
         self.ids = torch.empty(self.num_segments, dtype=torch.int32)
         self.half_lengths = bounds[:, 3]
         self.bounds = torch.empty_like(bounds)
         cell_start = torch.zeros(num_cells + 2, dtype=torch.int32)
         _warp.launch(hh_kernels.dense_counting_sort_kernel, dim=1,
-                  inputs=[_warp.as_warp(keys), wp.from_torch(bounds, dtype=wp.vec4), num_cells],
-                  outputs=[_warp.as_warp(cell_start), _warp.as_warp(self.ids),
+                     inputs=[_warp.as_warp(keys), wp.from_torch(bounds, dtype=wp.vec4), num_cells],
+                     outputs=[_warp.as_warp(cell_start), _warp.as_warp(self.ids),
                            wp.from_torch(self.bounds, dtype=wp.vec4)], device="cpu")
         self.cell_start = cell_start[:num_cells + 1]
 
@@ -483,13 +482,13 @@ def _broad_phase(x4, cutoff, capacity, skip_root_segments, on_overflow, max_pair
         half_wp = _warp.as_warp(half_lengths)
         group_wp = _warp.as_warp(groups)
         _warp.launch(hh_kernels.segment_cells_kernel, dim=num_segments, inputs=[x_wp, n, m, params_wp],
-                  outputs=[mid_wp, half_wp, group_wp, _warp.as_warp(slots)], device=wp_device)
+                     outputs=[mid_wp, half_wp, group_wp, _warp.as_warp(slots)], device=wp_device)
     sorted_slots, order = torch.sort(slots)
     sorted_midpoints = midpoints[order]
     sorted_half_lengths = half_lengths[order]
     with _warp.launch_scope(device):
         _warp.launch(hh_kernels.grid_ranges_kernel, dim=num_segments, inputs=[_warp.as_warp(sorted_slots), num_segments],
-                  outputs=[_warp.as_warp(slot_start), _warp.as_warp(slot_end)], device=wp_device)
+                     outputs=[_warp.as_warp(slot_start), _warp.as_warp(slot_end)], device=wp_device)
     order_wp = _warp.as_warp(order)
 
     def run(room):
@@ -563,8 +562,8 @@ def _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy=None):
     boxes = [_warp.as_warp(box_lo, vec3=True), _warp.as_warp(box_hi, vec3=True), _warp.as_warp(long_flags)]
     with _warp.launch_scope(device):
         _warp.launch(hh_kernels.segment_boxes_kernel, dim=num_segments,
-                  inputs=[x_wp, n, m, skip_root_segments, params_wp, half_cutoff32, _RADIUS_SLACK, table - 1],
-                  outputs=boxes + [_warp.as_warp(ranks), _warp.as_warp(slot_count), _warp.as_warp(long_count),
+                     inputs=[x_wp, n, m, skip_root_segments, params_wp, half_cutoff32, _RADIUS_SLACK, table - 1],
+                     outputs=boxes + [_warp.as_warp(ranks), _warp.as_warp(slot_count), _warp.as_warp(long_count),
                                    _warp.as_warp(long_list)], device=wp_device)
     slot_end = torch.cumsum(slot_count, 0, dtype=torch.int32)
     table_wp = [_warp.as_warp(slot_end), _warp.as_warp(slot_count)]
@@ -572,8 +571,8 @@ def _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy=None):
                  _warp.as_warp(sorted_hi, vec3=True)]
     with _warp.launch_scope(device):
         _warp.launch(hh_kernels.scatter_entries_kernel, dim=entries,
-                  inputs=boxes + [_warp.as_warp(ranks)] + table_wp + [params_wp, n, m, table - 1],
-                  outputs=sorted_wp, device=wp_device)
+                     inputs=boxes + [_warp.as_warp(ranks)] + table_wp + [params_wp, n, m, table - 1],
+                     outputs=sorted_wp, device=wp_device)
 
     lanes = int(hh_kernels.LONG_LANES)
     list_stride = max(1, num_segments // lanes)  # long segments served at once (more: in turn)
@@ -593,15 +592,15 @@ def _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy=None):
         fork = StreamFork(device, "hair_hair_long")
         with fork, _warp.launch_scope(device):
             _warp.launch(hh_kernels.hair_hair_long_pairs_kernel, dim=list_stride * lanes,
-                      inputs=[x_wp, boxes[0], boxes[1], _warp.as_warp(long_count), _warp.as_warp(long_list)]
-                      + sorted_wp + table_wp
-                      + [params_wp, n, m, skip_root_segments, table - 1, list_stride] + pair_inputs,
-                      outputs=common_out, device=wp_device)
+                         inputs=[x_wp, boxes[0], boxes[1], _warp.as_warp(long_count), _warp.as_warp(long_list)]
+                         + sorted_wp + table_wp
+                         + [params_wp, n, m, skip_root_segments, table - 1, list_stride] + pair_inputs,
+                         outputs=common_out, device=wp_device)
         with _warp.launch_scope(device):
             _warp.launch(hh_kernels.hair_hair_cell_pairs_kernel, dim=entries,
-                      inputs=[x_wp] + sorted_wp + table_wp + [params_wp, n, m, skip_root_segments, table - 1]
-                      + pair_inputs,
-                      outputs=common_out, device=wp_device)
+                         inputs=[x_wp] + sorted_wp + table_wp + [params_wp, n, m, skip_root_segments, table - 1]
+                         + pair_inputs,
+                         outputs=common_out, device=wp_device)
         fork.join()
         return pairs
 
@@ -804,9 +803,9 @@ def _cached_broad_phase(x4, cutoff, skip_root_segments, max_pairs, cache: HairHa
             grid.pairs(x4, skip_root_segments, cutoff, queried, count, pairs, room, energy)
         if candidates.shape[0] > 0:
             _warp.launch(hh_kernels.hair_hair_candidates_kernel, dim=candidates.shape[0],
-                      inputs=[x_wp, _warp.as_warp(candidates), _warp.as_warp(queried), n, m,
+                         inputs=[x_wp, _warp.as_warp(candidates), _warp.as_warp(queried), n, m,
                               _warp.scalar(cutoff, x4.dtype), room, *_PairEnergyArgs.inputs(energy, x4.dtype)],
-                      outputs=[_warp.as_warp(count), _warp.as_warp(pairs),
+                         outputs=[_warp.as_warp(count), _warp.as_warp(pairs),
                                *_PairEnergyArgs.outputs(energy, x4.dtype)], device="cpu")
         return pairs
 
