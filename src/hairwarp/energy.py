@@ -20,6 +20,9 @@ import torch
 from hairwarp.config import ALL_TERMS, EnergyConfig
 from hairwarp.runtime import StreamFork
 
+# Which contact term runs on a side stream beside the other on CUDA (see `total_energy`).
+_CONTACT_SIDE = "hair_hair"
+
 
 @dataclass
 class EnergyInputs:
@@ -140,12 +143,32 @@ def total_energy(
 
     with_hair_body = "hair_body_contact" in wanted and inputs.body is not None and config.hair_body_weight != 0.0
     with_hair_hair = "hair_hair_contact" in wanted and config.hair_hair_weight != 0.0
-    # On CUDA hair-body runs on a side stream beside hair-hair: at batch 1 its deep queries are
-    # a few thousand long BVH walks that leave most of the GPU idle (docs/contact.md 7).
-    fork = StreamFork(xb.device, "hair_body", enabled=with_hair_body and with_hair_hair)
-    e_hb = None
+    # On CUDA the two contact terms run side by side: at batch 1 hair-body's deep queries are a
+    # few thousand long BVH walks that leave most of the GPU idle (docs/contact.md 7-9).
+    # `_CONTACT_SIDE` names the term on the side stream: "hair_hair" puts hair-hair, the longer
+    # chain, on a high-priority stream.
+    both = with_hair_body and with_hair_hair
+    hb_fork = StreamFork(xb.device, "hair_body", enabled=both and _CONTACT_SIDE == "hair_body")
+    hh_fork = StreamFork(xb.device, "hair_hair", enabled=both and _CONTACT_SIDE == "hair_hair", high_priority=True)
+    e_hb = e_hh = None
+    if with_hair_hair:
+        with hh_fork:
+            segments = xb.shape[1] * (xb.shape[2] - 1)
+            if hair_hair_capacity is None:
+                hair_hair_capacity = config.hair_hair_capacity_per_segment * segments * xb.shape[0]
+            e_hh, info = ops.hair_hair_contact_energy(
+                xb,
+                config.hair_diameter,
+                config.hair_hair_dhat,
+                config.barrier_join_fraction,
+                weight=config.hair_hair_weight,
+                variant=config.barrier_variant,
+                capacity=hair_hair_capacity,
+                on_overflow="defer" if graph_safe else "grow",
+                pair_cache=hair_hair_cache,
+            )
     if with_hair_body:
-        with fork:
+        with hb_fork:
             e_hb = ops.hair_body_contact_energy(
                 xb,
                 inputs.body,
@@ -155,28 +178,13 @@ def total_energy(
                 weight=config.hair_body_weight,
                 variant=config.barrier_variant,
             )
-
-    if with_hair_hair:
-        segments = xb.shape[1] * (xb.shape[2] - 1)
-        if hair_hair_capacity is None:
-            hair_hair_capacity = config.hair_hair_capacity_per_segment * segments * xb.shape[0]
-        e_hh, info = ops.hair_hair_contact_energy(
-            xb,
-            config.hair_diameter,
-            config.hair_hair_dhat,
-            config.barrier_join_fraction,
-            weight=config.hair_hair_weight,
-            variant=config.barrier_variant,
-            capacity=hair_hair_capacity,
-            on_overflow="defer" if graph_safe else "grow",
-            pair_cache=hair_hair_cache,
-        )
+    if e_hh is not None:
+        hh_fork.join(e_hh, info.device_count)
         result.total = result.total + e_hh
         result.terms["hair_hair_contact"] = e_hh.detach()
         result.hair_hair_info = info
-
     if e_hb is not None:
-        fork.join(e_hb)
+        hb_fork.join(e_hb)
         result.total = result.total + e_hb
         result.terms["hair_body_contact"] = e_hb.detach()
 

@@ -244,17 +244,19 @@ class StreamFork:
         device: the tensors' device.
         name: which side stream (one per name and device).
         enabled: fork at all (and `hairwarp.runtime.STREAM_FORKS`, True unless set off).
+        high_priority: the side stream's blocks are scheduled before those of streams of
+            normal priority (torch's default streams) when both wait for room on the GPU.
     """
 
-    def __init__(self, device: torch.device, name: str, *, enabled: bool = True):
+    def __init__(self, device: torch.device, name: str, *, enabled: bool = True, high_priority: bool = False):
         self.active = enabled and STREAM_FORKS and device.type == "cuda"
         self._context = None
         if not self.active:
             return
         index = device.index if device.index is not None else torch.cuda.current_device()
-        key = (index, name)
+        key = (index, name, high_priority)
         if key not in _SIDE_STREAMS:
-            _SIDE_STREAMS[key] = torch.cuda.Stream(device=index)
+            _SIDE_STREAMS[key] = torch.cuda.Stream(device=index, priority=-1 if high_priority else 0)
         self.side = _SIDE_STREAMS[key]
         self.main = torch.cuda.current_stream(index)
         self.side.wait_stream(self.main)
