@@ -73,3 +73,26 @@ def test_cuda_graph_energy_equals_eager():
         torch.testing.assert_close(energy, eager.total.detach(), rtol=1e-5, atol=1e-6)
         torch.testing.assert_close(gradient, g_eager, rtol=1e-4, atol=1e-4)
     captured.check()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="side streams need a CUDA device; this machine has none")
+@pytest.mark.parametrize("side, forks", [("hair_hair", True), ("hair_body", True), ("hair_hair", False)])
+def test_contact_terms_side_by_side_equal_one_stream(monkeypatch, side, forks):
+    """Whichever contact term runs on the side stream (or none), eager and replayed from a graph,
+    the same energy and gradient as everything on one stream, each term in its place."""
+    import hairwarp.energy as energy_module
+    import hairwarp.runtime as runtime
+
+    x, inputs = _small_inputs("cuda")
+    monkeypatch.setattr(runtime, "STREAM_FORKS", False)
+    one_stream, g_one = _eager(x, inputs)
+    monkeypatch.setattr(runtime, "STREAM_FORKS", forks)
+    monkeypatch.setattr(energy_module, "_CONTACT_SIDE", side)
+    eager, g_eager = _eager(x, inputs)
+    for name in ("hair_body_contact", "hair_hair_contact"):
+        torch.testing.assert_close(eager.terms[name], one_stream.terms[name], rtol=1e-5, atol=0)
+    torch.testing.assert_close(eager.total, one_stream.total, rtol=1e-5, atol=0)
+    torch.testing.assert_close(g_eager, g_one, rtol=1e-4, atol=1e-4)
+    energy, gradient = CapturedEnergy(x, inputs, dynamic=True)(x)
+    torch.testing.assert_close(energy, one_stream.total.detach(), rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(gradient, g_one, rtol=1e-4, atol=1e-4)
