@@ -133,8 +133,10 @@ def scalar(value: float, dtype: torch.dtype):
     return _SCALAR[dtype](value)
 
 
-# The concrete instance of each generic (`Any`-typed) kernel, by its argument types.
+# The concrete instance of each generic (`Any`-typed) kernel, by its generic arguments' types;
+# and, per generic kernel, which of its arguments are generic (the others cannot choose).
 _overloads: dict = {}
+_generic_positions: dict = {}
 
 
 def _argument_key(value):
@@ -143,18 +145,36 @@ def _argument_key(value):
     return type(value)
 
 
+def _generic_argument_positions(kernel) -> tuple[int, ...]:
+    positions = _generic_positions.get(kernel)
+    if positions is None:
+        from warp._src.types import type_is_generic
+
+        positions = _generic_positions[kernel] = tuple(
+            index for index, arg in enumerate(kernel.adj.args) if type_is_generic(arg.type)
+        )
+    return positions
+
+
+def _float_key(value: float):
+    return value, math.copysign(1.0, value)  # -0.0 == 0.0, yet other bits
+
+
 def _parameter_key(value):
     """What a launch parameter packs from: an array's address and shape, a scalar's value."""
+    keyer = _KEYERS.get(type(value))
+    if keyer is not None:
+        return keyer(value)
     if isinstance(value, wp.array):
         return value.ptr, value.shape
-    if isinstance(value, int):
-        return value
-    if isinstance(value, float):
-        return value, math.copysign(1.0, value)  # -0.0 == 0.0, yet other bits
     scalar = getattr(value, "value", None)  # a Warp scalar
     if scalar is not None:
         return _parameter_key(scalar)
     return tuple(value)  # a Warp vector
+
+
+# Key makers by exact type (a dict lookup where isinstance chains cost more per argument).
+_KEYERS = {wp.array: lambda a: (a.ptr, a.shape), int: lambda v: v, float: _float_key, bool: lambda v: v}
 
 
 # The last recorded launch of each kernel per device and thread (a record's parameters are
@@ -174,7 +194,7 @@ def launch(kernel, dim, inputs=(), outputs=(), device=None, stream=None) -> None
     """
     arguments = [*inputs, *outputs]
     if kernel.is_generic:
-        key = (kernel, tuple(_argument_key(value) for value in arguments))
+        key = (kernel, tuple(_argument_key(arguments[index]) for index in _generic_argument_positions(kernel)))
         concrete = _overloads.get(key)
         if concrete is None:
             concrete = _overloads[key] = kernel.add_overload(kernel.infer_argument_types(arguments))
