@@ -127,6 +127,53 @@ def total_energy(
     elif inputs.prev is None or inputs.prev2 is None:
         raise ValueError("inputs.prev, inputs.prev2: the dynamic energy (Eq. 6) needs the two previous states")
 
+    with_hair_body = "hair_body_contact" in wanted and inputs.body is not None and config.hair_body_weight != 0.0
+    with_hair_hair = "hair_hair_contact" in wanted and config.hair_hair_weight != 0.0
+    if hair_hair_capacity is None:
+        segments = xb.shape[1] * (xb.shape[2] - 1)
+        hair_hair_capacity = config.hair_hair_capacity_per_segment * segments * xb.shape[0]
+
+    def hair_hair_term():
+        return ops.hair_hair_contact_energy(
+            xb,
+            config.hair_diameter,
+            config.hair_hair_dhat,
+            config.barrier_join_fraction,
+            weight=config.hair_hair_weight,
+            variant=config.barrier_variant,
+            capacity=hair_hair_capacity,
+            on_overflow="defer" if graph_safe else "grow",
+            pair_cache=hair_hair_cache,
+        )
+
+    def hair_body_term():
+        return ops.hair_body_contact_energy(
+            xb,
+            inputs.body,
+            config.hair_body_xi,
+            config.hair_body_dhat,
+            config.barrier_join_fraction,
+            weight=config.hair_body_weight,
+            variant=config.barrier_variant,
+        )
+
+    # The two contact terms run side by side: on CUDA at batch 1 hair-body's deep queries are a
+    # few thousand long BVH walks that leave most of the GPU idle (docs/contact.md 7-9); on the
+    # CPU each term is one core's work (docs/contact.md 10). `_CONTACT_SIDE` names the term on
+    # the side stream (or thread), started first: "hair_hair" puts hair-hair, the longer chain,
+    # on a high-priority stream. The strand terms and the other contact term follow here.
+    both = with_hair_body and with_hair_hair
+    hb_fork = StreamFork(xb.device, "hair_body", enabled=both and _CONTACT_SIDE == "hair_body", cpu_thread=True)
+    hh_fork = StreamFork(xb.device, "hair_hair", enabled=both and _CONTACT_SIDE == "hair_hair", high_priority=True,
+                         cpu_thread=True)
+    pending = {}  # term -> its future
+    here = []  # the terms computed on this stream and thread, after the strand terms
+    for with_term, fork, term in ((with_hair_hair, hh_fork, hair_hair_term), (with_hair_body, hb_fork, hair_body_term)):
+        if with_term and fork.forks:
+            pending[term] = fork.call(term)
+        elif with_term:
+            here.append((fork, term))
+
     strand_terms = tuple(t for t in ("stretch", "bending", "auxiliary", "smoothness", "gravity",
                                      "root_alignment", "inertia") if t in wanted)
     total, parts = ops.strand_energies(
@@ -140,50 +187,17 @@ def total_energy(
         terms=strand_terms,
     )
     result = EnergyResult(total=total, terms=dict(parts))
+    for fork, term in here:
+        pending[term] = fork.call(term)
 
-    with_hair_body = "hair_body_contact" in wanted and inputs.body is not None and config.hair_body_weight != 0.0
-    with_hair_hair = "hair_hair_contact" in wanted and config.hair_hair_weight != 0.0
-    # On CUDA the two contact terms run side by side: at batch 1 hair-body's deep queries are a
-    # few thousand long BVH walks that leave most of the GPU idle (docs/contact.md 7-9).
-    # `_CONTACT_SIDE` names the term on the side stream: "hair_hair" puts hair-hair, the longer
-    # chain, on a high-priority stream.
-    both = with_hair_body and with_hair_hair
-    hb_fork = StreamFork(xb.device, "hair_body", enabled=both and _CONTACT_SIDE == "hair_body")
-    hh_fork = StreamFork(xb.device, "hair_hair", enabled=both and _CONTACT_SIDE == "hair_hair", high_priority=True)
-    e_hb = e_hh = None
     if with_hair_hair:
-        with hh_fork:
-            segments = xb.shape[1] * (xb.shape[2] - 1)
-            if hair_hair_capacity is None:
-                hair_hair_capacity = config.hair_hair_capacity_per_segment * segments * xb.shape[0]
-            e_hh, info = ops.hair_hair_contact_energy(
-                xb,
-                config.hair_diameter,
-                config.hair_hair_dhat,
-                config.barrier_join_fraction,
-                weight=config.hair_hair_weight,
-                variant=config.barrier_variant,
-                capacity=hair_hair_capacity,
-                on_overflow="defer" if graph_safe else "grow",
-                pair_cache=hair_hair_cache,
-            )
-    if with_hair_body:
-        with hb_fork:
-            e_hb = ops.hair_body_contact_energy(
-                xb,
-                inputs.body,
-                config.hair_body_xi,
-                config.hair_body_dhat,
-                config.barrier_join_fraction,
-                weight=config.hair_body_weight,
-                variant=config.barrier_variant,
-            )
-    if e_hh is not None:
+        e_hh, info = pending[hair_hair_term].result()
         hh_fork.join(e_hh, info.device_count)
         result.total = result.total + e_hh
         result.terms["hair_hair_contact"] = e_hh.detach()
         result.hair_hair_info = info
-    if e_hb is not None:
+    if with_hair_body:
+        e_hb = pending[hair_body_term].result()
         hb_fork.join(e_hb)
         result.total = result.total + e_hb
         result.terms["hair_body_contact"] = e_hb.detach()

@@ -13,6 +13,7 @@ import platform
 import statistics
 import time
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import torch
 
@@ -219,8 +220,18 @@ class CapturedCall:
 
 # Side streams by (device index, name): created once, reused by every call (and by captures).
 _SIDE_STREAMS: dict[tuple[int, str], torch.cuda.Stream] = {}
-# Whether `StreamFork` forks at all (set False to run every term on the current stream).
+# Whether `StreamFork` forks at all (set False to run every term on the current stream or thread).
 STREAM_FORKS = True
+# The CPU's side thread (`StreamFork.call` with cpu_thread): (process id, one-worker executor),
+# made again in a forked child (a fork copies no thread).
+_cpu_side: tuple[int, ThreadPoolExecutor] | None = None
+
+
+def _cpu_side_executor() -> ThreadPoolExecutor:
+    global _cpu_side
+    if _cpu_side is None or _cpu_side[0] != os.getpid():
+        _cpu_side = (os.getpid(), ThreadPoolExecutor(max_workers=1, thread_name_prefix="hairwarp-side"))
+    return _cpu_side[1]
 
 
 class StreamFork:
@@ -240,16 +251,33 @@ class StreamFork:
     feet; `join` records its tensors on the current stream. Graph captures follow forks and
     joins (both streams are captured). On the CPU, or with `enabled` False, nothing forks.
 
+    Work given as a function (`call`) may also run beside the caller on the CPU, with
+    `cpu_thread`: on one worker thread while the caller goes on (Warp's CPU kernels release
+    Python's lock, so the two use two cores), when torch may run independent work side by side
+    (`torch.get_num_interop_threads()` > 1, its default on a machine of two cores or more;
+    `torch.set_num_interop_threads(1)` keeps every term on the caller's thread). The worker
+    takes the caller's grad and inference modes.
+
+        fork = StreamFork(device, "hair_hair", cpu_thread=True)
+        pending = fork.call(f, x)   # a side stream on CUDA, the side thread on the CPU
+        b = g(x)
+        a = pending.result()        # f's value (or its exception), then
+        fork.join(a)
+
     Args:
         device: the tensors' device.
         name: which side stream (one per name and device).
         enabled: fork at all (and `hairwarp.runtime.STREAM_FORKS`, True unless set off).
         high_priority: the side stream's blocks are scheduled before those of streams of
             normal priority (torch's default streams) when both wait for room on the GPU.
+        cpu_thread: on the CPU, `call` runs its function on the side thread.
     """
 
-    def __init__(self, device: torch.device, name: str, *, enabled: bool = True, high_priority: bool = False):
+    def __init__(self, device: torch.device, name: str, *, enabled: bool = True, high_priority: bool = False,
+                 cpu_thread: bool = False):
         self.active = enabled and STREAM_FORKS and device.type == "cuda"
+        self.threaded = (enabled and STREAM_FORKS and cpu_thread and device.type == "cpu"
+                         and torch.get_num_interop_threads() > 1)
         self._context = None
         if not self.active:
             return
@@ -272,6 +300,30 @@ class StreamFork:
             self._context.__exit__(*exc)
             self._context = None
         return False
+
+    @property
+    def forks(self) -> bool:
+        """Whether work given to this fork runs beside the caller (a side stream or thread)."""
+        return self.active or self.threaded
+
+    def call(self, fn: Callable, *args, **kwargs) -> Future:
+        """Run fn(*args, **kwargs) beside the caller: on the side stream (CUDA, queued at once),
+        or on the side thread (CPU with `cpu_thread`), or here and now; its value (or the
+        exception it raised) comes from the returned future's `result()`.
+        """
+        if self.threaded:
+            grad = torch.is_grad_enabled()
+            inference = torch.is_inference_mode_enabled()
+
+            def task():
+                with torch.inference_mode(inference), torch.set_grad_enabled(grad):
+                    return fn(*args, **kwargs)
+
+            return _cpu_side_executor().submit(task)
+        done: Future = Future()
+        with self:
+            done.set_result(fn(*args, **kwargs))
+        return done
 
     def join(self, *tensors: torch.Tensor) -> None:
         """Make the current stream wait for the side one; `tensors` (made there) are then safe to use here."""
