@@ -22,6 +22,9 @@ from hairwarp.runtime import StreamFork
 
 # Which contact term runs on a side stream beside the other on CUDA (see `total_energy`).
 _CONTACT_SIDE = "hair_hair"
+# Whether the side stream's term starts before the strand terms on CUDA (on the CPU's side
+# thread it always does: the strand terms then run beside it).
+_SIDE_FIRST_ON_CUDA = False
 
 
 @dataclass
@@ -160,8 +163,9 @@ def total_energy(
     # The two contact terms run side by side: on CUDA at batch 1 hair-body's deep queries are a
     # few thousand long BVH walks that leave most of the GPU idle (docs/contact.md 7-9); on the
     # CPU each term is one core's work (docs/contact.md 10). `_CONTACT_SIDE` names the term on
-    # the side stream (or thread), started first: "hair_hair" puts hair-hair, the longer chain,
-    # on a high-priority stream. The strand terms and the other contact term follow here.
+    # the side stream (or thread): "hair_hair" puts hair-hair, the longer chain, on a
+    # high-priority stream. On the CPU it starts first, the strand terms and the other contact
+    # term following on this thread; on CUDA after the strand terms (`_SIDE_FIRST_ON_CUDA`).
     both = with_hair_body and with_hair_hair
     hb_fork = StreamFork(xb.device, "hair_body", enabled=both and _CONTACT_SIDE == "hair_body", cpu_thread=True)
     hh_fork = StreamFork(xb.device, "hair_hair", enabled=both and _CONTACT_SIDE == "hair_hair", high_priority=True,
@@ -169,7 +173,7 @@ def total_energy(
     pending = {}  # term -> its future
     here = []  # the terms computed on this stream and thread, after the strand terms
     for with_term, fork, term in ((with_hair_hair, hh_fork, hair_hair_term), (with_hair_body, hb_fork, hair_body_term)):
-        if with_term and fork.forks:
+        if with_term and (fork.threaded or (fork.active and _SIDE_FIRST_ON_CUDA)):
             pending[term] = fork.call(term)
         elif with_term:
             here.append((fork, term))

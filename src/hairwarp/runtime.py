@@ -301,11 +301,6 @@ class StreamFork:
             self._context = None
         return False
 
-    @property
-    def forks(self) -> bool:
-        """Whether work given to this fork runs beside the caller (a side stream or thread)."""
-        return self.active or self.threaded
-
     def call(self, fn: Callable, *args, **kwargs) -> Future:
         """Run fn(*args, **kwargs) beside the caller: on the side stream (CUDA, queued at once),
         or on the side thread (CPU with `cpu_thread`), or here and now; its value (or the
