@@ -26,7 +26,9 @@ def add_threads_argument(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threads", type=int, default=1,
                    help="torch CPU threads (default: 1: Warp's CPU kernels run on one thread and torch's "
                         "small element-wise work here loses more to idle OpenMP threads than it gains; on a "
-                        "busy 2-core CPU one thread ran an L-BFGS drape 5x faster than two)")
+                        "busy 2-core CPU one thread ran an L-BFGS drape 5x faster than two). The two contact "
+                        "terms still run side by side on two cores when torch's inter-op threads allow "
+                        "(torch.get_num_interop_threads() > 1, its default on 2+ cores)")
 
 
 def set_threads(args) -> None:
