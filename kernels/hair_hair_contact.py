@@ -860,6 +860,169 @@ def scatter_entries_kernel(
     sorted_hi_out[pos] = hi
 
 
+@wp.func
+def _cell_walk_length(n: int, r: int):
+    """Partners entry r of a slot of n entries meets (a round robin: each pair of the slot's
+    entries met once, the work dealt evenly): r + 1 ... r + (n - 1) / 2 (mod n), and for even n
+    also the one n / 2 on if r < n / 2. (Meeting every later entry halves the reads but not a
+    warp's longest loop.)
+    """
+    meets = (n - 1) // 2
+    if n % 2 == 0 and r < n // 2:
+        meets = n // 2
+    return meets
+
+
+@wp.func
+def _cell_partner(
+    sorted_entries: wp.array(dtype=wp.int32),
+    sorted_lo: wp.array(dtype=wp.vec3),
+    sorted_hi: wp.array(dtype=wp.vec3),
+    q: int,
+    i: int,
+    strand_i: int,
+    group: int,
+    lo_i: wp.vec3,
+    hi_i: wp.vec3,
+    cell: wp.vec3i,
+    inv_width: float,
+    num_vertices: int,
+    num_strands: int,
+    skip_root_segments: int,
+):
+    """Segment j of sorted entry q if the pair (i, j) is met at i's entry in `cell`: j short, of
+    another strand of i's batch item, past the root segments, j's box meets i's with the
+    intersection's low corner in `cell`, and q is j's entry of `cell` (not of another cell
+    sharing the slot); else -1.
+    """
+    other = sorted_entries[q]
+    if other < 0:
+        return -1
+    j = other // MAX_CELLS_PER_SEGMENT
+    segs_per_strand = num_vertices - 1
+    strand_j = j // segs_per_strand
+    if strand_j == strand_i or j % segs_per_strand < skip_root_segments:
+        return -1
+    lo_j = sorted_lo[q]
+    if not boxes_meet_in_cell(lo_i, hi_i, lo_j, sorted_hi[q], cell, inv_width):
+        return -1
+    c = entry_cell(grid_cell(lo_j, inv_width), other % MAX_CELLS_PER_SEGMENT)
+    if c[0] != cell[0] or c[1] != cell[1] or c[2] != cell[2]:
+        return -1  # j's entry of another cell sharing this slot: the pair is met in c only
+    if strand_j // num_strands != group:
+        return -1  # another batch item's cell sharing this slot
+    return j
+
+
+@wp.kernel
+def hair_hair_cell_hits_kernel(
+    # In:
+    sorted_entries: wp.array(dtype=wp.int32),
+    sorted_lo: wp.array(dtype=wp.vec3),
+    sorted_hi: wp.array(dtype=wp.vec3),
+    slot_end: wp.array(dtype=wp.int32),
+    slot_count: wp.array(dtype=wp.int32),
+    grid_params: wp.array(dtype=float),
+    num_vertices: int,
+    num_strands: int,
+    skip_root_segments: int,
+    table_mask: int,
+    hit_rows: int,
+    hit_slots: int,
+    # Out:
+    hits_out: wp.array(dtype=wp.int32),
+    hit_state_out: wp.array(dtype=wp.int32),
+):
+    """The walk of the short-short pairs without their exact test, one thread per sorted entry
+    (segment i, cell c; threads of a slot side by side, reading the same candidates): the first
+    `hit_slots` partners j that `_cell_partner` keeps go to row `pos` of `hits_out`
+    ((hit_slots x hit_rows,) segment ids, slot-major) for `hair_hair_hit_pairs_kernel`. Row state
+    (`hit_state_out`, (hit_rows,)): the hits written (0 ... hit_slots), or hit_slots + t if the
+    walk met one more at step t (`hair_hair_cell_pairs_kernel` goes on from there). Entries past
+    the rows get no row: that kernel walks them whole.
+
+    Why apart from the exact test: a thread that carries the test's registers runs the walk,
+    a few hundred reads per entry, at a fraction of the occupancy (docs/contact.md 11).
+    """
+    pos = wp.tid()
+    if pos >= hit_rows:
+        return
+    hit_state_out[pos] = 0
+    if pos >= slot_end[table_mask]:
+        return  # past the entries (launched over the bound of 8 per segment)
+    packed = sorted_entries[pos]
+    if packed < 0:
+        return  # a long segment: `hair_hair_long_pairs_kernel`
+    i = packed // MAX_CELLS_PER_SEGMENT
+    strand_i = i // (num_vertices - 1)
+    group = strand_i // num_strands
+    inv_width = 1.0 / grid_params[0]
+    lo_i = sorted_lo[pos]
+    hi_i = sorted_hi[pos]
+    cell = entry_cell(grid_cell(lo_i, inv_width), packed % MAX_CELLS_PER_SEGMENT)
+    slot = cell_table_slot(cell, group, table_mask)
+    n = slot_count[slot]
+    start = slot_end[slot] - n
+    r = pos - start
+    hits = int(0)
+    for t in range(1, _cell_walk_length(n, r) + 1):
+        j = _cell_partner(sorted_entries, sorted_lo, sorted_hi, start + (r + t) % n, i, strand_i, group, lo_i, hi_i,
+                          cell, inv_width, num_vertices, num_strands, skip_root_segments)
+        if j < 0:
+            continue
+        if hits == hit_slots:
+            hit_state_out[pos] = hit_slots + t
+            return
+        hits_out[hits * hit_rows + pos] = j  # slot-major: see `hair_hair_hit_pairs_kernel`
+        hits += 1
+    hit_state_out[pos] = hits
+
+
+@wp.kernel
+def hair_hair_hit_pairs_kernel(
+    # In:
+    x_in: wp.array(dtype=Any),
+    sorted_entries: wp.array(dtype=wp.int32),
+    hits: wp.array(dtype=wp.int32),
+    hit_state: wp.array(dtype=wp.int32),
+    hit_slots: int,
+    num_vertices: int,
+    num_strands: int,
+    skip_root_segments: int,
+    cutoff: Any,
+    capacity: int,
+    with_energy: int,
+    xi: Any,
+    dhat: Any,
+    bp: Any,
+    weight: Any,
+    variant: int,
+    # Out:
+    count_out: wp.array(dtype=wp.int32),
+    pairs_out: wp.array(dtype=wp.int32),
+    energy_out: wp.array(dtype=wp.float64),
+    gradient_out: wp.array(dtype=Any),
+):
+    """The exact test of the hits `hair_hair_cell_hits_kernel` wrote, one thread per hit slot
+    (hit_slots x hit_rows, slot-major): the pair (segment of sorted entry `row`, hits[t]) through
+    `_write_pair_if_close`. Slot-major, a warp holds one slot of 32 rows: the first slots' warps
+    are mostly full, the last ones' mostly empty and done at once (row-major measured the same
+    on an H100: the tests, not the idle lanes, take the time).
+    """
+    t = wp.tid()
+    hit_rows = hit_state.shape[0]
+    row = t % hit_rows
+    if t // hit_rows >= wp.min(hit_state[row], hit_slots):
+        return
+    i = sorted_entries[row] // MAX_CELLS_PER_SEGMENT
+    segs_per_strand = num_vertices - 1
+    strand_i = i // segs_per_strand
+    vi = strand_i * num_vertices + i % segs_per_strand
+    _write_pair_if_close(x_in, i, hits[t], strand_i, vi, x_in[vi], x_in[vi + 1], num_vertices, num_strands,
+                         skip_root_segments, cutoff * cutoff, capacity, with_energy, xi, dhat, bp, weight, variant,
+                         count_out, pairs_out, energy_out, gradient_out)
+
+
 @wp.kernel
 def hair_hair_cell_pairs_kernel(
     # In:
@@ -869,6 +1032,9 @@ def hair_hair_cell_pairs_kernel(
     sorted_hi: wp.array(dtype=wp.vec3),
     slot_end: wp.array(dtype=wp.int32),
     slot_count: wp.array(dtype=wp.int32),
+    hit_state: wp.array(dtype=wp.int32),
+    hit_rows: int,
+    hit_slots: int,
     grid_params: wp.array(dtype=float),
     num_vertices: int,
     num_strands: int,
@@ -888,15 +1054,20 @@ def hair_hair_cell_pairs_kernel(
     energy_out: wp.array(dtype=wp.float64),
     gradient_out: wp.array(dtype=Any),
 ):
-    """Short-short pairs, one thread per sorted entry (segment i, cell c; threads of a slot side
-    by side, reading the same candidates): each short segment entered in the same slot and cell
-    c whose box meets i's with the intersection's low corner in c, tested exactly
-    (`_write_pair_if_close`, which orders the two by id). Each pair is tested once: in one cell,
-    by one of its two entries there (a round robin over the slot).
+    """The walks `hair_hair_cell_hits_kernel` left, one thread per sorted entry: from the step
+    its row stopped at (hit_state - hit_slots), or the whole walk for an entry past the rows;
+    each partner `_cell_partner` keeps tested exactly (`_write_pair_if_close`, which orders the
+    two by id). With the hits kernel, each pair is tested once: in one cell, by one of its two
+    entries there (the round robin of `_cell_walk_length`).
     """
     pos = wp.tid()
     if pos >= slot_end[table_mask]:
         return  # past the entries (launched over the bound of 8 per segment)
+    first = int(1)
+    if pos < hit_rows:
+        first = hit_state[pos] - hit_slots
+        if first <= 0:
+            return  # walked whole by the hits kernel
     packed = sorted_entries[pos]
     if packed < 0:
         return  # a long segment: `hair_hair_long_pairs_kernel`
@@ -913,29 +1084,14 @@ def hair_hair_cell_pairs_kernel(
     p0 = x_in[vi]
     p1 = x_in[vi + 1]
     cutoff2 = cutoff * cutoff
-    # Each pair of entries of the slot is met once, the work dealt evenly (a round robin): entry r
-    # of n meets the entries r + 1 ... r + (n - 1) / 2 (mod n), and for even n the one n / 2 on
-    # if r < n / 2. (Meeting every later entry halves the reads but not a warp's longest loop.)
     n = slot_count[slot]
     start = slot_end[slot] - n
     r = pos - start
-    meets = (n - 1) // 2
-    if n % 2 == 0 and r < n // 2:
-        meets = n // 2
-    for t in range(1, meets + 1):
-        q = start + (r + t) % n
-        other = sorted_entries[q]
-        j = other // MAX_CELLS_PER_SEGMENT
-        if other < 0 or j == i:
+    for t in range(first, _cell_walk_length(n, r) + 1):
+        j = _cell_partner(sorted_entries, sorted_lo, sorted_hi, start + (r + t) % n, i, strand_i, group, lo_i, hi_i,
+                          cell, inv_width, num_vertices, num_strands, skip_root_segments)
+        if j < 0:
             continue
-        lo_j = sorted_lo[q]
-        if not boxes_meet_in_cell(lo_i, hi_i, lo_j, sorted_hi[q], cell, inv_width):
-            continue
-        c = entry_cell(grid_cell(lo_j, inv_width), other % MAX_CELLS_PER_SEGMENT)
-        if c[0] != cell[0] or c[1] != cell[1] or c[2] != cell[2]:
-            continue  # j's entry of another cell sharing this slot: the pair is met in c only
-        if (j // segs_per_strand) // num_strands != group:
-            continue  # another batch item's cell sharing this slot
         _write_pair_if_close(x_in, i, j, strand_i, vi, p0, p1, num_vertices, num_strands, skip_root_segments,
                              cutoff2, capacity, with_energy, xi, dhat, bp, weight, variant, count_out, pairs_out,
                              energy_out, gradient_out)

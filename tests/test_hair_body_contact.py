@@ -290,7 +290,8 @@ def _in_and_out_strands(rng, m=24, n=30):
     directions = _random_directions(rng, m)
     t = np.linspace(0.0, 1.0, n)
     start = rng.uniform(0.3, 1.6, size=(m, 1))
-    radius = start + 0.7 * np.sin(2 * np.pi * (t[None] * rng.uniform(0.5, 1.5, size=(m, 1))) + rng.uniform(0, 6, size=(m, 1)))
+    phase = rng.uniform(0, 6, size=(m, 1))
+    radius = start + 0.7 * np.sin(2 * np.pi * (t[None] * rng.uniform(0.5, 1.5, size=(m, 1))) + phase)
     radius = np.clip(radius, 0.05, None)
     wobble = rng.normal(scale=0.02, size=(m, n, 3))
     return directions[:, None] * radius[..., None] + wobble

@@ -25,21 +25,28 @@ FD_H = 1e-8
 FD_RTOL = 1e-5
 
 
-@pytest.fixture(autouse=True, params=["cpu-grid", "cells", "midpoints"])
+@pytest.fixture(autouse=True, params=["cpu-grid", "cells", "cells-overflow", "midpoints"])
 def broad_phase(request, monkeypatch):
     """Every test of this module runs each broad phase: the CPU's own grid and both device
-    kinds (the boxes in hashed cells, the midpoint grid), whichever device runs it."""
+    kinds (the boxes in hashed cells, the midpoint grid), whichever device runs it.
+    "cells-overflow" is the cells kind with a hit list of one partner for one entry per segment:
+    most walks go on past their row and many entries have none (`_cell_broad_phase`)."""
     import hairwarp.ops.hair_hair_contact as hh
 
     device_kind = hh._broad_phase_kind
+    chosen = request.param
+    if chosen == "cells-overflow":
+        monkeypatch.setattr(hh, "_CELL_HIT_SLOTS", 1)
+        monkeypatch.setattr(hh, "_CELL_HIT_ROWS_PER_SEGMENT", 1)
+        chosen = "cells"
 
     def kind(device):
         # The CPU grid is the CPU's own: CUDA tensors keep the device kind.
-        return device_kind(device) if request.param == "cpu-grid" and device.type != "cpu" else request.param
+        return device_kind(device) if request.param == "cpu-grid" and device.type != "cpu" else chosen
 
     monkeypatch.setattr(hh, "_broad_phase_kind", kind)
     monkeypatch.setattr(hh, "_learned_capacity", {})  # each kind learns its own
-    return request.param
+    return chosen
 
 
 def _t(a, dtype=torch.float64, device="cpu"):

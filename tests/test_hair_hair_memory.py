@@ -9,6 +9,7 @@ import torch
 from hairwarp.ops import hair_hair_contact_energy, hair_hair_contact_pairs
 from hairwarp.ops import hair_hair_contact as hh
 from hairwarp.ops.hair_hair_contact import HairHairCapacityError
+from hairwarp.torch_reference import hair_hair_contact as torch_ref
 from references import hair_hair_contact as ref
 
 XI, DHAT, BP = 2e-3, 3e-3, 0.1
@@ -90,7 +91,6 @@ def test_benchmark_torch_peer_item_by_item_equals_whole_batch(rng):
     memory; it must give the whole-batch result."""
     from hairwarp.bench.energy import torch_hair_hair_by_item
     from hairwarp.config import EnergyConfig
-    from hairwarp.torch_reference import hair_hair_contact as torch_ref
 
     config = EnergyConfig(hair_diameter=XI, hair_hair_dhat=DHAT, barrier_join_fraction=BP, hair_hair_weight=2.0)
     x = torch.tensor(ref.random_hair(rng, batch=3, strands=8, vertices=12, extent=6e-3, segment=1e-3))
@@ -215,3 +215,47 @@ def test_grid_scales_match_their_formula_and_repeat_bit_for_bit(rng, dtype, devi
     np.testing.assert_allclose(params.cpu().numpy(), [width, long_half, slack, max_half], rtol=2e-6)
     assert max_half > 1.4 and long_half < 0.1
     assert torch.equal(params, hh._grid_params(torch.tensor(x, dtype=dtype, device=device), cutoff))
+
+
+@pytest.mark.parametrize("hit_slots, rows_per_segment", [(0, 4), (1, 1), (2, 4), (4, 4)])
+def test_cell_hit_list_rows_that_overflow_walk_on(rng, monkeypatch, hit_slots, rows_per_segment):
+    """The cells kind's short-short walk writes each entry's first partners to a hit list and
+    walks on with the exact test where a row is full or an entry has no row: whatever the list's
+    size, the pairs are exactly the brute force's, each once, and the energy and gradient the
+    same. The small lists do overflow both ways (rows full, entries past the rows)."""
+    monkeypatch.setattr(hh, "_broad_phase_kind", lambda device: "cells")
+    monkeypatch.setattr(hh, "_CELL_HIT_SLOTS", hit_slots)
+    monkeypatch.setattr(hh, "_CELL_HIT_ROWS_PER_SEGMENT", rows_per_segment)
+    x = ref.random_hair(rng, batch=2, strands=10, vertices=12, extent=0.01, segment=2e-3)
+    expected_energy, expected = ref.energy(x, XI, DHAT, BP)
+    assert expected.shape[0] > 40
+    runs = []
+    real = hh._cell_broad_phase
+
+    def spy(*args, **kwargs):
+        run, count = real(*args, **kwargs)
+        runs.append(run)
+        return run, count
+
+    monkeypatch.setattr(hh, "_cell_broad_phase", spy)
+    found = hair_hair_contact_pairs(torch.tensor(x), XI, DHAT)
+    np.testing.assert_array_equal(found.pairs.numpy(), expected)
+    assert found.pair_count == expected.shape[0]
+    xt = torch.tensor(x, requires_grad=True)
+    energy, _ = hair_hair_contact_energy(xt, XI, DHAT, BP)
+    np.testing.assert_allclose(energy.detach().numpy(), expected_energy, rtol=1e-12)
+    (gradient,) = torch.autograd.grad(energy.sum(), xt)
+    reference, _ = torch_ref.hair_hair_contact_energy(xt, XI, DHAT, BP, 1.0, "quadratic", method="grid")
+    (reference_gradient,) = torch.autograd.grad(reference.sum(), xt)
+    np.testing.assert_allclose(gradient.numpy(), reference_gradient.numpy(), rtol=1e-9, atol=1e-9)
+    run = runs[-1]
+    assert run.hit_slots == hit_slots
+    entries = int(run.slot_end[-1])
+    if hit_slots == 0:
+        assert run.hit_rows == 0  # the walk and the test in one kernel
+        return
+    state = run.hit_state[: min(run.hit_rows, entries)]
+    assert int((state > 0).sum()) > 0  # rows that held hits
+    if (hit_slots, rows_per_segment) == (1, 1):
+        assert int((state > hit_slots).sum()) > 10  # rows that overflowed
+        assert entries > run.hit_rows  # entries with no row

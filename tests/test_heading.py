@@ -4,8 +4,6 @@ to the body's heading (static and dynamic networks, the shipped checkpoint)."""
 
 import math
 
-import numpy as np
-import pytest
 import torch
 
 from hairwarp.models.heading import heading, turn_contact_features, turn_pose, turn_vectors, yaw_rotation

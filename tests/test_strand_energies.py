@@ -15,11 +15,12 @@ import warp as wp
 from hairwarp import _warp
 from hairwarp.config import STRAND_TERMS, EnergyConfig
 from hairwarp.kernels import strand_energies as strand_kernels
+from references import strand_energies as ref
+
 # `hairwarp.ops.strand_energies` is also the name of the fused function that `hairwarp.ops`
 # exports, which shadows the submodule as an attribute: take the modules from the import system.
 ops = importlib.import_module("hairwarp.ops.strand_energies")
 torch_ref = importlib.import_module("hairwarp.torch_reference.strand_energies")
-from references import strand_energies as ref
 
 LAYOUTS = ("strand", "vertex")
 DTYPES = (torch.float64, torch.float32)

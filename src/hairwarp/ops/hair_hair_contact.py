@@ -36,8 +36,8 @@ Memory: the pair buffer is one per device, reused across eager calls (grown to 1
 need, never shrunk), capped at `max_pairs` pairs of 8 bytes (default 64 per segment: 1.6 GiB for
 1024 x 100 hair at batch 32, of which a drape touches ~1 pair per segment, 26 MiB); a call being
 captured in a CUDA graph gets buffers of its own, sized by its capacity (the graph keeps them).
-Besides it, a call of the cells kind holds ~360 bytes per segment (room for 8 entries with their
-boxes, the table; `_cell_broad_phase`) and the gradient (the size of `x`); the midpoint kind
+Besides it, a call of the cells kind holds ~450 bytes per segment (room for 8 entries with their
+boxes, the table, the hit list; `_cell_broad_phase`) and the gradient (the size of `x`); the midpoint kind
 ~36 bytes per segment and a 2 MiB slot table per batch item. See docs/contact.md.
 """
 
@@ -72,6 +72,13 @@ _CELL_FACTOR = 1.0
 # The device broad phase: "cells" (segment boxes in hashed cells, `_cell_broad_phase`) or
 # "midpoints" (a midpoint grid walked by each segment's query, `hair_hair_pairs_kernel`).
 _DEVICE_BROAD_PHASE = "cells"
+# The cells kind's hit list (`_cell_broad_phase`): room for _CELL_HIT_SLOTS partners (4 bytes
+# each, plus 4 for the row's state) of each of the first _CELL_HIT_ROWS_PER_SEGMENT x segments
+# entries (84 bytes per segment; entries past the rows are walked with the exact test inline).
+# _CELL_HIT_SLOTS = 0: the walk and the test in one kernel. Chosen on an H100 among 4-12 slots
+# and 3-4 rows (docs/contact.md 11): 6 x 3 fastest at batch 32 with the least memory but one.
+_CELL_HIT_SLOTS = 6
+_CELL_HIT_ROWS_PER_SEGMENT = 3
 # The CPU grid (`_CpuGrid`): cells of _CPU_CELL_FACTOR x the device path's width (a query walks
 # one contiguous range per z row, so finer cells cost little and bring fewer candidates), at
 # most _CPU_MAX_CELLS_PER_SEGMENT cells per segment (4 bytes each).
@@ -534,9 +541,9 @@ def _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy=None):
     (with_energy 3); `count` is then (S,) per segment and `run`'s room unused.
 
     Memory per call: room for 8 entries per segment (rank, packed id and box: 288 bytes), the
-    segment's box and long flag (28 bytes) and the table (8 bytes per slot, 4-8 slots per
-    segment): ~360 bytes per segment (1.1 GiB for 1024 x 100 hair at batch 32), besides the pair
-    buffer.
+    segment's box and long flag (28 bytes), the table (8 bytes per slot, 4-8 slots per segment)
+    and the hit list (4 (_CELL_HIT_SLOTS + 1) _CELL_HIT_ROWS_PER_SEGMENT bytes: 84): ~450 bytes
+    per segment (1.4 GiB for 1024 x 100 hair at batch 32), besides the pair buffer.
     """
     b, m, n, _ = x4.shape
     num_segments = b * m * (n - 1)
@@ -574,6 +581,15 @@ def _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy=None):
                      inputs=boxes + [_warp.as_warp(ranks)] + table_wp + [params_wp, n, m, table - 1],
                      outputs=sorted_wp, device=wp_device)
 
+    # The short-short walk in two kernels (docs/contact.md 11): the first `hit_slots` partners of
+    # each of the first `hit_rows` entries to a hit list, exactly tested over the list; what a
+    # row could not hold, and the entries past the rows, walked again with the test inline.
+    hit_slots = _CELL_HIT_SLOTS
+    hit_rows = min(entries, _CELL_HIT_ROWS_PER_SEGMENT * num_segments) if hit_slots > 0 else 0
+    hits = torch.empty(max(1, hit_rows * hit_slots), dtype=torch.int32, device=device)
+    hit_state = torch.empty(max(1, hit_rows), dtype=torch.int32, device=device)
+    hits_wp, hit_state_wp = _warp.as_warp(hits), _warp.as_warp(hit_state)
+
     lanes = int(hh_kernels.LONG_LANES)
     list_stride = max(1, num_segments // lanes)  # long segments served at once (more: in turn)
 
@@ -597,13 +613,24 @@ def _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy=None):
                          + [params_wp, n, m, skip_root_segments, table - 1, list_stride] + pair_inputs,
                          outputs=common_out, device=wp_device)
         with _warp.launch_scope(device):
+            walk = sorted_wp + table_wp
+            if hit_rows > 0:
+                _warp.launch(hh_kernels.hair_hair_cell_hits_kernel, dim=entries,
+                             inputs=walk + [params_wp, n, m, skip_root_segments, table - 1, hit_rows, hit_slots],
+                             outputs=[hits_wp, hit_state_wp], device=wp_device)
+                _warp.launch(hh_kernels.hair_hair_hit_pairs_kernel, dim=hit_rows * hit_slots,
+                             inputs=[x_wp, sorted_wp[0], hits_wp, hit_state_wp, hit_slots, n, m, skip_root_segments]
+                             + pair_inputs,
+                             outputs=common_out, device=wp_device)
             _warp.launch(hh_kernels.hair_hair_cell_pairs_kernel, dim=entries,
-                         inputs=[x_wp] + sorted_wp + table_wp + [params_wp, n, m, skip_root_segments, table - 1]
-                         + pair_inputs,
+                         inputs=[x_wp] + walk + [hit_state_wp, hit_rows, hit_slots, params_wp, n, m, skip_root_segments,
+                                                 table - 1] + pair_inputs,
                          outputs=common_out, device=wp_device)
         fork.join()
         return pairs
 
+    # What the hit list held, for tests and benchmarks: row states and the entries' end.
+    run.hit_state, run.slot_end, run.hit_rows, run.hit_slots = hit_state, slot_end, hit_rows, hit_slots
     return run, count
 
 
