@@ -772,7 +772,9 @@ def segment_boxes_kernel(
     """Each segment's box (float32, grown by the cutoff / 2 and the rounding slack), whether it is
     long, and its entries: entry k of segment s gets its rank in its slot (`entry_rank_out[8 s + k]`,
     -1 for no entry), counted by an atomic on the slot. Root segments get no entry. Long segments
-    are also listed (`long_list_out`, `long_count_out`) for `hair_hair_long_pairs_kernel`.
+    are also listed for `hair_hair_long_pairs_kernel` ((2 S,) `long_list_out`, (B + 1,)
+    `long_count_out`): all of them from 0 on (`long_count_out[B]` of them), and each batch item
+    g's from S + g x its segments on (`long_count_out[g]`).
     """
     s = wp.tid()
     segs_per_strand = num_vertices - 1
@@ -798,7 +800,12 @@ def segment_boxes_kernel(
     hi_cell = grid_cell(hi, inv_width)
     if hi_cell[0] - lo_cell[0] > 1 or hi_cell[1] - lo_cell[1] > 1 or hi_cell[2] - lo_cell[2] > 1:
         long_out[s] = 1
-        long_list_out[wp.atomic_add(long_count_out, 0, 1)] = s
+        # Listed twice: in the batch's list (the long-pairs launch's threads) and in its item's
+        # (its long partners; item g's list starts at g x its segments).
+        num_groups = long_count_out.shape[0] - 1
+        long_list_out[wp.atomic_add(long_count_out, num_groups, 1)] = s
+        item_list = long_list_out.shape[0] // 2 + group * num_strands * segs_per_strand
+        long_list_out[item_list + wp.atomic_add(long_count_out, group, 1)] = s
         slot = cell_table_slot(box_center_cell(lo, hi, inv_width), group, table_mask)
         entry_rank_out[base] = wp.atomic_add(slot_count_out, slot, 1)
         return
@@ -1209,18 +1216,21 @@ def hair_hair_long_pairs_kernel(
     energy_out: wp.array(dtype=wp.float64),
     gradient_out: wp.array(dtype=Any),
 ):
-    """The long segments' pairs: LONG_LANES threads per listed long segment i (launched as
-    list_stride x LONG_LANES threads, striding over the list). Lane l walks the cells l, l + LONG_LANES,
-    ... of i's box for short partners (each met in the cell of the boxes' low corner, as between
-    short ones), then the listed long segments l, l + LONG_LANES, ... for long partners, keeping
-    those shorter than i (ties: the lower id tests the pair).
+    """The long segments' pairs: LONG_LANES threads per long segment i of the batch's list
+    (`segment_boxes_kernel`; launched as list_stride x LONG_LANES threads, striding over it).
+    Lane l walks the cells l, l + LONG_LANES, ... of i's box for short partners (each met in the
+    cell of the boxes' low corner, as between short ones), then the long segments l,
+    l + LONG_LANES, ... of i's batch item's list for long partners, keeping those shorter than i
+    (ties: the lower id tests the pair).
     """
     t = wp.tid()
     lane = t % LONG_LANES
     segs_per_strand = num_vertices - 1
+    segs_per_group = num_strands * segs_per_strand
+    num_groups = long_count.shape[0] - 1
     inv_width = 1.0 / grid_params[0]
     cutoff2 = cutoff * cutoff
-    for listed in range(t // LONG_LANES, long_count[0], list_stride):
+    for listed in range(t // LONG_LANES, long_count[num_groups], list_stride):
         i = long_list[listed]
         strand_i = i // segs_per_strand
         group = strand_i // num_strands
@@ -1286,13 +1296,16 @@ def hair_hair_long_pairs_kernel(
                                                  slot_count, table_mask, num_vertices, num_strands,
                                                  skip_root_segments, cutoff2, capacity, with_energy, xi, dhat, bp,
                                                  weight, variant, count_out, pairs_out, energy_out, gradient_out)
-        # Long partners: every other listed long segment, the longer of the two testing the pair
-        # (ties: the lower id). A walk of i's box grown by the longest half length cost every
-        # long segment a metre-wide box once one line-search trial stretched a segment to metres
-        # (0.7-1.6 s per evaluation, docs/contact.md 8); the list is a few hundred in a drape.
-        for k in range(lane, long_count[0], LONG_LANES):
-            j = long_list[k]
-            if j == i or (j // segs_per_strand) // num_strands != group:
+        # Long partners: every other long segment of i's batch item, the longer of the two
+        # testing the pair (ties: the lower id). A walk of i's box grown by the longest half
+        # length cost every long segment a metre-wide box once one line-search trial stretched a
+        # segment to metres (0.7-1.6 s per evaluation, docs/contact.md 8); the list is a few
+        # hundred per item in a drape (one list for the whole batch made this loop grow with the
+        # square of the batch: docs/contact.md 11).
+        first = long_list.shape[0] // 2 + group * segs_per_group
+        for k in range(lane, long_count[group], LONG_LANES):
+            j = long_list[first + k]
+            if j == i:
                 continue
             vj = (j // segs_per_strand) * num_vertices + j % segs_per_strand
             half_j = wp.length(wp.vec3(x_in[vj + 1]) - wp.vec3(x_in[vj])) * 0.5

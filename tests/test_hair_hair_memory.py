@@ -156,20 +156,34 @@ def test_cell_table_collisions_neither_drop_nor_repeat_pairs(rng, slots, monkeyp
     assert found.pair_count == expected.shape[0]
 
 
-def test_many_long_segments_share_the_long_lanes(rng, monkeypatch):
+@pytest.mark.parametrize("batch", [1, 3])
+def test_many_long_segments_share_the_long_lanes(rng, monkeypatch, batch):
     """More long segments than the long-pairs launch serves at once (it strides over its list):
-    every other segment 4x longer, so half of them are long; pairs as the brute force's."""
+    every fourth segment 40x longer (3.7x the mean), so many of them are long; pairs as the brute
+    force's. With 3 batch items each item's long segments are listed apart and pair only among
+    themselves."""
     monkeypatch.setattr(hh, "_broad_phase_kind", lambda device: "cells")
-    x = ref.random_hair(rng, batch=1, strands=10, vertices=12, extent=0.01, segment=1e-3)
+    runs = []
+    real = hh._cell_broad_phase
+
+    def spy(*args, **kwargs):
+        run, count = real(*args, **kwargs)
+        runs.append(run)
+        return run, count
+
+    monkeypatch.setattr(hh, "_cell_broad_phase", spy)
+    x = ref.random_hair(rng, batch=batch, strands=24, vertices=12, extent=0.01, segment=1e-3)
     steps = np.diff(x, axis=2)
-    steps[:, :, 1::2] *= 4.0
+    steps[:, :, 1::4] *= 40.0
     x = np.concatenate([x[:, :, :1], x[:, :, :1] + np.cumsum(steps, axis=2)], axis=2)
-    lengths = np.linalg.norm(np.diff(x, axis=2), axis=-1)
-    assert (lengths > 1.5 * lengths.mean()).sum() > x.shape[1] * (x.shape[2] - 1) // 32 + 8
     _, expected = ref.energy(x, XI, DHAT, BP)
     found = hair_hair_contact_pairs(torch.tensor(x), XI, DHAT)
     assert expected.shape[0] > 20
     np.testing.assert_array_equal(found.pairs.numpy(), expected)
+    long_count = runs[-1].long_count
+    served_at_once = max(1, x.shape[1] * (x.shape[2] - 1) * batch // 32)
+    assert int(long_count[-1]) > served_at_once and int(long_count[:-1].sum()) == int(long_count[-1])
+    assert bool((long_count[:-1] > 4).all())  # every item has long segments of its own
 
 
 def test_a_segment_stretched_to_metres_walks_a_tube_and_finds_every_pair(rng, monkeypatch):

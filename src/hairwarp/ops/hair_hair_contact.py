@@ -72,6 +72,11 @@ _CELL_FACTOR = 1.0
 # The device broad phase: "cells" (segment boxes in hashed cells, `_cell_broad_phase`) or
 # "midpoints" (a midpoint grid walked by each segment's query, `hair_hair_pairs_kernel`).
 _DEVICE_BROAD_PHASE = "cells"
+# The cells kind's long segments: longer than _CELL_LONG_FACTOR x the mean (its cells are as wide
+# as the box of a segment that long). 2 rather than _LONG_FACTOR: a groom mixing strands of 10x
+# different lengths (half the strands' segments 1.8x the mean) spent 46 ms of a 54 ms batch-32
+# energy on long segments at 1.5 and took 10.8 ms at 2; uniform hair the same (docs/contact.md 11).
+_CELL_LONG_FACTOR = 2.0
 # The cells kind's hit list (`_cell_broad_phase`): room for _CELL_HIT_SLOTS partners (4 bytes
 # each, plus 4 for the row's state) of each of the first _CELL_HIT_ROWS_PER_SEGMENT x segments
 # entries (84 bytes per segment; entries past the rows are walked with the exact test inline).
@@ -267,7 +272,7 @@ def default_capacity(num_segments: int) -> int:
     return max(configured, _learned_capacity.get(num_segments, 0))
 
 
-def _grid_params(x4: torch.Tensor, cutoff: float) -> torch.Tensor:
+def _grid_params(x4: torch.Tensor, cutoff: float, long_factor: float | None = None) -> torch.Tensor:
     """(4,) float32 on the device: cell width, long half length H, absolute slack, longest half
     length [m] (no host read; `segment_stats_kernel` then `grid_params_kernel`: two launches
     where torch took ten small kernels, the longest path of the energy's graph at batch 1).
@@ -275,7 +280,8 @@ def _grid_params(x4: torch.Tensor, cutoff: float) -> torch.Tensor:
     Two segments closer than the cutoff have midpoints at most cutoff + (l_i + l_j) / 2 apart;
     the float32 midpoints add up to |coordinate| * 2^-24 each. Segments longer than
     _LONG_FACTOR x the mean are "long": their pairs are found from their own (wider) queries, so
-    the others query within cutoff + their length / 2 + H only. Cells are _CELL_FACTOR x a typical
+    the others query within cutoff + their length / 2 + H only (`long_factor`, default
+    _LONG_FACTOR; the cells kind's _CELL_LONG_FACTOR). Cells are _CELL_FACTOR x a typical
     query's radius. Sizing both by the longest segment made every query pay for it: an L-BFGS
     trial point with one segment stretched to 72 mm took 0.6-1.2 s (docs/contact.md). The
     mean length is summed in fixed point (1 nm), so the scales are the same in every run.
@@ -293,7 +299,8 @@ def _grid_params(x4: torch.Tensor, cutoff: float) -> torch.Tensor:
         _warp.launch(hh_kernels.segment_stats_kernel, dim=num_segments,
                      inputs=[_warp.as_warp(x4, vec3=True), n], outputs=stats, device=wp_device)
         _warp.launch(hh_kernels.grid_params_kernel, dim=1,
-                     inputs=stats + [num_segments, float(cutoff), _LONG_FACTOR, _CELL_FACTOR, _RADIUS_SLACK],
+                     inputs=stats + [num_segments, float(cutoff), _LONG_FACTOR if long_factor is None else long_factor,
+                                     _CELL_FACTOR, _RADIUS_SLACK],
                      outputs=[_warp.as_warp(params)], device=wp_device)
     return params
 
@@ -541,22 +548,23 @@ def _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy=None):
     (with_energy 3); `count` is then (S,) per segment and `run`'s room unused.
 
     Memory per call: room for 8 entries per segment (rank, packed id and box: 288 bytes), the
-    segment's box and long flag (28 bytes), the table (8 bytes per slot, 4-8 slots per segment)
-    and the hit list (4 (_CELL_HIT_SLOTS + 1) _CELL_HIT_ROWS_PER_SEGMENT bytes: 84): ~450 bytes
+    segment's box, long flag and places in the long lists (36 bytes), the table (8 bytes per
+    slot, 4-8 slots per segment) and the hit list (4 (_CELL_HIT_SLOTS + 1)
+    _CELL_HIT_ROWS_PER_SEGMENT bytes: 84): ~450 bytes
     per segment (1.4 GiB for 1024 x 100 hair at batch 32), besides the pair buffer.
     """
     b, m, n, _ = x4.shape
     num_segments = b * m * (n - 1)
     device = x4.device
     wp_device = _warp.warp_device(device)
-    params = _grid_params(x4, cutoff)
+    params = _grid_params(x4, cutoff, _CELL_LONG_FACTOR)
     table = _cell_table_size(num_segments)
     entries = num_segments * int(hh_kernels.MAX_CELLS_PER_SEGMENT)
     box_lo = torch.empty(num_segments, 3, dtype=torch.float32, device=device)
     box_hi = torch.empty(num_segments, 3, dtype=torch.float32, device=device)
     long_flags = torch.empty(num_segments, dtype=torch.int32, device=device)
-    long_count = torch.zeros(1, dtype=torch.int32, device=device)
-    long_list = torch.empty(num_segments, dtype=torch.int32, device=device)
+    long_count = torch.zeros(b + 1, dtype=torch.int32, device=device)  # per item, then all
+    long_list = torch.empty(2 * num_segments, dtype=torch.int32, device=device)  # all, then per item
     ranks = torch.empty(entries, dtype=torch.int32, device=device)
     slot_count = torch.zeros(table, dtype=torch.int32, device=device)
     sorted_entries = torch.empty(entries, dtype=torch.int32, device=device)
@@ -629,8 +637,10 @@ def _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy=None):
         fork.join()
         return pairs
 
-    # What the hit list held, for tests and benchmarks: row states and the entries' end.
+    # What the hit list held, for tests and benchmarks: row states and the entries' end; the
+    # long segments counted (per batch item, then all).
     run.hit_state, run.slot_end, run.hit_rows, run.hit_slots = hit_state, slot_end, hit_rows, hit_slots
+    run.long_count = long_count
     return run, count
 
 
