@@ -126,6 +126,74 @@ def grid_params_kernel(
     params_out[3] = max_half
 
 
+# The lengths past the mean rule's long length, counted on a ladder of LENGTH_LADDER_STEPS rungs
+# (each LENGTH_LADDER_RATIO x the last; spread over LENGTH_LADDER_SLOTS addresses per rung), so
+# the cells kind can size its cells for all but a small fraction of the segments whatever their
+# mix of lengths (`length_ladder_kernel`, `grid_params_from_ladder_kernel`).
+LENGTH_LADDER_STEPS = wp.constant(16)
+LENGTH_LADDER_SLOTS = wp.constant(32)
+LENGTH_LADDER_RATIO = wp.constant(1.25)
+
+
+@wp.kernel
+def length_ladder_kernel(
+    # In:
+    x_in: wp.array(dtype=Any),
+    num_vertices: int,
+    grid_params: wp.array(dtype=float),
+    # Out:
+    counts_out: wp.array(dtype=wp.int32),
+):
+    """One thread per segment: a segment longer than the mean rule's long length
+    base = 2 grid_params[1] is counted on rung k (base r^k < length <= base r^(k + 1), the top
+    rung also counting longer ones) of `counts_out` ((LENGTH_LADDER_STEPS x LENGTH_LADDER_SLOTS,),
+    zeroed). Hair of even lengths counts nothing (no atomics).
+    """
+    seg = wp.tid()
+    strand = seg // (num_vertices - 1)
+    v0 = strand * num_vertices + seg % (num_vertices - 1)
+    length = float(wp.length(x_in[v0 + 1] - x_in[v0]))
+    base = 2.0 * grid_params[1]
+    if base <= 0.0 or length <= base:
+        return
+    k = int(wp.floor(wp.log(length / base) / wp.log(LENGTH_LADDER_RATIO)))
+    k = wp.clamp(k, 0, LENGTH_LADDER_STEPS - 1)
+    wp.atomic_add(counts_out, k * LENGTH_LADDER_SLOTS + seg % LENGTH_LADDER_SLOTS, 1)
+
+
+@wp.kernel
+def grid_params_from_ladder_kernel(
+    # In:
+    counts: wp.array(dtype=wp.int32),
+    num_segments: int,
+    long_fraction: float,
+    cutoff: float,
+    cell_factor: float,
+    relative_slack: float,
+    # In and out:
+    params: wp.array(dtype=float),
+):
+    """One thread: the long length raised up the ladder (`length_ladder_kernel`) to the lowest
+    rung base r^j past which at most long_fraction x num_segments segments lie, and the cell
+    width (params[0], params[1]) made again from it as `grid_params_kernel` makes them.
+    """
+    allowed = long_fraction * float(num_segments)
+    above = int(0)
+    rung = int(0)
+    for step in range(LENGTH_LADDER_STEPS):
+        k = LENGTH_LADDER_STEPS - 1 - step
+        for slot in range(LENGTH_LADDER_SLOTS):
+            above += counts[k * LENGTH_LADDER_SLOTS + slot]
+        if float(above) > allowed:
+            rung = k + 1
+            break
+    if rung == 0:
+        return  # the mean rule stands
+    long_half = wp.min(params[3], params[1] * wp.pow(LENGTH_LADDER_RATIO, float(rung)))
+    params[1] = long_half
+    params[0] = (cutoff + 2.0 * long_half) * cell_factor * (1.0 + relative_slack) + params[2]
+
+
 @wp.func
 def grid_slot(ix: int, iy: int, iz: int, group: int):
     """Table slot of cell (ix, iy, iz) of batch item `group` (periodic in GRID_DIM per axis)."""

@@ -161,8 +161,10 @@ def test_many_long_segments_share_the_long_lanes(rng, monkeypatch, batch):
     """More long segments than the long-pairs launch serves at once (it strides over its list):
     every fourth segment 40x longer (3.7x the mean), so many of them are long; pairs as the brute
     force's. With 3 batch items each item's long segments are listed apart and pair only among
-    themselves."""
+    themselves. (Long by the mean rule: a quarter of the segments long would raise the cells'
+    size past them, `test_cells_sized_for_all_but_a_few_segments_of_a_mixed_groom`.)"""
     monkeypatch.setattr(hh, "_broad_phase_kind", lambda device: "cells")
+    monkeypatch.setattr(hh, "_CELL_LONG_FRACTION", 1.0)
     runs = []
     real = hh._cell_broad_phase
 
@@ -273,3 +275,34 @@ def test_cell_hit_list_rows_that_overflow_walk_on(rng, monkeypatch, hit_slots, r
     if (hit_slots, rows_per_segment) == (1, 1):
         assert int((state > hit_slots).sum()) > 10  # rows that overflowed
         assert entries > run.hit_rows  # entries with no row
+
+
+def test_cells_sized_for_all_but_a_few_segments_of_a_mixed_groom(rng, monkeypatch):
+    """Cells sized by the mean length would send every segment of a groom's long strands down
+    the long path; the cells kind raises the long length on its ladder (1.25x rungs) until at
+    most `_CELL_LONG_FRACTION` of the segments are longer. Even hair keeps the mean rule; a
+    mix of strands 10x apart in length gets cells for its long strands, and the same pairs."""
+    strands, vertices = 16, 14
+    x = ref.random_hair(rng, batch=2, strands=strands, vertices=vertices, extent=0.02, segment=1e-3)
+    even = torch.tensor(x)
+    mean_rule = hh._grid_params(even, XI + DHAT)
+    np.testing.assert_array_equal(hh._grid_params(even, XI + DHAT, hh._CELL_LONG_FRACTION).numpy(),
+                                  mean_rule.numpy())
+    steps = np.diff(x, axis=2)
+    steps[:, ::2] *= 10.0  # every other strand's segments 10x longer: 1.8x the mean
+    mixed = np.concatenate([x[:, :, :1], x[:, :, :1] + np.cumsum(steps, axis=2)], axis=2)
+    xt = torch.tensor(mixed)
+    lengths = np.linalg.norm(np.diff(mixed, axis=2), axis=-1)
+    mean_long = float(hh._grid_params(xt, XI + DHAT)[1]) * 2
+    assert (lengths > mean_long).mean() > 0.3  # the mean rule calls a third of the segments long
+    raised = hh._grid_params(xt, XI + DHAT, hh._CELL_LONG_FRACTION)
+    long_length = float(raised[1]) * 2
+    assert (lengths > long_length * (1 + 1e-6)).mean() <= hh._CELL_LONG_FRACTION  # float32 params
+    assert long_length <= lengths.max() * 1.0001 and long_length > mean_long
+    np.testing.assert_allclose(float(raised[0]), (XI + DHAT + long_length) * hh._CELL_FACTOR * (1 + hh._RADIUS_SLACK)
+                               + float(raised[2]), rtol=1e-6)
+    monkeypatch.setattr(hh, "_broad_phase_kind", lambda device: "cells")
+    _, expected = ref.energy(mixed, XI, DHAT, BP)
+    assert expected.shape[0] > 20
+    found = hair_hair_contact_pairs(xt, XI, DHAT)
+    np.testing.assert_array_equal(found.pairs.numpy(), expected)

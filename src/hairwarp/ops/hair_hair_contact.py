@@ -72,11 +72,12 @@ _CELL_FACTOR = 1.0
 # The device broad phase: "cells" (segment boxes in hashed cells, `_cell_broad_phase`) or
 # "midpoints" (a midpoint grid walked by each segment's query, `hair_hair_pairs_kernel`).
 _DEVICE_BROAD_PHASE = "cells"
-# The cells kind's long segments: longer than _CELL_LONG_FACTOR x the mean (its cells are as wide
-# as the box of a segment that long). 2 rather than _LONG_FACTOR: a groom mixing strands of 10x
-# different lengths (half the strands' segments 1.8x the mean) spent 46 ms of a 54 ms batch-32
-# energy on long segments at 1.5 and took 10.8 ms at 2; uniform hair the same (docs/contact.md 11).
-_CELL_LONG_FACTOR = 2.0
+# The cells kind's long segments: longer than _LONG_FACTOR x the mean, raised until at most
+# _CELL_LONG_FRACTION of the segments are (`_grid_params`; its cells are as wide as the box of a
+# segment that long). A groom mixing strands of 10x different lengths (half the strands' segments
+# 1.8x the mean) spent 46 ms of a 54 ms batch-32 energy on long segments with the mean rule alone
+# (docs/contact.md 11).
+_CELL_LONG_FRACTION = 0.05
 # The cells kind's hit list (`_cell_broad_phase`): room for _CELL_HIT_SLOTS partners (4 bytes
 # each, plus 4 for the row's state) of each of the first _CELL_HIT_ROWS_PER_SEGMENT x segments
 # entries (84 bytes per segment; entries past the rows are walked with the exact test inline).
@@ -272,7 +273,7 @@ def default_capacity(num_segments: int) -> int:
     return max(configured, _learned_capacity.get(num_segments, 0))
 
 
-def _grid_params(x4: torch.Tensor, cutoff: float, long_factor: float | None = None) -> torch.Tensor:
+def _grid_params(x4: torch.Tensor, cutoff: float, long_fraction: float | None = None) -> torch.Tensor:
     """(4,) float32 on the device: cell width, long half length H, absolute slack, longest half
     length [m] (no host read; `segment_stats_kernel` then `grid_params_kernel`: two launches
     where torch took ten small kernels, the longest path of the energy's graph at batch 1).
@@ -280,9 +281,11 @@ def _grid_params(x4: torch.Tensor, cutoff: float, long_factor: float | None = No
     Two segments closer than the cutoff have midpoints at most cutoff + (l_i + l_j) / 2 apart;
     the float32 midpoints add up to |coordinate| * 2^-24 each. Segments longer than
     _LONG_FACTOR x the mean are "long": their pairs are found from their own (wider) queries, so
-    the others query within cutoff + their length / 2 + H only (`long_factor`, default
-    _LONG_FACTOR; the cells kind's _CELL_LONG_FACTOR). Cells are _CELL_FACTOR x a typical
-    query's radius. Sizing both by the longest segment made every query pay for it: an L-BFGS
+    the others query within cutoff + their length / 2 + H only. With `long_fraction` (the
+    cells kind's), the long length is raised, on a ladder of 1.25x steps, until at most that
+    fraction of the segments is longer (`length_ladder_kernel`: a groom mixing short and long
+    strands would otherwise send all of its long strands' segments down the long path). Cells
+    are _CELL_FACTOR x a typical query's radius. Sizing both by the longest segment made every query pay for it: an L-BFGS
     trial point with one segment stretched to 72 mm took 0.6-1.2 s (docs/contact.md). The
     mean length is summed in fixed point (1 nm), so the scales are the same in every run.
     """
@@ -299,9 +302,18 @@ def _grid_params(x4: torch.Tensor, cutoff: float, long_factor: float | None = No
         _warp.launch(hh_kernels.segment_stats_kernel, dim=num_segments,
                      inputs=[_warp.as_warp(x4, vec3=True), n], outputs=stats, device=wp_device)
         _warp.launch(hh_kernels.grid_params_kernel, dim=1,
-                     inputs=stats + [num_segments, float(cutoff), _LONG_FACTOR if long_factor is None else long_factor,
-                                     _CELL_FACTOR, _RADIUS_SLACK],
+                     inputs=stats + [num_segments, float(cutoff), _LONG_FACTOR, _CELL_FACTOR, _RADIUS_SLACK],
                      outputs=[_warp.as_warp(params)], device=wp_device)
+        if long_fraction is not None:
+            counts = torch.zeros(int(hh_kernels.LENGTH_LADDER_STEPS) * int(hh_kernels.LENGTH_LADDER_SLOTS),
+                                 dtype=torch.int32, device=device)
+            params_wp = _warp.as_warp(params)
+            _warp.launch(hh_kernels.length_ladder_kernel, dim=num_segments,
+                         inputs=[_warp.as_warp(x4, vec3=True), n, params_wp], outputs=[_warp.as_warp(counts)],
+                         device=wp_device)
+            _warp.launch(hh_kernels.grid_params_from_ladder_kernel, dim=1,
+                         inputs=[_warp.as_warp(counts), num_segments, float(long_fraction), float(cutoff), _CELL_FACTOR,
+                                 _RADIUS_SLACK], outputs=[params_wp], device=wp_device)
     return params
 
 
@@ -557,7 +569,7 @@ def _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy=None):
     num_segments = b * m * (n - 1)
     device = x4.device
     wp_device = _warp.warp_device(device)
-    params = _grid_params(x4, cutoff, _CELL_LONG_FACTOR)
+    params = _grid_params(x4, cutoff, _CELL_LONG_FRACTION)
     table = _cell_table_size(num_segments)
     entries = num_segments * int(hh_kernels.MAX_CELLS_PER_SEGMENT)
     box_lo = torch.empty(num_segments, 3, dtype=torch.float32, device=device)
