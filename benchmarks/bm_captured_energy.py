@@ -27,7 +27,8 @@ import torch
 from hairwarp.runtime import machine_name, time_ms
 
 
-def _energy_rows(device, batches, profile: bool) -> tuple[list, dict]:
+def _energy_rows(device, batches, profile: bool, hairstyle: str = "long_straight",
+                 mixed_lengths: float | None = None) -> tuple[list, dict]:
     from hairwarp import set_finite_checks
     from hairwarp.bench.energy import build_energy_inputs
     from hairwarp.energy import CapturedEnergy, total_energy
@@ -36,7 +37,7 @@ def _energy_rows(device, batches, profile: bool) -> tuple[list, dict]:
     previous = set_finite_checks(False)
     try:
         for batch in batches:
-            x, inputs, _, _ = build_energy_inputs(batch, device)
+            x, inputs, _, _ = build_energy_inputs(batch, device, hairstyle=hairstyle, mixed_lengths=mixed_lengths)
             x = x.detach()
 
             def eager():
@@ -187,16 +188,23 @@ def main(argv=None):
     parser.add_argument("--probe-kernels", action="store_true",
                         help="also time the contact kernels alone: hair-hair broad phases and cell widths, "
                              "hair-body per vertex (two passes) / per strand")
+    parser.add_argument("--hairstyle", default="long_straight", help="the energy rows' hairstyle preset")
+    parser.add_argument("--mixed-lengths", type=float, default=None,
+                        help="every other strand cut to this fraction of its length (0.1: half the segments "
+                             "1.8x the mean; docs/contact.md 11)")
     parser.add_argument("--out", default="hairwarp-out")
     args = parser.parse_args(argv)
     device = torch.device(args.device)
     os.makedirs(args.out, exist_ok=True)
-    rows, profiles = _energy_rows(device, [int(b) for b in args.batch.split(",")], args.profile)
+    rows, profiles = _energy_rows(device, [int(b) for b in args.batch.split(",")], args.profile, args.hairstyle,
+                                  args.mixed_lengths)
     batches = [int(b) for b in args.batch.split(",")]
     probe = _kernel_probe(device, batches) if args.probe_kernels else {}
     lbfgs = _lbfgs_rows(device, args.lbfgs_iterations) if args.lbfgs_iterations else []
-    record = {"machine": machine_name(device), "device": str(device), "energy": rows, "profiles": profiles,
-              "kernel_probe": probe, "lbfgs": lbfgs, "command": "python benchmarks/bm_captured_energy.py " + " ".join(sys.argv[1:] if argv is None else argv)}
+    record = {"machine": machine_name(device), "device": str(device), "hairstyle": args.hairstyle,
+              "mixed_lengths": args.mixed_lengths, "energy": rows, "profiles": profiles,
+              "kernel_probe": probe, "lbfgs": lbfgs,
+              "command": "python benchmarks/bm_captured_energy.py " + " ".join(sys.argv[1:] if argv is None else argv)}
     with open(os.path.join(args.out, "captured_energy.json"), "w") as f:
         json.dump(record, f, indent=1)
     print(f"\n{record['machine']}\n\n| batch | eager fwd+bwd (ms) | graph replay (ms) |\n|---:|---:|---:|")

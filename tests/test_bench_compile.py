@@ -72,3 +72,4 @@ def test_a_peer_that_does_not_compile_is_recorded_not_raised(monkeypatch, capsys
     printed = [line for line in capsys.readouterr().out.splitlines() if "torch.compile unusable" in line]
     assert len(printed) == 1 and expected_note in printed[0]  # one line, not one per row
     assert bench.markdown_table(record).count("| n/a | n/a |") == 2
+

@@ -37,13 +37,17 @@ STRAND_TERM_NAMES = ("stretch", "bending", "auxiliary", "smoothness", "gravity",
 
 
 def build_energy_inputs(batch: int, device: torch.device, *, hairstyle: str = "long_straight",
-                        noise: float = 1e-3, seed: int = 0, strand_stride: int = 1, num_vertices: int = 100):
+                        noise: float = 1e-3, seed: int = 0, strand_stride: int = 1, num_vertices: int = 100,
+                        mixed_lengths: float | None = None):
     """Hair positions near the rigid placement of `batch` frames of the default scene.
 
     Args:
         batch, device: frames of the head turn, and where.
         hairstyle, noise, seed: the hair and its jitter [m] off the rigid placement.
         strand_stride, num_vertices: every k-th strand, N vertices (1, 100: the paper's size).
+        mixed_lengths: in (0, 1]: every other strand's positions (x and the inputs' rigid, prev
+            and prev2 alike) cut to that fraction of its length (`mix_strand_lengths`), a groom
+            whose segments are of two lengths; None keeps the hairstyle's.
 
     Returns:
         (x (B, M, N, 3) requiring grad, EnergyInputs with prev/prev2, scene, frames).
@@ -55,12 +59,35 @@ def build_energy_inputs(batch: int, device: torch.device, *, hairstyle: str = "l
     frames = scene.frames(idx, device=device)
     g = torch.Generator(device="cpu").manual_seed(seed)
     rigid = frames.rigid.positions
+    if mixed_lengths is not None:
+        rigid = mix_strand_lengths(rigid, mixed_lengths)
     jitter = (torch.randn(rigid.shape, generator=g) * noise).to(device)
     jitter[:, :, :2] = 0
     x = (rigid + jitter).detach().requires_grad_(True)
     prev = (rigid + 0.5 * jitter).detach()
     inputs = replace(frames.inputs, prev=prev, prev2=rigid.detach())
+    if mixed_lengths is not None:
+        rest = (rigid[0, :, 1:] - rigid[0, :, :-1]).norm(dim=-1)
+        inputs = replace(inputs, rigid=rigid.detach(), rest_lengths=rest)
     return x, inputs, scene, frames
+
+
+def mix_strand_lengths(x: torch.Tensor, fraction: float) -> torch.Tensor:
+    """(B, M, N, 3) hair with every other strand (0, 2, ...) resampled, N vertices still, along
+    its first `fraction` of its polyline (linear interpolation; roots unchanged): segments
+    `fraction` x as long as the others'. With fraction 0.1 half the segments are 1.8x the mean
+    length, the case docs/contact.md 11 measures.
+    """
+    if not 0.0 < fraction <= 1.0:
+        raise ValueError(f"mixed_lengths: expected a fraction in (0, 1], got {fraction}")
+    n = x.shape[2]
+    t = torch.linspace(0.0, fraction * (n - 1), n, dtype=x.dtype, device=x.device)
+    first = t.floor().long().clamp(max=n - 2)
+    w = (t - first)[:, None]
+    mixed = x.clone()
+    cut = x[:, ::2]
+    mixed[:, ::2] = cut[:, :, first] * (1 - w) + cut[:, :, first + 1] * w
+    return mixed
 
 
 def torch_hair_hair_by_item(x, config: EnergyConfig):
