@@ -82,6 +82,14 @@ def test_a_replayed_launch_follows_every_changed_parameter_and_keeps_nothing_ali
     np.testing.assert_allclose(scale(a, 3.0, out, dim=2).numpy(), [0.0, 3.0, -1, -1, -1, -1])  # dim only
     a.copy_(torch.arange(6, 12, dtype=torch.float32))  # same addresses, new values: read at launch
     np.testing.assert_allclose(scale(a, 3.0, out).numpy(), 3.0 * np.arange(6, 12))
+    np.testing.assert_array_equal(np.signbit(scale(a, 0.0, out).numpy()), False)
+    np.testing.assert_array_equal(np.signbit(scale(a, -0.0, out).numpy()), True)  # equal to 0.0, other bits
+    ints = torch.arange(4, dtype=torch.int32)
+    for factor in (2, 5):  # a Warp int32 scalar, new value
+        result_ints = torch.zeros(4, dtype=torch.int32)
+        _warp.launch(_scale_kernel, dim=4, inputs=[_warp.as_warp(ints), wp.int32(factor)],
+                     outputs=[_warp.as_warp(result_ints)], device="cpu")
+        np.testing.assert_array_equal(result_ints.numpy(), factor * np.arange(4))
 
     temporary = torch.arange(8, dtype=torch.float32)
     result = torch.zeros(8)

@@ -173,8 +173,11 @@ def _parameter_key(value):
     return tuple(value)  # a Warp vector
 
 
-# Key makers by exact type (a dict lookup where isinstance chains cost more per argument).
+# Key makers by exact type (a dict lookup where isinstance chains cost more per argument), Warp's
+# scalars included (a strand-term launch passes ten).
 _KEYERS = {wp.array: lambda a: (a.ptr, a.shape), int: lambda v: v, float: _float_key, bool: lambda v: v}
+_KEYERS.update({t: (lambda v: _float_key(v.value)) for t in (wp.float16, wp.float32, wp.float64)})
+_KEYERS.update({t: (lambda v: v.value) for t in (wp.int32, wp.int64, wp.uint32, wp.uint64)})
 
 
 # The last recorded launch of each kernel per device and thread (a record's parameters are
