@@ -949,6 +949,27 @@ def _cell_walk_length(n: int, r: int):
 
 
 @wp.func
+def _entry_cell_and_slot(
+    packed: int,
+    lo: wp.vec3,
+    group: int,
+    inv_width: float,
+    slot_end: wp.array(dtype=wp.int32),
+    slot_count: wp.array(dtype=wp.int32),
+    table_mask: int,
+):
+    """The cell of sorted entry `packed` (its segment's box starting at `lo`, of batch item
+    `group`) and its slot's first position and entry count: (cell, start, n). One function for
+    the hits kernel and the pairs kernel, whose walks must be the same step for step (the
+    pairs kernel resumes the other's).
+    """
+    cell = entry_cell(grid_cell(lo, inv_width), packed % MAX_CELLS_PER_SEGMENT)
+    slot = cell_table_slot(cell, group, table_mask)
+    n = slot_count[slot]
+    return cell, slot_end[slot] - n, n
+
+
+@wp.func
 def _cell_partner(
     sorted_entries: wp.array(dtype=wp.int32),
     sorted_lo: wp.array(dtype=wp.vec3),
@@ -1034,10 +1055,7 @@ def hair_hair_cell_hits_kernel(
     inv_width = 1.0 / grid_params[0]
     lo_i = sorted_lo[pos]
     hi_i = sorted_hi[pos]
-    cell = entry_cell(grid_cell(lo_i, inv_width), packed % MAX_CELLS_PER_SEGMENT)
-    slot = cell_table_slot(cell, group, table_mask)
-    n = slot_count[slot]
-    start = slot_end[slot] - n
+    cell, start, n = _entry_cell_and_slot(packed, lo_i, group, inv_width, slot_end, slot_count, table_mask)
     r = pos - start
     hits = int(0)
     for t in range(1, _cell_walk_length(n, r) + 1):
@@ -1153,14 +1171,11 @@ def hair_hair_cell_pairs_kernel(
     inv_width = 1.0 / grid_params[0]
     lo_i = sorted_lo[pos]
     hi_i = sorted_hi[pos]
-    cell = entry_cell(grid_cell(lo_i, inv_width), packed % MAX_CELLS_PER_SEGMENT)
-    slot = cell_table_slot(cell, group, table_mask)
+    cell, start, n = _entry_cell_and_slot(packed, lo_i, group, inv_width, slot_end, slot_count, table_mask)
     vi = strand_i * num_vertices + i % segs_per_strand
     p0 = x_in[vi]
     p1 = x_in[vi + 1]
     cutoff2 = cutoff * cutoff
-    n = slot_count[slot]
-    start = slot_end[slot] - n
     r = pos - start
     for t in range(first, _cell_walk_length(n, r) + 1):
         j = _cell_partner(sorted_entries, sorted_lo, sorted_hi, start + (r + t) % n, i, strand_i, group, lo_i, hi_i,

@@ -15,6 +15,20 @@ from references import hair_hair_contact as ref
 XI, DHAT, BP = 2e-3, 3e-3, 0.1
 
 
+def _cell_runs(monkeypatch) -> list:
+    """The `run` of every cells broad phase made from now on (its hit list and long counts)."""
+    runs = []
+    real = hh._cell_broad_phase
+
+    def spy(*args, **kwargs):
+        run, count = real(*args, **kwargs)
+        runs.append(run)
+        return run, count
+
+    monkeypatch.setattr(hh, "_cell_broad_phase", spy)
+    return runs
+
+
 def _pile(rng):
     """10 strands of 13 vertices packed in 3 mm: every pair of strands is in contact."""
     return torch.tensor(ref.random_hair(rng, batch=1, strands=10, vertices=13, extent=3e-3, segment=5e-4))
@@ -165,15 +179,7 @@ def test_many_long_segments_share_the_long_lanes(rng, monkeypatch, batch):
     size past them, `test_cells_sized_for_all_but_a_few_segments_of_a_mixed_groom`.)"""
     monkeypatch.setattr(hh, "_broad_phase_kind", lambda device: "cells")
     monkeypatch.setattr(hh, "_CELL_LONG_FRACTION", 1.0)
-    runs = []
-    real = hh._cell_broad_phase
-
-    def spy(*args, **kwargs):
-        run, count = real(*args, **kwargs)
-        runs.append(run)
-        return run, count
-
-    monkeypatch.setattr(hh, "_cell_broad_phase", spy)
+    runs = _cell_runs(monkeypatch)
     x = ref.random_hair(rng, batch=batch, strands=24, vertices=12, extent=0.01, segment=1e-3)
     steps = np.diff(x, axis=2)
     steps[:, :, 1::4] *= 40.0
@@ -245,15 +251,7 @@ def test_cell_hit_list_rows_that_overflow_walk_on(rng, monkeypatch, hit_slots, r
     x = ref.random_hair(rng, batch=2, strands=10, vertices=12, extent=0.01, segment=2e-3)
     expected_energy, expected = ref.energy(x, XI, DHAT, BP)
     assert expected.shape[0] > 40
-    runs = []
-    real = hh._cell_broad_phase
-
-    def spy(*args, **kwargs):
-        run, count = real(*args, **kwargs)
-        runs.append(run)
-        return run, count
-
-    monkeypatch.setattr(hh, "_cell_broad_phase", spy)
+    runs = _cell_runs(monkeypatch)
     found = hair_hair_contact_pairs(torch.tensor(x), XI, DHAT)
     np.testing.assert_array_equal(found.pairs.numpy(), expected)
     assert found.pair_count == expected.shape[0]
