@@ -131,3 +131,44 @@ def test_a_scalar_changing_sign_of_zero_is_packed_again():
         _warp.launch(_scale_kernel, dim=4, inputs=[_warp.as_warp(a), _warp.scalar(s, torch.float64)],
                      outputs=[_warp.as_warp(out)], device="cpu")
         assert torch.signbit(out).tolist() == [negative] * 4
+
+
+def test_a_launch_plan_patches_its_varying_arrays_and_checks_their_size():
+    """A `LaunchPlan` packs once and, per launch, points its varying arrays at the tensors given
+    (new addresses and values take effect); the fixed ones and the scalars stay as recorded, and
+    a tensor of another size is refused before anything launches."""
+    import weakref
+
+    a = torch.arange(6, dtype=torch.float32)
+    out = torch.zeros(6)
+    plan = _warp.LaunchPlan(_scale_kernel, 6, [_warp.as_warp(a), _warp.scalar(2.0, torch.float32)],
+                            [_warp.as_warp(out)], "cpu", varying=(0, 2))
+    plan.launch((a, out))
+    np.testing.assert_allclose(out.numpy(), 2.0 * np.arange(6))
+    b = torch.arange(10, 16, dtype=torch.float32)
+    other = torch.full((6,), -1.0)
+    plan.launch((b, other))  # new addresses
+    np.testing.assert_allclose(other.numpy(), 2.0 * np.arange(10, 16))
+    np.testing.assert_allclose(out.numpy(), 2.0 * np.arange(6))  # the first output untouched
+    with pytest.raises(RuntimeError, match="28 bytes for an array of 24 bytes"):
+        plan.launch((torch.arange(7, dtype=torch.float32), other))
+    temporary = torch.arange(6, dtype=torch.float32)
+    alive = weakref.ref(temporary)
+    plan.launch((temporary, out))
+    del temporary
+    gc.collect()
+    assert alive() is None
+    np.testing.assert_allclose(out.numpy(), 2.0 * np.arange(6))
+
+
+def test_a_launch_plan_sizes_a_view_by_its_own_elements():
+    """A plan built on a view of part of a tensor expects that view's size, not its storage's."""
+    storage = torch.arange(12, dtype=torch.float32)
+    part = storage[:6]
+    out = torch.zeros(6)
+    plan = _warp.LaunchPlan(_scale_kernel, 6, [_warp.as_warp(part), _warp.scalar(2.0, torch.float32)],
+                            [_warp.as_warp(out)], "cpu", varying=(0, 2))
+    plan.launch((torch.arange(6, 12, dtype=torch.float32), out))
+    np.testing.assert_allclose(out.numpy(), 2.0 * np.arange(6, 12))
+    with pytest.raises(RuntimeError, match="48 bytes for an array of 24 bytes"):
+        plan.launch((storage, out))

@@ -486,6 +486,41 @@ def test_no_grad_evaluation_matches(rng):
     assert_close(total_no_grad, total.detach(), RTOL_FLOAT64, "no_grad value")
 
 
+def test_repeated_calls_replay_one_plan_and_follow_every_change(rng):
+    """Eager calls with the same shapes and weights replay one packed launch (`_plans`); new
+    tensors, new values at the same address, a new weight or gravity and gradients on or off
+    each take effect, checked against the numpy references."""
+    x_np = make_strands(rng, 2, 3, 6)
+    inputs = make_inputs(rng, x_np, shared=True)
+    t = to_torch(inputs, torch.float64)
+    ops._plans.clear()
+    for _ in range(3):
+        x = torch.tensor(x_np, requires_grad=True)
+        total, per_term = fused(x, t)
+        total.sum().backward()
+    assert len(ops._plans) == 1
+    assert_close(per_term["auxiliary"], reference_term("auxiliary", x_np, inputs, CONFIG), RTOL_FLOAT64, "replayed")
+
+    moved = x_np + 1e-3 * rng.normal(size=x_np.shape)
+    x.detach().copy_(torch.tensor(moved))  # same address, new values
+    _, per_term = fused(x, t)
+    assert_close(per_term["stretch"], reference_term("stretch", moved, inputs, CONFIG), RTOL_FLOAT64, "new x values")
+    other = dict(inputs, rigid=inputs["rigid"] + 2e-3)
+    _, per_term = fused(x, to_torch(other, torch.float64))  # a new rigid tensor
+    assert_close(per_term["auxiliary"], reference_term("auxiliary", moved, other, CONFIG), RTOL_FLOAT64, "new rigid")
+    config = CONFIG.replace(smoothness_weight=3.0)
+    _, per_term = fused(x, t, config=config)
+    assert_close(per_term["smoothness"], reference_term("smoothness", moved, inputs, config), RTOL_FLOAT64, "weight")
+    with torch.no_grad():
+        no_grad_total, _ = fused(x, t)
+    assert_close(no_grad_total, fused(x, t)[0].detach(), RTOL_FLOAT64, "without the gradient")
+    for g in ((0.0, -9.81, 0.0), (3.0, 0.0, 0.0)):  # CONFIG's own (the first plan again), a new one
+        config = CONFIG.replace(gravity=g)
+        _, per_term = fused(x, t, config=config)
+        assert_close(per_term["gravity"], reference_term("gravity", moved, inputs, config), RTOL_FLOAT64, f"g={g}")
+    assert len(ops._plans) == 4  # first (new tensors replay it), new weight, no gradient, new gravity
+
+
 # ---------------------------------------------------------------- selection of terms
 def test_terms_subset_and_skipping(rng):
     x_np = make_strands(rng, 2, 2, 6)

@@ -180,6 +180,19 @@ _KEYERS.update({t: (lambda v: _float_key(v.value)) for t in (wp.float16, wp.floa
 _KEYERS.update({t: (lambda v: v.value) for t in (wp.int32, wp.int64, wp.uint32, wp.uint64)})
 
 
+def _concrete_kernel(kernel, arguments):
+    """The instance of a generic kernel for these arguments' types (the kernel itself if not
+    generic), made once per type combination.
+    """
+    if not kernel.is_generic:
+        return kernel
+    key = (kernel, tuple(_argument_key(arguments[index]) for index in _generic_argument_positions(kernel)))
+    concrete = _overloads.get(key)
+    if concrete is None:
+        concrete = _overloads[key] = kernel.add_overload(kernel.infer_argument_types(arguments))
+    return concrete
+
+
 # The last recorded launch of each kernel per device and thread (a record's parameters are
 # rewritten in place: two threads must not share one), with its parameters' keys and its dim.
 _launches: dict = {}
@@ -196,12 +209,7 @@ def launch(kernel, dim, inputs=(), outputs=(), device=None, stream=None) -> None
       replay 6 us (docs/contact.md 9). The record keeps no argument alive.
     """
     arguments = [*inputs, *outputs]
-    if kernel.is_generic:
-        key = (kernel, tuple(_argument_key(arguments[index]) for index in _generic_argument_positions(kernel)))
-        concrete = _overloads.get(key)
-        if concrete is None:
-            concrete = _overloads[key] = kernel.add_overload(kernel.infer_argument_types(arguments))
-        kernel = concrete
+    kernel = _concrete_kernel(kernel, arguments)
     target = wp.get_device(device) if stream is None else stream.device
     if not isinstance(dim, int) or dim <= 0:
         wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=target, stream=stream)
@@ -223,6 +231,38 @@ def launch(kernel, dim, inputs=(), outputs=(), device=None, stream=None) -> None
                 command.set_param_at_index(index, value)
                 keys[index] = value_key
     record[0].launch(stream)
+
+
+class LaunchPlan:
+    """A launch packed once, for a call site whose calls differ only in a few tensors' addresses.
+
+    `launch` (above) keys and compares every parameter on every call; a call site that knows
+    which of its parameters can change between calls with the same key (its own cache key:
+    shapes, dtypes, scalars and the addresses of the other arrays) builds a plan once and, per
+    call, writes only the data addresses of the `varying` arrays into the packed parameters
+    (a field store each). Each tensor passed to `launch` must be contiguous with the dtype and
+    the size in bytes of the array it replaces. A plan belongs to one thread (its
+    parameters are rewritten in place); it keeps no argument alive.
+    """
+
+    def __init__(self, kernel, dim: int, inputs, outputs, device, varying: tuple[int, ...]):
+        arguments = [*inputs, *outputs]
+        kernel = _concrete_kernel(kernel, arguments)
+        self._command = wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=device, record_cmd=True)
+        self._command.fwd_args = None
+        # params[0] is the launch bounds; kernel argument k is params[k + 1].
+        self._arrays = [self._command.params[index + 1] for index in varying]
+        # Bytes each array spans (not `capacity`: a view's capacity is its whole storage's).
+        self._sizes = [arguments[index].size * wp.types.type_size_in_bytes(arguments[index].dtype) for index in varying]
+
+    def launch(self, tensors, stream=None) -> None:
+        """Launch with `tensors` (one per varying index, in order) in place of the recorded arrays."""
+        for array, size, t in zip(self._arrays, self._sizes, tensors):
+            nbytes = t.numel() * t.element_size()
+            if nbytes != size:
+                raise RuntimeError(f"LaunchPlan: a tensor of {nbytes} bytes for an array of {size} bytes")
+            array.data = t.data_ptr()
+        self._command.launch(stream)
 
 
 # A Warp view made by `wp.from_torch` for each (address, length, dtype, vec3, device): an eager

@@ -19,6 +19,8 @@ Conventions shared by every public function here:
 
 from __future__ import annotations
 
+import struct
+import threading
 from collections.abc import Iterable, Sequence
 
 import torch
@@ -180,17 +182,36 @@ def _placeholder(vec3: bool, dtype: torch.dtype, device: torch.device) -> wp.arr
     return _placeholders[key][1]
 
 
-def _launch(x4, inputs, scales, layout, *, compute_gradient):
-    """One fused launch; returns per-term energies `(B, 7)` and dE_total/dx (or None)."""
+# The fused launch's plan per (thread, layout, device, dtype, shape, gradient or not, which inputs
+# with which batch strides, scales): an eager call repeats the same launch with other tensors,
+# and packing its 31 parameters cost ~35 us of host time per call on a 2-core CPU
+# (docs/contact.md 12); a plan only points its arrays at this call's tensors. Bounded: cleared
+# when full.
+_plans: dict = {}
+_MAX_PLANS = 64
+# The kernel's array arguments by position: x, the optional inputs, the two outputs.
+_X = 0
+_INPUT_POSITIONS = {"rest_lengths": 1, "rigid": 3, "scalp_normals": 5, "prev": 7, "prev2": 9, "vertex_mass": 11}
+_ENERGY, _GRADIENT = 29, 30
+
+
+def _scales_key(scales: dict) -> bytes:
+    """The scales as a key, packed as doubles (bit for bit: -0.0 is not 0.0)."""
+    values = [value for name, value in scales.items() if name != "weight_g"]
+    return struct.pack(f"<{len(values) + 3}d", *values, *scales["weight_g"])
+
+
+def _plan(x4, inputs, scales, layout, compute_gradient, energy, gradient) -> _warp.LaunchPlan:
+    """The fused launch's plan for these inputs, built on first use (see `_plans`); its varying
+    arrays are x, the given inputs (in `inputs`' order), the energies and the gradient (if any).
+    """
     batch, num_strands, num_vertices, _ = x4.shape
     dtype, device = x4.dtype, x4.device
-    x4 = x4.detach().contiguous()
-    if layout == "auto":
-        layout = "vertex" if device.type == "cuda" else "strand"
-    rows = num_strands if layout == "strand" else num_strands * num_vertices
-    # Term-major (see `write_energies`): (terms, B, rows), summed over rows below.
-    energy = torch.empty((len(STRAND_TERMS), batch, rows), dtype=dtype, device=device)
-    gradient = torch.empty_like(x4) if compute_gradient else None
+    key = (threading.get_ident(), layout, device, dtype, x4.shape, compute_gradient,
+           tuple((name, stride) for name, (_, stride) in inputs.items()), _scales_key(scales))
+    plan = _plans.get(key)
+    if plan is not None:
+        return plan
 
     def view(name, vec3=True):
         if name not in inputs:
@@ -209,47 +230,67 @@ def _launch(x4, inputs, scales, layout, *, compute_gradient):
     def scalar(value):
         return _warp.scalar(value, dtype)
 
+    arguments = [
+        _warp.as_warp(x4, vec3=True),
+        rest,
+        rest_stride,
+        rigid,
+        rigid_stride,
+        normals,
+        normals_stride,
+        prev,
+        prev_stride,
+        prev2,
+        prev2_stride,
+        mass,
+        int("vertex_mass" in inputs),
+        scalar(s["mass_value"]),
+        _VEC3[dtype](*s["weight_g"]),
+        scalar(s["stretch"]),
+        scalar(s["bending"]),
+        scalar(s["bending_eps"]),
+        scalar(s["auxiliary"]),
+        scalar(s["smoothness"]),
+        int(s["gravity_on"]),
+        scalar(s["root_alignment"]),
+        scalar(s["root_constant"]),
+        scalar(s["root_eps"]),
+        int(s["root_segments"]),
+        scalar(s["inertia"]),
+        num_strands,
+        num_vertices,
+        int(compute_gradient),
+    ]
+    outputs = [
+        _warp.as_warp(energy),
+        _placeholder(True, dtype, device) if gradient is None else _warp.as_warp(gradient, vec3=True),
+    ]
+    varying = (_X, *(_INPUT_POSITIONS[name] for name in inputs), _ENERGY) + ((_GRADIENT,) if compute_gradient else ())
+    if len(_plans) >= _MAX_PLANS:
+        _plans.clear()
+    plan = _plans[key] = _warp.LaunchPlan(
+        _KERNELS[layout], energy.numel() // len(STRAND_TERMS), arguments, outputs, _warp.warp_device(device), varying
+    )
+    return plan
+
+
+def _launch(x4, inputs, scales, layout, *, compute_gradient):
+    """One fused launch; returns per-term energies `(B, 7)` and dE_total/dx (or None)."""
+    batch, num_strands, num_vertices, _ = x4.shape
+    dtype, device = x4.dtype, x4.device
+    x4 = x4.detach().contiguous()
+    if layout == "auto":
+        layout = "vertex" if device.type == "cuda" else "strand"
+    rows = num_strands if layout == "strand" else num_strands * num_vertices
+    # Term-major (see `write_energies`): (terms, B, rows), summed over rows below.
+    energy = torch.empty((len(STRAND_TERMS), batch, rows), dtype=dtype, device=device)
+    gradient = torch.empty_like(x4) if compute_gradient else None
+    plan = _plan(x4, inputs, scales, layout, compute_gradient, energy, gradient)
+    tensors = [x4, *(t for t, _ in inputs.values()), energy]
+    if gradient is not None:
+        tensors.append(gradient)
     with _warp.launch_scope(device):
-        _warp.launch(
-            _KERNELS[layout],
-            dim=batch * rows,
-            inputs=[
-                _warp.as_warp(x4, vec3=True),
-                rest,
-                rest_stride,
-                rigid,
-                rigid_stride,
-                normals,
-                normals_stride,
-                prev,
-                prev_stride,
-                prev2,
-                prev2_stride,
-                mass,
-                int("vertex_mass" in inputs),
-                scalar(s["mass_value"]),
-                _VEC3[dtype](*s["weight_g"]),
-                scalar(s["stretch"]),
-                scalar(s["bending"]),
-                scalar(s["bending_eps"]),
-                scalar(s["auxiliary"]),
-                scalar(s["smoothness"]),
-                int(s["gravity_on"]),
-                scalar(s["root_alignment"]),
-                scalar(s["root_constant"]),
-                scalar(s["root_eps"]),
-                int(s["root_segments"]),
-                scalar(s["inertia"]),
-                num_strands,
-                num_vertices,
-                int(compute_gradient),
-            ],
-            outputs=[
-                _warp.as_warp(energy),
-                _placeholder(True, dtype, device) if gradient is None else _warp.as_warp(gradient, vec3=True),
-            ],
-            device=_warp.warp_device(device),
-        )
+        plan.launch(tensors)
     return energy.sum(dim=2).t(), gradient
 
 
