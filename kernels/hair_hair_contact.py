@@ -1128,6 +1128,8 @@ def hair_hair_cell_pairs_kernel(
     hit_state: wp.array(dtype=wp.int32),
     hit_rows: int,
     hit_slots: int,
+    walk_lanes: int,
+    num_entries: int,
     grid_params: wp.array(dtype=float),
     num_vertices: int,
     num_strands: int,
@@ -1147,13 +1149,18 @@ def hair_hair_cell_pairs_kernel(
     energy_out: wp.array(dtype=wp.float64),
     gradient_out: wp.array(dtype=Any),
 ):
-    """The walks `hair_hair_cell_hits_kernel` left, one thread per sorted entry: from the step
-    its row stopped at (hit_state - hit_slots), or the whole walk for an entry past the rows;
-    each partner `_cell_partner` keeps tested exactly (`_write_pair_if_close`, which orders the
-    two by id). With the hits kernel, each pair is tested once: in one cell, by one of its two
-    entries there (the round robin of `_cell_walk_length`).
+    """The walks `hair_hair_cell_hits_kernel` left, `walk_lanes` threads per sorted entry (of
+    `num_entries`, the launch's bound; lane-major): from the step its row stopped at
+    (hit_state - hit_slots), or the whole walk for an entry past the rows, lane k taking every
+    `walk_lanes`-th step from the k-th on; each partner `_cell_partner` keeps tested exactly
+    (`_write_pair_if_close`, which orders the two by id). With the hits kernel, each pair is
+    tested once: in one cell, by one of its two entries there (the round robin of
+    `_cell_walk_length`), by one lane. Lanes share a crowded cell's long walks where the launch
+    leaves the GPU room (a small batch; docs/contact.md 12).
     """
-    pos = wp.tid()
+    tid = wp.tid()
+    pos = tid % num_entries
+    lane = tid // num_entries
     if pos >= slot_end[table_mask]:
         return  # past the entries (launched over the bound of 8 per segment)
     first = int(1)
@@ -1177,7 +1184,7 @@ def hair_hair_cell_pairs_kernel(
     p1 = x_in[vi + 1]
     cutoff2 = cutoff * cutoff
     r = pos - start
-    for t in range(first, _cell_walk_length(n, r) + 1):
+    for t in range(first + lane, _cell_walk_length(n, r) + 1, walk_lanes):
         j = _cell_partner(sorted_entries, sorted_lo, sorted_hi, start + (r + t) % n, i, strand_i, group, lo_i, hi_i,
                           cell, inv_width, num_vertices, num_strands, skip_root_segments)
         if j < 0:

@@ -25,19 +25,22 @@ FD_H = 1e-8
 FD_RTOL = 1e-5
 
 
-@pytest.fixture(autouse=True, params=["cpu-grid", "cells", "cells-overflow", "midpoints"])
+@pytest.fixture(autouse=True, params=["cpu-grid", "cells", "cells-overflow", "cells-lanes", "midpoints"])
 def broad_phase(request, monkeypatch):
     """Every test of this module runs each broad phase: the CPU's own grid and both device
     kinds (the boxes in hashed cells, the midpoint grid), whichever device runs it.
     "cells-overflow" is the cells kind with a hit list of one partner for one entry per segment:
-    most walks go on past their row and many entries have none (`_cell_broad_phase`)."""
+    most walks go on past their row and many entries have none (`_cell_broad_phase`);
+    "cells-lanes" the same with each resumed walk shared by 3 lanes (`_cell_walk_lanes`)."""
     import hairwarp.ops.hair_hair_contact as hh
 
     device_kind = hh._broad_phase_kind
     chosen = request.param
-    if chosen == "cells-overflow":
+    if chosen in ("cells-overflow", "cells-lanes"):
         monkeypatch.setattr(hh, "_CELL_HIT_SLOTS", 1)
         monkeypatch.setattr(hh, "_CELL_HIT_ROWS_PER_SEGMENT", 1)
+        if chosen == "cells-lanes":
+            monkeypatch.setattr(hh, "_cell_walk_lanes", lambda entries: 3)
         chosen = "cells"
 
     def kind(device):

@@ -275,6 +275,28 @@ def test_cell_hit_list_rows_that_overflow_walk_on(rng, monkeypatch, hit_slots, r
         assert entries > run.hit_rows  # entries with no row
 
 
+@pytest.mark.parametrize("lanes", [1, 2, 5, 8])
+def test_resumed_walks_shared_by_lanes_find_each_pair_once(rng, monkeypatch, lanes):
+    """Lanes that share an entry's resumed walk (every `lanes`-th step each) find exactly the
+    brute force's pairs, each once, in crowded cells (one hit per row: most walks resume); the
+    default lane count fills at most `_CELL_WALK_THREADS` threads, 1 to 8 lanes."""
+    monkeypatch.setattr(hh, "_broad_phase_kind", lambda device: "cells")
+    monkeypatch.setattr(hh, "_CELL_HIT_SLOTS", 1)
+    monkeypatch.setattr(hh, "_CELL_HIT_ROWS_PER_SEGMENT", 1)
+    monkeypatch.setattr(hh, "_cell_walk_lanes", lambda entries: lanes)
+    x = ref.random_hair(rng, batch=2, strands=12, vertices=12, extent=4e-3, segment=1e-3)
+    expected_energy, expected = ref.energy(x, XI, DHAT, BP)
+    assert expected.shape[0] > 200
+    found = hair_hair_contact_pairs(torch.tensor(x), XI, DHAT)
+    np.testing.assert_array_equal(found.pairs.numpy(), expected)
+    energy, _ = hair_hair_contact_energy(torch.tensor(x), XI, DHAT, BP)
+    np.testing.assert_allclose(energy.numpy(), expected_energy, rtol=1e-12)
+    monkeypatch.undo()
+    threads = hh._CELL_WALK_THREADS
+    assert hh._cell_walk_lanes(10) == 8 and hh._cell_walk_lanes(threads) == 1
+    assert hh._cell_walk_lanes(threads // 4) == 4 and hh._cell_walk_lanes(threads // 4 + 1) == 2
+
+
 def test_cells_sized_for_all_but_a_few_segments_of_a_mixed_groom(rng, monkeypatch):
     """Cells sized by the mean length would send every segment of a groom's long strands down
     the long path; the cells kind raises the long length on its ladder (1.25x rungs) until at

@@ -118,6 +118,14 @@ def _warp_stream(device: torch.device) -> wp.Stream:
     return warp_stream
 
 
+def torch_stream(device: torch.device) -> wp.Stream | None:
+    """The Warp stream of torch's current stream on `device` (None on the CPU), for a launch that
+    names its stream instead of entering `launch_scope`: one that reads only torch-made tensors
+    needs no wait on Warp's previous stream, and skips the scope's two stream switches.
+    """
+    return _warp_stream(device) if device.type == "cuda" else None
+
+
 _VEC3 = {torch.float32: wp.vec3, torch.float64: wp.vec3d}
 _MAT33 = {torch.float32: wp.mat33, torch.float64: wp.mat33d}
 _SCALAR = {torch.float32: wp.float32, torch.float64: wp.float64}

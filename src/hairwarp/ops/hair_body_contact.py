@@ -672,12 +672,18 @@ def _energy_forward(x, body, xi, dhat, bp, weight, variant_id, strategy):
             # Capped queries, then the misses' sides along each strand (kernel docstrings).
             side = _warp.as_warp(torch.empty(count, dtype=torch.int32, device=x.device))
             hit_distance = _warp.as_warp(torch.empty(count, dtype=torch.float32, device=x.device))
-            deep = [_warp.as_warp(torch.zeros(1, dtype=torch.int32, device=x.device)),
-                    _warp.as_warp(torch.empty(count, dtype=torch.int32, device=x.device)),
-                    _warp.as_warp(torch.empty(count, dtype=torch.int32, device=x.device))]
+            deep_flag = torch.empty(count, dtype=torch.int32, device=x.device)
+            hit = _warp.as_warp(torch.empty(count, dtype=torch.int32, device=x.device))
             _warp.launch(kernels.hair_body_energy_vertex_kernel, dim=count, inputs=common,
                          outputs=outputs + [side, hit_distance], device=device)
-            _warp.launch(kernels.hair_body_deep_list_kernel, dim=count, inputs=[side, num_vertices], outputs=deep,
+            _warp.launch(kernels.hair_body_deep_flags_kernel, dim=count, inputs=[side, num_vertices],
+                         outputs=[_warp.as_warp(deep_flag), hit], device=device)
+            # The deep vertices listed in vertex order by a prefix sum (its last entry: the count).
+            deep_end = torch.cumsum(deep_flag, 0, dtype=torch.int32)
+            deep = [_warp.as_warp(deep_end[-1:]), _warp.as_warp(torch.empty(count, dtype=torch.int32, device=x.device)),
+                    _warp.as_warp(torch.empty(count, dtype=torch.int32, device=x.device))]
+            _warp.launch(kernels.hair_body_deep_list_kernel, dim=count,
+                         inputs=[_warp.as_warp(deep_flag), _warp.as_warp(deep_end), hit], outputs=deep[1:],
                          device=device)
             _warp.launch(kernels.hair_body_energy_far_kernel, dim=count, inputs=common + [hit_distance] + deep,
                          outputs=outputs, device=device)

@@ -543,6 +543,21 @@ def _broad_phase_kind(device: torch.device) -> str:
     return "cpu-grid" if device.type == "cpu" else _DEVICE_BROAD_PHASE
 
 
+# Threads of `hair_hair_cell_pairs_kernel` at most: each entry's resumed walk is shared by as
+# many lanes (a power of two, at most 8) as keep the launch within this. A small batch leaves most
+# of the GPU idle while the entries of crowded cells walk a hundred partners each, one thread
+# apiece; at batch 32 the entries alone fill it (one lane).
+_CELL_WALK_THREADS = 1 << 22
+
+
+def _cell_walk_lanes(entries: int) -> int:
+    """Lanes per entry of the resumed walks (`_CELL_WALK_THREADS`)."""
+    lanes = 1
+    while lanes < 8 and 2 * lanes * entries <= _CELL_WALK_THREADS:
+        lanes *= 2
+    return lanes
+
+
 def _cell_table_size(num_segments: int) -> int:
     """Slots of the cell table: a power of two >= 4 slots per segment (a drape enters ~3 cells
     per segment, so most slots hold one cell).
@@ -610,6 +625,7 @@ def _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy=None):
     hit_state = torch.empty(max(1, hit_rows), dtype=torch.int32, device=device)
     hits_wp, hit_state_wp = _warp.as_warp(hits), _warp.as_warp(hit_state)
 
+    walk_lanes = _cell_walk_lanes(entries)
     lanes = int(hh_kernels.LONG_LANES)
     list_stride = max(1, num_segments // lanes)  # long segments served at once (more: in turn)
 
@@ -642,9 +658,9 @@ def _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy=None):
                              inputs=[x_wp, sorted_wp[0], hits_wp, hit_state_wp, hit_slots, n, m, skip_root_segments]
                              + pair_inputs,
                              outputs=common_out, device=wp_device)
-            _warp.launch(hh_kernels.hair_hair_cell_pairs_kernel, dim=entries,
-                         inputs=[x_wp] + walk + [hit_state_wp, hit_rows, hit_slots, params_wp, n, m, skip_root_segments,
-                                                 table - 1] + pair_inputs,
+            _warp.launch(hh_kernels.hair_hair_cell_pairs_kernel, dim=entries * walk_lanes,
+                         inputs=[x_wp] + walk + [hit_state_wp, hit_rows, hit_slots, walk_lanes, entries, params_wp, n, m,
+                                                 skip_root_segments, table - 1] + pair_inputs,
                          outputs=common_out, device=wp_device)
         fork.join()
         return pairs

@@ -289,8 +289,8 @@ def _launch(x4, inputs, scales, layout, *, compute_gradient):
     tensors = [x4, *(t for t, _ in inputs.values()), energy]
     if gradient is not None:
         tensors.append(gradient)
-    with _warp.launch_scope(device):
-        plan.launch(tensors)
+    # Every tensor here is torch's: the launch goes on torch's stream without `launch_scope`.
+    plan.launch(tensors, _warp.torch_stream(device))
     return energy.sum(dim=2).t(), gradient
 
 
