@@ -1025,6 +1025,7 @@ def hair_hair_cell_hits_kernel(
     table_mask: int,
     hit_rows: int,
     hit_slots: int,
+    max_steps: int,
     # Out:
     hits_out: wp.array(dtype=wp.int32),
     hit_state_out: wp.array(dtype=wp.int32),
@@ -1034,8 +1035,10 @@ def hair_hair_cell_hits_kernel(
     `hit_slots` partners j that `_cell_partner` keeps go to row `pos` of `hits_out`
     ((hit_slots x hit_rows,) segment ids, slot-major) for `hair_hair_hit_pairs_kernel`. Row state
     (`hit_state_out`, (hit_rows,)): the hits written (0 ... hit_slots), or hit_slots + t if the
-    walk met one more at step t (`hair_hair_cell_pairs_kernel` goes on from there). Entries past
-    the rows get no row: that kernel walks them whole.
+    walk met one more at step t, or if it walked `max_steps` steps with more to go (t =
+    max_steps + 1; the row's unwritten slots then hold -1): `hair_hair_cell_pairs_kernel` goes
+    on from step t, in lanes (a walk capped here is shared by them). Entries past the rows get no
+    row: that kernel walks them whole.
 
     Why apart from the exact test: a thread that carries the test's registers runs the walk,
     a few hundred reads per entry, at a fraction of the occupancy (docs/contact.md 11).
@@ -1058,7 +1061,8 @@ def hair_hair_cell_hits_kernel(
     cell, start, n = _entry_cell_and_slot(packed, lo_i, group, inv_width, slot_end, slot_count, table_mask)
     r = pos - start
     hits = int(0)
-    for t in range(1, _cell_walk_length(n, r) + 1):
+    length = _cell_walk_length(n, r)
+    for t in range(1, wp.min(length, max_steps) + 1):
         j = _cell_partner(sorted_entries, sorted_lo, sorted_hi, start + (r + t) % n, i, strand_i, group, lo_i, hi_i,
                           cell, inv_width, num_vertices, num_strands, skip_root_segments)
         if j < 0:
@@ -1068,6 +1072,11 @@ def hair_hair_cell_hits_kernel(
             return
         hits_out[hits * hit_rows + pos] = j  # slot-major: see `hair_hair_hit_pairs_kernel`
         hits += 1
+    if length > max_steps:
+        for k in range(hits, hit_slots):
+            hits_out[k * hit_rows + pos] = -1
+        hit_state_out[pos] = hit_slots + max_steps + 1
+        return
     hit_state_out[pos] = hits
 
 
@@ -1107,11 +1116,14 @@ def hair_hair_hit_pairs_kernel(
     row = t % hit_rows
     if t // hit_rows >= wp.min(hit_state[row], hit_slots):
         return
+    j = hits[t]
+    if j < 0:
+        return  # a slot left empty by a walk capped at max_steps
     i = sorted_entries[row] // MAX_CELLS_PER_SEGMENT
     segs_per_strand = num_vertices - 1
     strand_i = i // segs_per_strand
     vi = strand_i * num_vertices + i % segs_per_strand
-    _write_pair_if_close(x_in, i, hits[t], strand_i, vi, x_in[vi], x_in[vi + 1], num_vertices, num_strands,
+    _write_pair_if_close(x_in, i, j, strand_i, vi, x_in[vi], x_in[vi + 1], num_vertices, num_strands,
                          skip_root_segments, cutoff * cutoff, capacity, with_energy, xi, dhat, bp, weight, variant,
                          count_out, pairs_out, energy_out, gradient_out)
 

@@ -31,16 +31,20 @@ def broad_phase(request, monkeypatch):
     kinds (the boxes in hashed cells, the midpoint grid), whichever device runs it.
     "cells-overflow" is the cells kind with a hit list of one partner for one entry per segment:
     most walks go on past their row and many entries have none (`_cell_broad_phase`);
-    "cells-lanes" the same with each resumed walk shared by 3 lanes (`_cell_walk_lanes`)."""
+    "cells-lanes" a hit list of two partners whose walks stop after 3 steps, the pairs kernel
+    going on with each in 3 lanes (`_cell_walk_lanes`, `_CELL_HIT_WALK_STEPS`)."""
     import hairwarp.ops.hair_hair_contact as hh
 
     device_kind = hh._broad_phase_kind
     chosen = request.param
-    if chosen in ("cells-overflow", "cells-lanes"):
+    if chosen == "cells-overflow":
         monkeypatch.setattr(hh, "_CELL_HIT_SLOTS", 1)
         monkeypatch.setattr(hh, "_CELL_HIT_ROWS_PER_SEGMENT", 1)
-        if chosen == "cells-lanes":
-            monkeypatch.setattr(hh, "_cell_walk_lanes", lambda entries: 3)
+        chosen = "cells"
+    if chosen == "cells-lanes":
+        monkeypatch.setattr(hh, "_CELL_HIT_SLOTS", 2)
+        monkeypatch.setattr(hh, "_CELL_HIT_WALK_STEPS", 3)
+        monkeypatch.setattr(hh, "_cell_walk_lanes", lambda entries: 3)
         chosen = "cells"
 
     def kind(device):

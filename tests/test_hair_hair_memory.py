@@ -275,15 +275,19 @@ def test_cell_hit_list_rows_that_overflow_walk_on(rng, monkeypatch, hit_slots, r
         assert entries > run.hit_rows  # entries with no row
 
 
-@pytest.mark.parametrize("lanes", [1, 2, 5, 8])
-def test_resumed_walks_shared_by_lanes_find_each_pair_once(rng, monkeypatch, lanes):
+@pytest.mark.parametrize("lanes, hit_slots, steps", [(1, 1, 16), (2, 1, 16), (5, 1, 16), (8, 1, 16), (3, 4, 2),
+                                                     (4, 6, 1)])
+def test_resumed_walks_shared_by_lanes_find_each_pair_once(rng, monkeypatch, lanes, hit_slots, steps):
     """Lanes that share an entry's resumed walk (every `lanes`-th step each) find exactly the
-    brute force's pairs, each once, in crowded cells (one hit per row: most walks resume); the
-    default lane count fills at most `_CELL_WALK_THREADS` threads, 1 to 8 lanes."""
+    brute force's pairs, each once, in crowded cells, where rows fill up or (with lanes) stop
+    walking after `steps` steps with slots left empty; the default lane count fills at most
+    `_CELL_WALK_THREADS` threads, 1 to 8 lanes."""
     monkeypatch.setattr(hh, "_broad_phase_kind", lambda device: "cells")
-    monkeypatch.setattr(hh, "_CELL_HIT_SLOTS", 1)
+    monkeypatch.setattr(hh, "_CELL_HIT_SLOTS", hit_slots)
     monkeypatch.setattr(hh, "_CELL_HIT_ROWS_PER_SEGMENT", 1)
+    monkeypatch.setattr(hh, "_CELL_HIT_WALK_STEPS", steps)
     monkeypatch.setattr(hh, "_cell_walk_lanes", lambda entries: lanes)
+    runs = _cell_runs(monkeypatch)
     x = ref.random_hair(rng, batch=2, strands=12, vertices=12, extent=4e-3, segment=1e-3)
     expected_energy, expected = ref.energy(x, XI, DHAT, BP)
     assert expected.shape[0] > 200
@@ -291,6 +295,10 @@ def test_resumed_walks_shared_by_lanes_find_each_pair_once(rng, monkeypatch, lan
     np.testing.assert_array_equal(found.pairs.numpy(), expected)
     energy, _ = hair_hair_contact_energy(torch.tensor(x), XI, DHAT, BP)
     np.testing.assert_allclose(energy.numpy(), expected_energy, rtol=1e-12)
+    state = runs[-1].hit_state[: min(runs[-1].hit_rows, int(runs[-1].slot_end[-1]))]
+    capped = state == hit_slots + steps + 1
+    if lanes > 1:
+        assert int(capped.sum()) > 10  # rows whose walk the pairs kernel's lanes went on with
     monkeypatch.undo()
     threads = hh._CELL_WALK_THREADS
     assert hh._cell_walk_lanes(10) == 8 and hh._cell_walk_lanes(threads) == 1

@@ -550,6 +550,11 @@ def _broad_phase_kind(device: torch.device) -> str:
 _CELL_WALK_THREADS = 1 << 22
 
 
+# Steps of a walk the hits kernel takes at most when the pairs kernel has lanes to go on with it:
+# a row of a crowded cell finding few partners otherwise walks half the cell, one thread.
+_CELL_HIT_WALK_STEPS = 16
+
+
 def _cell_walk_lanes(entries: int) -> int:
     """Lanes per entry of the resumed walks (`_CELL_WALK_THREADS`)."""
     lanes = 1
@@ -626,6 +631,8 @@ def _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy=None):
     hits_wp, hit_state_wp = _warp.as_warp(hits), _warp.as_warp(hit_state)
 
     walk_lanes = _cell_walk_lanes(entries)
+    # With lanes to share them, the hits kernel leaves long walks to the pairs kernel.
+    hit_walk_steps = _CELL_HIT_WALK_STEPS if walk_lanes > 1 else 1 << 30
     lanes = int(hh_kernels.LONG_LANES)
     list_stride = max(1, num_segments // lanes)  # long segments served at once (more: in turn)
 
@@ -652,7 +659,8 @@ def _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy=None):
             walk = sorted_wp + table_wp
             if hit_rows > 0:
                 _warp.launch(hh_kernels.hair_hair_cell_hits_kernel, dim=entries,
-                             inputs=walk + [params_wp, n, m, skip_root_segments, table - 1, hit_rows, hit_slots],
+                             inputs=walk + [params_wp, n, m, skip_root_segments, table - 1, hit_rows, hit_slots,
+                                            hit_walk_steps],
                              outputs=[hits_wp, hit_state_wp], device=wp_device)
                 _warp.launch(hh_kernels.hair_hair_hit_pairs_kernel, dim=hit_rows * hit_slots,
                              inputs=[x_wp, sorted_wp[0], hits_wp, hit_state_wp, hit_slots, n, m, skip_root_segments]
