@@ -85,6 +85,10 @@ _CELL_LONG_FRACTION = 0.05
 # and 3-4 rows (docs/contact.md 11): 6 x 3 fastest at batch 32 with the least memory but one.
 _CELL_HIT_SLOTS = 6
 _CELL_HIT_ROWS_PER_SEGMENT = 3
+# Steps of a walk the hits kernel takes at most when the pairs kernel has lanes to go on with it
+# (`_cell_walk_lanes`): a row of a crowded cell finding few partners otherwise walks half the
+# cell, one thread (docs/contact.md 12).
+_CELL_HIT_WALK_STEPS = 16
 # The CPU grid (`_CpuGrid`): cells of _CPU_CELL_FACTOR x the device path's width (a query walks
 # one contiguous range per z row, so finer cells cost little and bring fewer candidates), at
 # most _CPU_MAX_CELLS_PER_SEGMENT cells per segment (4 bytes each).
@@ -548,11 +552,6 @@ def _broad_phase_kind(device: torch.device) -> str:
 # of the GPU idle while the entries of crowded cells walk a hundred partners each, one thread
 # apiece; at batch 32 the entries alone fill it (one lane).
 _CELL_WALK_THREADS = 1 << 22
-
-
-# Steps of a walk the hits kernel takes at most when the pairs kernel has lanes to go on with it:
-# a row of a crowded cell finding few partners otherwise walks half the cell, one thread.
-_CELL_HIT_WALK_STEPS = 16
 
 
 def _cell_walk_lanes(entries: int) -> int:
