@@ -73,3 +73,26 @@ def test_a_peer_that_does_not_compile_is_recorded_not_raised(monkeypatch, capsys
     assert len(printed) == 1 and expected_note in printed[0]  # one line, not one per row
     assert bench.markdown_table(record).count("| n/a | n/a |") == 2
 
+
+
+def test_interleaved_timing_alternates_the_rivals_and_balances_their_calls():
+    import time
+
+    from hairwarp.runtime import time_ms_interleaved
+
+    order = []
+
+    def sleeper(name, seconds):
+        def run():
+            order.append(name)
+            time.sleep(seconds)
+        return run
+
+    times = time_ms_interleaved({"fast": sleeper("fast", 0.002), "slow": sleeper("slow", 0.008)}, CPU,
+                                warmup=1, min_rounds=4, min_time_s=0.0)
+    assert 2.0 <= times["fast"] < 6.0 and 8.0 <= times["slow"] < 20.0
+    timed = order[2:]  # after one warm-up call each
+    # Each round: one slow call and about four fast ones (8 ms / 2 ms), the order rotated.
+    assert timed.count("slow") == 4 and 8 <= timed.count("fast") <= 20
+    switches = sum(a != b for a, b in zip(timed, timed[1:]))
+    assert switches >= 4  # the rivals alternate: not all of one, then all of the other

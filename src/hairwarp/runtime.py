@@ -96,6 +96,49 @@ def time_ms(fn: Callable[[], object], device: torch.device, *, warmup: int = 3, 
     return statistics.median(samples)
 
 
+def time_ms_interleaved(fns: dict[str, Callable[[], object]], device: torch.device, *, warmup: int = 1,
+                        min_rounds: int = 3, max_rounds: int = 50, max_calls: int = 20,
+                        min_time_s: float = 0.3) -> dict[str, float]:
+    """Median wall time [ms] of each of several functions, timed in alternating rounds.
+
+    Rivals timed one after the other see different machines when the host's speed drifts (on a
+    shared GPU host, calls of a few hundred microseconds vary by 2x from one minute to the
+    next), so their ratio carries the drift. Here every round times each function in turn (the
+    device synchronised around each call, as `time_ms`; the order rotated from round to round),
+    a faster one called more times per round (its last warm-up call's time against the slowest
+    one's, at most `max_calls`) so each takes about the same share of a round. Rounds go on until
+    `min_rounds` are done and `min_time_s` has passed (at most `max_rounds`).
+
+    Returns:
+        name -> median of its timed calls [ms].
+    """
+    if not fns:
+        return {}
+    names = list(fns)
+    first = {}
+    for name in names:
+        for _ in range(max(1, warmup)):
+            t0 = time.perf_counter()
+            fns[name]()
+            synchronize(device)
+            first[name] = time.perf_counter() - t0
+    slowest = max(first.values())
+    calls = {name: min(max_calls, max(1, round(slowest / max(t, 1e-9)))) for name, t in first.items()}
+    samples = {name: [] for name in names}
+    start_all = time.perf_counter()
+    rounds = 0
+    while rounds < max_rounds and (rounds < min_rounds or time.perf_counter() - start_all < min_time_s):
+        shift = rounds % len(names)
+        for name in names[shift:] + names[:shift]:
+            for _ in range(calls[name]):
+                t0 = time.perf_counter()
+                fns[name]()
+                synchronize(device)
+                samples[name].append((time.perf_counter() - t0) * 1e3)
+        rounds += 1
+    return {name: statistics.median(s) for name, s in samples.items()}
+
+
 def cpu_model_name() -> str | None:
     """The CPU's model name from /proc/cpuinfo (None where that file is not readable)."""
     try:

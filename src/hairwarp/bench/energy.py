@@ -6,7 +6,8 @@ to the hair's reach), batch 1 and 32 (B different frames of a head-turn motion).
 Writes {"device", "machine", "sizes", "results": [{"name", "warp_ms", "torch_ms", ...}]},
 a result named "total" included (Eq. 6 without L_func_reg: every term, inertia too).
 
-Each row: `warp_ms` and `torch_ms` (forward + backward, after untimed warm-up calls), `speedup`
+Each row: `warp_ms` and `torch_ms` (forward + backward, after untimed warm-up calls; the rivals of
+a row timed in alternating rounds, `hairwarp.runtime.time_ms_interleaved`), `speedup`
 (torch_ms / warp_ms) and `warp_rel_diff` (max |warp - torch| / |torch| of the (B,) energies, from
 the first calls). It is float32 round-off except for hair_body_contact and total: their torch
 peer takes the distance from the nearest body vertex (the neural simulators' query), Warp's is
@@ -30,7 +31,7 @@ from dataclasses import replace
 
 import torch
 
-from hairwarp.runtime import machine_name, synchronize, time_ms
+from hairwarp.runtime import machine_name, synchronize, time_ms_interleaved
 from hairwarp.config import EnergyConfig
 
 STRAND_TERM_NAMES = ("stretch", "bending", "auxiliary", "smoothness", "gravity", "root_alignment", "inertia")
@@ -212,21 +213,37 @@ def run_energy_benchmark(device: torch.device, batches=(1, 32), *, config: Energ
                         fn().sum().backward()
                     return run
 
-                warp_ms = time_ms(step(warp_fn), device, warmup=2, repeats=5, min_time_s=0.2)
+                # First calls (untimed: compiles, caches; their energies compared), then the rivals
+                # timed in alternating rounds (`time_ms_interleaved`): a ratio of host-bound
+                # sub-millisecond calls is only as good as the machine's steadiness between them.
                 _, warp_value = _first_call(warp_fn, x)
                 first, eager_value = _first_call(torch_fn, x)
+                timed_fns = {"warp": step(warp_fn)}
+                torch_note = ""
                 if first > skip_torch_above_ms:
-                    torch_ms, torch_note = first, "timed once"
+                    torch_note = "timed once"
                 else:
-                    torch_ms = time_ms(step(torch_fn), device, warmup=1, repeats=3, min_time_s=0.2)
-                    torch_note = ""
+                    timed_fns["torch"] = step(torch_fn)
+                compiled_row = {}
+                if torch_compile:
+                    compiled_row, compiled = _first_call_compiled(torch_fn, x, eager_value)
+                    if compiled is not None:
+                        if first > skip_torch_above_ms:
+                            compiled_row["torch_compile_ms"] = _first_call(compiled, x)[0]
+                        else:
+                            timed_fns["compile"] = step(compiled)
+                times = time_ms_interleaved(timed_fns, device, warmup=1)
+                warp_ms = times["warp"]
+                torch_ms = times.get("torch", first)
                 row = {"name": name, "batch": batch, "warp_ms": warp_ms, "torch_ms": torch_ms,
                        "speedup": torch_ms / warp_ms if warp_ms > 0 else None,
                        "warp_rel_diff": _rel_diff(warp_value, eager_value)}
                 if torch_note:
                     row["note"] = torch_note
                 if torch_compile:
-                    row.update(_time_compiled(torch_fn, x, step, device, eager_value, first, skip_torch_above_ms))
+                    if "compile" in times:
+                        compiled_row["torch_compile_ms"] = times["compile"]
+                    row.update(compiled_row)
                     if row["torch_compile_ms"] is not None and warp_ms > 0:
                         row["speedup_vs_compile"] = row["torch_compile_ms"] / warp_ms
                     torch._dynamo.reset()  # one term's graphs and guards do not pile up on the next
@@ -269,28 +286,24 @@ def _exception_line(exc: Exception) -> str:
     return f"{type(exc).__name__}: {text.splitlines()[0] if text else ''}"
 
 
-def _time_compiled(torch_fn, x, step, device, eager_value: torch.Tensor, eager_first_ms: float,
-                   skip_above_ms: float) -> dict:
-    """The torch.compile columns of one row (see the module docstring).
+def _first_call_compiled(torch_fn, x, eager_value: torch.Tensor):
+    """The torch.compile peer after its first call: (its row fields, the compiled function or None).
 
     The first call compiles (forward and, through AOTAutograd, backward); its energy is checked
-    against `eager_value`, and the timing that follows excludes the compile. Exceptions from
-    compiling or running the compiled peer are recorded in `compile_note`, never raised.
+    against `eager_value`. Exceptions from compiling or running the compiled peer are recorded in
+    `compile_note` (the function then None), never raised.
     """
     compiled, note = _compiled_peer(torch_fn)
     out = {"torch_compile_ms": None, "torch_compile_first_ms": None, "speedup_vs_compile": None}
     if compiled is None:
-        return {**out, "compile_note": note}
+        return {**out, "compile_note": note}, None
     try:
         out["torch_compile_first_ms"], compiled_value = _first_call(compiled, x)
         out["compile_rel_diff"] = _rel_diff(compiled_value, eager_value)
-        if eager_first_ms > skip_above_ms:
-            out["torch_compile_ms"] = _first_call(compiled, x)[0]
-        else:
-            out["torch_compile_ms"] = time_ms(step(compiled), device, warmup=1, repeats=3, min_time_s=0.2)
+        _first_call(compiled, x)  # a second call: a failure past the compile shows here, not in the timing
     except Exception as exc:  # a peer that does not compile (graph breaks are fine; errors are not)
-        return {**out, "compile_note": _exception_line(exc)}
-    return out
+        return {**out, "compile_note": _exception_line(exc)}, None
+    return out, compiled
 
 
 def markdown_table(record: dict) -> str:
