@@ -25,6 +25,8 @@ _CONTACT_SIDE = "hair_hair"
 # Whether the side stream's term starts before the strand terms on CUDA (on the CPU's side
 # thread it always does: the strand terms then run beside it).
 _SIDE_FIRST_ON_CUDA = False
+# Whether the side stream's blocks go first when both streams wait for room on the GPU.
+_SIDE_HIGH_PRIORITY = True
 
 
 @dataclass
@@ -167,9 +169,10 @@ def total_energy(
     # high-priority stream. On the CPU it starts first, the strand terms and the other contact
     # term following on this thread; on CUDA after the strand terms (`_SIDE_FIRST_ON_CUDA`).
     both = with_hair_body and with_hair_hair
-    hb_fork = StreamFork(xb.device, "hair_body", enabled=both and _CONTACT_SIDE == "hair_body", cpu_thread=True)
-    hh_fork = StreamFork(xb.device, "hair_hair", enabled=both and _CONTACT_SIDE == "hair_hair", high_priority=True,
-                         cpu_thread=True)
+    hb_fork = StreamFork(xb.device, "hair_body", enabled=both and _CONTACT_SIDE == "hair_body",
+                         high_priority=_SIDE_HIGH_PRIORITY, cpu_thread=True)
+    hh_fork = StreamFork(xb.device, "hair_hair", enabled=both and _CONTACT_SIDE == "hair_hair",
+                         high_priority=_SIDE_HIGH_PRIORITY, cpu_thread=True)
     pending = {}  # term -> its future
     here = []  # the terms computed on this stream and thread, after the strand terms
     for with_term, fork, term in ((with_hair_hair, hh_fork, hair_hair_term), (with_hair_body, hb_fork, hair_body_term)):
