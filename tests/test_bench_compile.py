@@ -74,6 +74,18 @@ def test_a_peer_that_does_not_compile_is_recorded_not_raised(monkeypatch, capsys
     assert bench.markdown_table(record).count("| n/a | n/a |") == 2
 
 
+def test_a_slow_peer_is_timed_once_and_its_compiled_twin_too():
+    # Every eager peer above the threshold: timed by its first call, the compiled one by its second.
+    record = bench.run_energy_benchmark(CPU, batches=(1,), names={"gravity"}, strand_stride=16, num_vertices=8,
+                                        skip_torch_above_ms=0.0, progress=False)
+    (row,) = record["results"]
+    assert row["note"] == "timed once" and row["torch_ms"] > 0 and row["warp_ms"] > 0
+    if row["torch_compile_ms"] is None:  # no C++ compiler here: recorded, not raised
+        assert row["compile_note"]
+    else:
+        assert row["torch_compile_ms"] > 0 and row["compile_rel_diff"] < _REL_TOL
+        assert row["torch_compile_first_ms"] > row["torch_compile_ms"]  # the first call compiled
+
 
 def test_interleaved_timing_alternates_the_rivals_and_balances_their_calls():
     import time
