@@ -196,3 +196,27 @@ def test_auto_line_search_is_backtracking_only_on_cuda_graphs():
     assert line_search(auto, torch.device("cuda")) == "backtracking"
     assert line_search(DirectOptimizationConfig(cuda_graph=False), torch.device("cuda")) == "strong_wolfe"
     assert line_search(DirectOptimizationConfig(lbfgs_line_search="backtracking"), torch.device("cpu")) == "backtracking"
+
+
+def test_kernel_direction_equals_the_closed_form_through_stores_skips_and_clears():
+    """`iterate`'s direction (Warp kernels: the two loops on one thread, the (m, n) products by
+    torch) equals `lbfgs_direction` on the same state, step after step around the ring; where the
+    memory's direction does not descend (or the memory is empty) it is -min(1, 1/|g|_1) g."""
+    x0 = torch.tensor([-1.2, 1.0, -0.5, 2.0, 0.0, 0.0, 1.5, -0.3], dtype=torch.float64)
+    solver = DirectOptimizationConfig(lbfgs_line_search="backtracking", lbfgs_history=3, lbfgs_max_step=10.0,
+                                      lbfgs_restart=1)  # every rejection clears the memory
+    opt = DeviceLBFGS(_rosenbrock, x0, solver, chunk=1, point_size=2)
+    used = fallback = 0
+    for _ in range(60):
+        opt.iterate()
+        m = opt.rho.shape[0]
+        order = (opt.head - torch.arange(m)) % m
+        if float(opt.rho[opt.head]) != 0.0:
+            expected = lbfgs_direction(opt.g, opt.S, opt.Y, opt.rho, opt.gamma, opt.SY, order)
+            torch.testing.assert_close(opt.d, expected, rtol=1e-9, atol=1e-12)
+            used += 1
+        else:
+            first = min(1.0, 1.0 / float(opt.g.abs().sum()))
+            torch.testing.assert_close(opt.d, -first * opt.g, rtol=1e-12, atol=0.0)
+            fallback += 1
+    assert used >= 10 and fallback >= 5  # both branches, many times

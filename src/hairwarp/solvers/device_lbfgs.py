@@ -19,7 +19,7 @@ point and a masked update, all device tensors:
 - direction: the two-loop recursion in closed form (Byrd, Nocedal & Schnabel 1994): with the
   memory's pairs newest first, the first loop's coefficients solve a unit lower-triangular
   system and the second loop's a unit upper-triangular one (m x m, float64), so a direction is
-  four (m, n) products and a few tiny kernels whatever the memory m. The memory is a ring
+  four (m, n) products and two single-thread solves whatever the memory m. The memory is a ring
   buffer (a new pair overwrites the oldest row; s_i . y_j kept as pairs enter). With no memory
   (the start, after a clear, or when the memory's direction is not a descent direction) it is
   -g scaled by min(1, 1 / |g|_1), torch's first step.
@@ -30,11 +30,13 @@ and replayed `chunk` times back to back; per chunk the host reads the chunk's lo
 rule, history, progress bar) and the largest hair-hair pair count; a pair count beyond the
 buffer restores the chunk's starting state and captures again with a buffer twice the count.
 On the CPU the same iterations run eagerly (with the hair-hair pair cache). An iteration here
-is one energy evaluation; a rejected trial counts as one.
+is one energy evaluation; a rejected trial counts as one. Besides the energy an iteration is
+~25 kernels: the n-sized products by torch (cuBLAS), the decisions and the solves in Warp
+kernels (`hairwarp.kernels.device_lbfgs`).
 
-Measured (docs/contact.md, sections 7-8): full-size Table 1 on one H100 reaches the accuracy of
-300 strong-Wolfe iterations (1.7-1.9 s with its energy in a CUDA graph) in 0.37 s (0.45-0.46 s
-before the contact terms ran on side streams).
+Measured (docs/contact.md, sections 7-13): full-size Table 1 on one H100 reaches the accuracy of
+300 strong-Wolfe iterations (1.6-1.9 s with its energy in a CUDA graph) in 0.25 s (0.37 s before
+the contact terms ran on side streams and the update was folded into kernels).
 """
 
 from __future__ import annotations
@@ -43,8 +45,11 @@ import math
 import time
 
 import torch
+import warp as wp
 
+from hairwarp import _warp
 from hairwarp.config import NUM_FIXED_VERTICES, EnergyConfig
+from hairwarp.kernels import device_lbfgs as lbfgs_kernels
 from hairwarp.energy import EnergyInputs, total_energy
 from hairwarp.runtime import synchronize
 
@@ -55,7 +60,10 @@ ARMIJO_C1 = 1e-4
 def lbfgs_direction(g: torch.Tensor, S: torch.Tensor, Y: torch.Tensor, rho: torch.Tensor,
                     gamma: torch.Tensor, SY: torch.Tensor | None = None,
                     order: torch.Tensor | None = None) -> torch.Tensor:
-    """The L-BFGS search direction -H g by the two-loop recursion, in closed form.
+    """The L-BFGS search direction -H g by the two-loop recursion, in closed form (torch ops).
+
+    `DeviceLBFGS.iterate` computes the same in Warp kernels; this form is the one its tests
+    check them against.
 
     Args:
         g: (n,) gradient.
@@ -138,6 +146,18 @@ class DeviceLBFGS:
         self.position = torch.zeros((1,), **index)  # where the next loss goes in trace
         self.pairs = torch.zeros((), **index)  # largest pair count met
         self.gmax = self.g.abs().max().clone()
+        # Scratch of an iteration (`iterate`).
+        self.t_trial = torch.ones((), **zeros)
+        self.first = torch.ones((), **zeros)
+        self.flags = torch.zeros(3, device=self.device, dtype=torch.int32)
+        self.a = torch.zeros(m, device=self.device, dtype=torch.float64)
+        self.c = torch.zeros(m, device=self.device, dtype=torch.float64)
+        self.a_rows = torch.zeros(m, **zeros)
+        self.c_rows = torch.zeros(m, **zeros)
+        # Warp views of the state and scratch, made once (the tensors keep their addresses).
+        self._warp = {name: _warp.as_warp(getattr(self, name)) for name in (
+            "x", "f", "g", "d", "t", "S", "Y", "rho", "SY", "gamma", "head", "rejections", "trace", "position",
+            "t_trial", "first", "flags", "a", "c", "a_rows", "c_rows")}
 
     @staticmethod
     def _first_scale(g: torch.Tensor) -> torch.Tensor:
@@ -154,64 +174,59 @@ class DeviceLBFGS:
         self.position.zero_()
 
     def iterate(self) -> None:
-        """One trial step and the masked update; appends the new loss to `trace`."""
+        """One trial step and the masked update; appends the new loss to `trace`.
+
+        About 25 kernels: the n-sized products through torch (cuBLAS), the decisions and the
+        memory's m x m solves in single-thread Warp kernels (`kernels.device_lbfgs`), the masked
+        updates in one kernel over n. The same steps as torch ops were ~180 operations, most on
+        0-d tensors, each its own kernel (docs/contact.md 13).
+        """
         s_cfg = self.solver
-        m = self.rho.shape[0]
-        # The trial step, every vertex moved at most max_step.
-        move = (self.t * self.d).reshape(-1, self.point_size).norm(dim=1).max()
-        t = self.t * torch.clamp(s_cfg.lbfgs_max_step / move.clamp_min(1e-30), max=1.0)
-        trial = self.x + t * self.d
+        m, n = self.rho.shape[0], self.x.numel()
+        w = self._warp
+        device = _warp.warp_device(self.device)
+        with _warp.launch_scope(self.device):
+            # The trial step, every point moved at most max_step.
+            step_max = torch.linalg.vector_norm(self.d.view(-1, self.point_size), dim=1).max()
+            _warp.launch(lbfgs_kernels.lbfgs_trial_scale_kernel, dim=1,
+                         inputs=[w["t"], _warp.as_warp(step_max), wp.float64(s_cfg.lbfgs_max_step)],
+                         outputs=[w["t_trial"]], device=device)
+            trial = torch.addcmul(self.x, self.t_trial, self.d)
         f_t, g_t, count = self.energy(trial, self.graph_safe)
-        f_t = f_t.reshape(())
         if isinstance(count, torch.Tensor):
             self.pairs.copy_(torch.maximum(self.pairs, count.reshape(()).to(torch.int64)))
-        gd = torch.dot(self.g, self.d)
-        accept = torch.isfinite(f_t) & torch.isfinite(g_t).all() & (f_t <= self.f + ARMIJO_C1 * t * gd)
-        # The curvature pair of an accepted step, stored over the oldest row.
-        s = t * self.d
-        y = g_t - self.g
-        sy, yy = torch.dot(s, y), torch.dot(y, y)
-        store = accept & (sy > s_cfg.lbfgs_curvature_eps * torch.dot(s, s))  # the cautious update
-        row = torch.where(store, (self.head + 1) % m, self.head)
-        self.S.index_copy_(0, row, torch.where(store, s, self.S.index_select(0, row)[0])[None])
-        self.Y.index_copy_(0, row, torch.where(store, y, self.Y.index_select(0, row)[0])[None])
-        self.rho.index_copy_(0, row, torch.where(store, 1.0 / sy.clamp_min(1e-30), self.rho.index_select(0, row)[0])[None])
-        # The row's products with every pair (a stored pair's own: s.y); unchanged rows give
-        # back what SY held.
-        s_row = self.S.index_select(0, row)[0]
-        y_row = self.Y.index_select(0, row)[0]
-        self.SY.index_copy_(0, row, (self.Y @ s_row).to(torch.float64)[None])  # s_row . y_j
-        self.SY.index_copy_(1, row, (self.S @ y_row).to(torch.float64)[:, None])  # s_i . y_row
-        self.head.copy_(row)
-        self.gamma.copy_(torch.where(store, sy / yy.clamp_min(1e-30), self.gamma))
-        # The next step length after a rejected trial: the safeguarded quadratic's minimiser.
-        curvature = 2.0 * (f_t - self.f - gd * t)
-        quadratic = -gd * t * t / curvature
-        shrunk = torch.where(torch.isfinite(quadratic) & (curvature > 0),
-                             torch.minimum(torch.maximum(quadratic, 0.1 * t), 0.5 * t), 0.25 * t)
-        # Move on an accepted trial.
-        self.x.copy_(torch.where(accept, trial, self.x))
-        self.f.copy_(torch.where(accept, f_t, self.f))
-        self.g.copy_(torch.where(accept, g_t, self.g))
-        self.t.copy_(torch.where(accept, torch.ones_like(t), shrunk))
-        self.rejections.copy_(torch.where(accept, torch.zeros_like(self.rejections), self.rejections + 1))
-        clear = self.rejections >= s_cfg.lbfgs_restart if s_cfg.lbfgs_restart else torch.zeros_like(accept)
-        # The direction from the (possibly new) gradient and memory; -g scaled when the memory is
-        # empty or cleared, or its direction does not descend (the memory is then dropped).
-        self.rho.mul_((~clear).to(self.dtype))
-        empty = self.rho.index_select(0, self.head)[0] == 0
-        first = self._first_scale(self.g)
-        self.gamma.copy_(torch.where(empty, first, self.gamma))
-        order = (self.head - self.steps_back) % m
-        d = lbfgs_direction(self.g, self.S, self.Y, self.rho, self.gamma, self.SY, order)
-        descent = torch.dot(self.g, d) < 0
-        self.d.copy_(torch.where(descent, d, -first * self.g))
-        self.rho.mul_(descent.to(self.dtype))
-        self.t.copy_(torch.where(clear, torch.ones_like(t), self.t))
-        self.rejections.copy_(torch.where(clear, torch.zeros_like(self.rejections), self.rejections))
-        self.trace.index_copy_(0, self.position, self.f[None])
-        self.position.add_(1).remainder_(self.trace.shape[0])
-        self.gmax.copy_(self.g.abs().max())
+        g_t = g_t.reshape(-1)
+        with _warp.launch_scope(self.device):
+            y = g_t - self.g
+            products = torch.stack([self.g, y, self.d])
+            gram = products @ products.T  # g.d, y.d, y.y, d.d among them
+            _warp.launch(lbfgs_kernels.lbfgs_accept_kernel, dim=1,
+                         inputs=[_warp.as_warp(f_t.reshape(1)), _warp.as_warp(gram), w["t_trial"], m, wp.float64(ARMIJO_C1),
+                                 wp.float64(s_cfg.lbfgs_curvature_eps), int(s_cfg.lbfgs_restart or 0),
+                                 w["f"], w["t"], w["rho"], w["gamma"], w["head"], w["rejections"], w["trace"],
+                                 w["position"]],
+                         outputs=[w["flags"]], device=device)
+            _warp.launch(lbfgs_kernels.lbfgs_update_kernel, dim=n,
+                         inputs=[w["flags"], w["t_trial"], w["d"], _warp.as_warp(y), _warp.as_warp(trial),
+                                 _warp.as_warp(g_t), n, w["x"], w["g"], w["S"], w["Y"]], device=device)
+            # The stored row's products with every pair, then the direction from the new g.
+            Yd, Sy, Sg = self.Y @ self.d, self.S @ y, self.S @ self.g
+            g_norm1 = torch.linalg.vector_norm(self.g, 1)
+            _warp.launch(lbfgs_kernels.lbfgs_first_loop_kernel, dim=1,
+                         inputs=[w["flags"], w["t_trial"], _warp.as_warp(Yd), _warp.as_warp(Sy), _warp.as_warp(Sg),
+                                 _warp.as_warp(g_norm1), w["rho"], w["head"], m, w["SY"], w["gamma"]],
+                         outputs=[w["first"], w["a"], w["a_rows"]], device=device)
+            r = torch.addmv(self.g, self.Y.T, self.a_rows, alpha=-1.0).mul_(self.gamma)
+            Yr = self.Y @ r
+            _warp.launch(lbfgs_kernels.lbfgs_second_loop_kernel, dim=1,
+                         inputs=[w["a"], _warp.as_warp(Yr), w["rho"], w["SY"], w["head"], m],
+                         outputs=[w["c_rows"], w["c"]], device=device)
+            candidate = torch.addmv(r, self.S.T, self.c_rows, beta=-1.0, alpha=-1.0)  # -(r + S^T c)
+            _warp.launch(lbfgs_kernels.lbfgs_direction_kernel, dim=n,
+                         inputs=[_warp.as_warp(candidate), _warp.as_warp(torch.dot(self.g, candidate)), w["g"],
+                                 w["first"], m],
+                         outputs=[w["d"], w["rho"]], device=device)
+            torch.linalg.vector_norm(self.g, float("inf"), out=self.gmax)
 
 
 def optimize_drape_on_device(x0: torch.Tensor, inputs: EnergyInputs, energy_config: EnergyConfig, solver, *,
