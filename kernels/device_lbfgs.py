@@ -23,6 +23,13 @@ FLAG_STORE = wp.constant(1)
 FLAG_ROW = wp.constant(2)
 
 
+@wp.func
+def clear_memory(rho: wp.array(dtype=Any), num_memory: int):
+    """Mark every row of the memory unused (rho = 0; the rows stay, ignored)."""
+    for k in range(num_memory):
+        rho[k] = type(rho[0])(0.0)
+
+
 @wp.kernel
 def lbfgs_trial_scale_kernel(
     # In:
@@ -104,8 +111,7 @@ def lbfgs_accept_kernel(
                 shrunk = wp.min(wp.max(quadratic, wp.float64(0.1) * tt), wp.float64(0.5) * tt)
         t[0] = type(t[0])(shrunk)
     if restart > 0 and count >= restart:
-        for k in range(num_memory):
-            rho[k] = type(rho[0])(0.0)
+        clear_memory(rho, num_memory)
         t[0] = type(t[0])(1.0)
         count = 0
     rejections[0] = count
@@ -249,5 +255,4 @@ def lbfgs_direction_kernel(
         return
     d_out[i] = -first_scale[0] * g[i]
     if i == 0:
-        for k in range(num_memory):
-            rho[k] = type(rho[0])(0.0)
+        clear_memory(rho, num_memory)
