@@ -9,7 +9,7 @@ microseconds) where a chain of 0-d torch ops cost one kernel launch per operatio
 Memory layout (see the solver): S, Y (m, n) ring buffers, flat; rho (m,) with 0 marking an
 unused row; SY (m, m) float64 with SY[i, j] = s_i . y_j; head the newest row; the k-th newest
 row is (head - k) mod m. Decisions of the accept kernel, read by the later kernels:
-flags[0] = accepted, flags[1] = pair stored, flags[2] = the row written (head after the step).
+flags[0] = accepted, flags[1] = pair stored (then in row head).
 """
 
 from typing import Any
@@ -20,7 +20,6 @@ wp.set_module_options({"enable_backward": False})
 
 FLAG_ACCEPT = wp.constant(0)
 FLAG_STORE = wp.constant(1)
-FLAG_ROW = wp.constant(2)
 
 
 @wp.func
@@ -123,7 +122,6 @@ def lbfgs_accept_kernel(
         flags_out[FLAG_ACCEPT] = 1
     if store:
         flags_out[FLAG_STORE] = 1
-    flags_out[FLAG_ROW] = int(row)
 
 
 @wp.kernel
@@ -135,6 +133,7 @@ def lbfgs_update_kernel(
     y: wp.array(dtype=Any),
     trial: wp.array(dtype=Any),
     g_trial: wp.array(dtype=Any),
+    head: wp.array(dtype=wp.int64),
     n: int,
     # In and out:
     x: wp.array(dtype=Any),
@@ -145,7 +144,7 @@ def lbfgs_update_kernel(
     """One thread per component: a stored pair's row (s = t d, y), an accepted trial's x and g."""
     i = wp.tid()
     if flags[FLAG_STORE] != 0:
-        row = flags[FLAG_ROW]
+        row = int(head[0])
         S[row * n + i] = t_trial[0] * d[i]
         Y[row * n + i] = y[i]
     if flags[FLAG_ACCEPT] != 0:
@@ -183,7 +182,7 @@ def lbfgs_first_loop_kernel(
     """
     m = num_memory
     if flags[FLAG_STORE] != 0:
-        row = flags[FLAG_ROW]
+        row = int(head[0])
         for j in range(m):
             SY[row * m + j] = wp.float64(t_trial[0]) * wp.float64(Yd[j])  # s_row . y_j
             SY[j * m + row] = wp.float64(Sy[j])  # s_j . y_row

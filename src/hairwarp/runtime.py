@@ -74,6 +74,14 @@ def timed(fn: Callable[[], object], device: torch.device, *, warmup: int = 1) ->
     return out, time.perf_counter() - start
 
 
+def _call_ms(fn: Callable[[], object], device: torch.device) -> float:
+    """Wall time [ms] of one call of `fn()`, the device synchronised after it."""
+    t0 = time.perf_counter()
+    fn()
+    synchronize(device)
+    return (time.perf_counter() - t0) * 1e3
+
+
 def time_ms(fn: Callable[[], object], device: torch.device, *, warmup: int = 3, repeats: int = 10,
             min_time_s: float = 0.2) -> float:
     """Median wall time of `fn()` in milliseconds, synchronising the device around each call.
@@ -87,10 +95,7 @@ def time_ms(fn: Callable[[], object], device: torch.device, *, warmup: int = 3, 
     samples = []
     start_all = time.perf_counter()
     while len(samples) < repeats or (time.perf_counter() - start_all) < min_time_s:
-        t0 = time.perf_counter()
-        fn()
-        synchronize(device)
-        samples.append((time.perf_counter() - t0) * 1e3)
+        samples.append(_call_ms(fn, device))
         if len(samples) >= 10 * repeats:
             break
     return statistics.median(samples)
@@ -118,10 +123,7 @@ def time_ms_interleaved(fns: dict[str, Callable[[], object]], device: torch.devi
     first = {}
     for name in names:
         for _ in range(max(1, warmup)):
-            t0 = time.perf_counter()
-            fns[name]()
-            synchronize(device)
-            first[name] = time.perf_counter() - t0
+            first[name] = _call_ms(fns[name], device)
     slowest = max(first.values())
     calls = {name: min(max_calls, max(1, round(slowest / max(t, 1e-9)))) for name, t in first.items()}
     samples = {name: [] for name in names}
@@ -131,10 +133,7 @@ def time_ms_interleaved(fns: dict[str, Callable[[], object]], device: torch.devi
         shift = rounds % len(names)
         for name in names[shift:] + names[:shift]:
             for _ in range(calls[name]):
-                t0 = time.perf_counter()
-                fns[name]()
-                synchronize(device)
-                samples[name].append((time.perf_counter() - t0) * 1e3)
+                samples[name].append(_call_ms(fns[name], device))
         rounds += 1
     return {name: statistics.median(s) for name, s in samples.items()}
 

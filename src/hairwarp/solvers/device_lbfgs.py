@@ -149,7 +149,7 @@ class DeviceLBFGS:
         # Scratch of an iteration (`iterate`).
         self.t_trial = torch.ones((), **zeros)
         self.first = torch.ones((), **zeros)
-        self.flags = torch.zeros(3, device=self.device, dtype=torch.int32)
+        self.flags = torch.zeros(2, device=self.device, dtype=torch.int32)  # accepted, stored
         self.a = torch.zeros(m, device=self.device, dtype=torch.float64)
         self.c = torch.zeros(m, device=self.device, dtype=torch.float64)
         self.a_rows = torch.zeros(m, **zeros)
@@ -208,7 +208,7 @@ class DeviceLBFGS:
                          outputs=[w["flags"]], device=device)
             _warp.launch(lbfgs_kernels.lbfgs_update_kernel, dim=n,
                          inputs=[w["flags"], w["t_trial"], w["d"], _warp.as_warp(y), _warp.as_warp(trial),
-                                 _warp.as_warp(g_t), n, w["x"], w["g"], w["S"], w["Y"]], device=device)
+                                 _warp.as_warp(g_t), w["head"], n, w["x"], w["g"], w["S"], w["Y"]], device=device)
             # The stored row's products with every pair, then the direction from the new g.
             Yd, Sy, Sg = self.Y @ self.d, self.S @ y, self.S @ self.g
             g_norm1 = torch.linalg.vector_norm(self.g, 1)
