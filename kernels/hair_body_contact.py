@@ -112,6 +112,7 @@ def body_signed_distance(
     faces: wp.array(dtype=wp.int32),
     vertex_normals: wp.array(dtype=Any),
     edge_normals: wp.array(dtype=Any),
+    first_piece: int,
     vertex_offset: int,
     edge_offset: int,
     p: Any,
@@ -121,7 +122,10 @@ def body_signed_distance(
     """Signed distance d [m] from `p` to the mesh (negative inside) and dd/dp.
 
     Returns (found, d, gradient): found = 0 when no face lies strictly within `max_dist`
-    (then d = 0, gradient = 0). The gradient is the unit vector sign * (p - closest), the
+    (then d = 0, gradient = 0); 2 when the closest face is a piece of a face cut at a
+    self-intersection, whose sign is the winding number's (`winding_signed`; a pass of its
+    own, `hair_body_energy_winding_kernel` and `signed_distance_winding_kernel`, so that the
+    winding query's code stays out of the hot kernels); else 1. The gradient is the unit vector sign * (p - closest), the
     outward direction; within `zero_dist` of the surface, where that direction is rounding
     noise, it is the closest face's unit normal (the exact gradient on a face's interior).
     The sign is that of the closest feature's pseudo-normal (see the module docstring).
@@ -132,6 +136,10 @@ def body_signed_distance(
         faces: flat triangle indices (3 F).
         vertex_normals: angle-weighted vertex pseudo-normals, like `vertices` (not unit).
         edge_normals: edge pseudo-normals per face edge, (3 F per mesh), like `vertices`.
+        first_piece: faces from this index on are pieces on a self-intersection's crossing
+            (see the section at the end of this module): the closest point on one may lie
+            just inside the other part, so the sign is the winding number's there (found = 2;
+            `num faces` when there are none).
         vertex_offset: index of this mesh's first vertex in `vertices` (batched bodies).
         edge_offset: index of this mesh's first face edge in `edge_normals` (3 F per mesh).
         p: query point (vec3 or vec3d).
@@ -154,13 +162,37 @@ def body_signed_distance(
     sign = type(zero_dist)(-1.0)
     if wp.dot(offset, pseudo) > zero:
         sign = type(zero_dist)(1.0)
+    found = 1
+    if q.face >= first_piece:
+        found = 2
     if dist2 > zero_dist * zero_dist:
         # n: unit (p - closest), exactly the face normal's direction in the face region.
         dist, n, grad_a, grad_b, grad_c = point_triangle_distance_gradient_at(p, a, b, c, u, v, w)
-        return 1, sign * dist, sign * n
+        return found, sign * dist, sign * n
     # On the surface: the outward face normal (whatever side rounding put p on).
     normal = wp.cross(b - a, c - a)
-    return 1, sign * wp.sqrt(dist2), normal / wp.length(normal)
+    return found, sign * wp.sqrt(dist2), normal / wp.length(normal)
+
+
+@wp.func
+def winding_signed(winding_mesh: wp.uint64, p: Any, found: int, d: Any, g: Any, zero_dist: Any):
+    """(d, g) of `body_signed_distance` with the sign of the closed mesh's winding number
+    where found == 2 (a piece on a self-intersection's crossing: its pseudo-normal can face
+    into the other part); unchanged otherwise. On the surface (|d| <= zero_dist) the gradient,
+    the face normal, keeps its direction.
+    """
+    if found != 2:
+        return d, g
+    p32 = wp.vec3(wp.float32(p[0]), wp.float32(p[1]), wp.float32(p[2]))
+    # The uncut mesh's closest face is at most as far as the pieces' (they lie on its faces).
+    reach = wp.float32(wp.abs(d)) * wp.float32(1.01) + wp.float32(1.0e-6)
+    winding = wp.mesh_query_point_sign_winding_number(winding_mesh, p32, reach, 2.0, 0.5)
+    zero = d * type(d)(0.0)
+    if not winding.result or (winding.sign < 0.0) == (d < zero):
+        return d, g
+    if wp.abs(d) <= zero_dist:
+        return -d, g
+    return -d, -g
 
 
 @wp.kernel
@@ -172,6 +204,8 @@ def signed_distance_kernel(
     faces: wp.array(dtype=wp.int32),
     vertex_normals: wp.array(dtype=Any),
     edge_normals: wp.array(dtype=Any),
+    winding_ids: wp.array(dtype=wp.uint64),
+    first_piece: int,
     points_per_batch: int,
     body_vertex_count: int,
     body_face_count: int,
@@ -180,8 +214,11 @@ def signed_distance_kernel(
     # Out:
     distance_out: wp.array(dtype=Any),
     gradient_out: wp.array(dtype=Any),
+    winding_out: wp.array(dtype=wp.int32),
 ):
-    """Exact signed distance and its gradient per point (unbounded query)."""
+    """Exact signed distance and its gradient per point (unbounded query); `winding_out` 1 where
+    the sign is the winding number's (`signed_distance_winding_kernel` settles it).
+    """
     i = wp.tid()
     body = (i // points_per_batch) * body_batch_stride
     found, d, g = body_signed_distance(
@@ -190,6 +227,7 @@ def signed_distance_kernel(
         faces,
         vertex_normals,
         edge_normals,
+        first_piece,
         body * body_vertex_count,
         body * body_face_count * 3,
         points[i],
@@ -201,6 +239,7 @@ def signed_distance_kernel(
         d = type(zero_dist)(FAR)
     distance_out[i] = d
     gradient_out[i] = g
+    winding_out[i] = int(found == 2)
 
 
 @wp.kernel
@@ -212,6 +251,8 @@ def hair_body_energy_strand_kernel(
     faces: wp.array(dtype=wp.int32),
     vertex_normals: wp.array(dtype=Any),
     edge_normals: wp.array(dtype=Any),
+    winding_ids: wp.array(dtype=wp.uint64),
+    first_piece: int,
     num_strands: int,
     num_vertices: int,
     body_vertex_count: int,
@@ -269,14 +310,16 @@ def hair_body_energy_strand_kernel(
         # Exact query bounded by ub: its distance lets the following vertices skip theirs.
         radius = wp.float32(wp.min(ub + slack * (type(xi)(1.0) + ub), type(xi)(FAR)))
         found, d, g = body_signed_distance(
-            mesh, body_vertices, faces, vertex_normals, edge_normals, vertex_offset, edge_offset,
+            mesh, body_vertices, faces, vertex_normals, edge_normals, first_piece,
+            vertex_offset, edge_offset,
             p, radius, zero_dist
         )
         queries += 1
         if found == 0 and radius < FAR:
             # A float32 miss at the bound (or a sliver skipped): retry unbounded.
             found, d, g = body_signed_distance(
-                mesh, body_vertices, faces, vertex_normals, edge_normals, vertex_offset, edge_offset,
+                mesh, body_vertices, faces, vertex_normals, edge_normals, first_piece,
+                vertex_offset, edge_offset,
                 p, wp.float32(FAR), zero_dist
             )
             queries += 1
@@ -285,6 +328,7 @@ def hair_body_energy_strand_kernel(
             anchor_side = zero
             gradient_out[base + v] = p * zero
             continue
+        d, g = winding_signed(winding_ids[body], p, found, d, g, zero_dist)
         anchor = p
         anchor_dist = wp.abs(d)
         anchor_side = type(xi)(1.0)
@@ -348,6 +392,8 @@ def hair_body_energy_vertex_kernel(
     faces: wp.array(dtype=wp.int32),
     vertex_normals: wp.array(dtype=Any),
     edge_normals: wp.array(dtype=Any),
+    winding_ids: wp.array(dtype=wp.uint64),
+    first_piece: int,
     num_strands: int,
     num_vertices: int,
     body_vertex_count: int,
@@ -365,12 +411,15 @@ def hair_body_energy_vertex_kernel(
     query_count_out: wp.array(dtype=wp.int32),
     side_out: wp.array(dtype=wp.int32),
     hit_distance_out: wp.array(dtype=float),
+    winding_out: wp.array(dtype=wp.int32),
 ):
     """One thread per vertex (wide GPU launches), pass 1 of 2: weight * B(d) and its gradient
     (Eq. 12) for every vertex whose query, capped at max(reach, its segment's length), finds
     the surface (the root, vertex 0, is measured at any distance on a miss); `side_out` = +1/-1
     for those (fixed vertices 0, 1 included: they carry the side along the strand), 0 for a miss
-    (energy and gradient 0 until pass 2 decides); `hit_distance_out` their |d|.
+    (energy and gradient 0 until pass 2 decides); `hit_distance_out` their |d|; `winding_out` 1
+    where the sign is the winding number's (`hair_body_energy_winding_kernel` settles it before
+    pass 2 reads the sides).
 
     The cap keeps the BVH walk short: an unbounded query from a vertex far outside visits most
     of the tree, and most hair is far outside.
@@ -381,16 +430,17 @@ def hair_body_energy_vertex_kernel(
     p = x[i]
     body = (i // (num_strands * num_vertices)) * body_batch_stride
     found, d, g = body_signed_distance(
-        mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, body * body_vertex_count,
-        body * body_face_count * 3, p, chain_query_radius(x, i, v, 1, xi + dhat), zero_dist
+        mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece,
+        body * body_vertex_count, body * body_face_count * 3, p, chain_query_radius(x, i, v, 1, xi + dhat),
+        zero_dist
     )
     queries = int(1)
     if found == 0 and v == 0:
         # The root anchors the strand's sides: measured at any distance (roots lie on the scalp,
         # so this is rare).
         found, d, g = body_signed_distance(
-            mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, body * body_vertex_count,
-            body * body_face_count * 3, p, wp.float32(FAR), zero_dist
+            mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece,
+            body * body_vertex_count, body * body_face_count * 3, p, wp.float32(FAR), zero_dist
         )
         queries = 2
     side = int(0)
@@ -408,6 +458,7 @@ def hair_body_energy_vertex_kernel(
         gradient = (weight * barrier_gradient(d, xi, dhat, bp, variant)) * g
     vertex_energy_out[i] = e
     gradient_out[i] = gradient
+    winding_out[i] = int(found == 2)
 
 
 @wp.kernel
@@ -469,6 +520,8 @@ def hair_body_energy_far_kernel(
     faces: wp.array(dtype=wp.int32),
     vertex_normals: wp.array(dtype=Any),
     edge_normals: wp.array(dtype=Any),
+    winding_ids: wp.array(dtype=wp.uint64),
+    first_piece: int,
     num_strands: int,
     num_vertices: int,
     body_vertex_count: int,
@@ -502,18 +555,23 @@ def hair_body_energy_far_kernel(
     p = x[i]
     radius = depth_query_radius(x, hit_distance, i, hit)
     found, d, g = body_signed_distance(
-        mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, body * body_vertex_count,
-        body * body_face_count * 3, p, radius, zero_dist
+        mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece,
+        body * body_vertex_count, body * body_face_count * 3, p, radius, zero_dist
     )
     queries = 2
     if found == 0 and radius < wp.float32(FAR):
         # A float32 miss at the bound: retry unbounded.
         found, d, g = body_signed_distance(
-            mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, body * body_vertex_count,
-            body * body_face_count * 3, p, wp.float32(FAR), zero_dist
+            mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece,
+            body * body_vertex_count, body * body_face_count * 3, p, wp.float32(FAR), zero_dist
         )
         queries = 3
     query_count_out[i] = queries
+    if found == 2 and d > xi * type(xi)(0.0):
+        # A piece of a face cut at a self-intersection: the chain of misses proved the vertex
+        # inside, whatever the piece's pseudo-normal says.
+        d = -d
+        g = -g
     if found != 0:
         vertex_energy_out[i] = weight * barrier_energy(d, xi, dhat, bp, variant)
         gradient_out[i] = (weight * barrier_gradient(d, xi, dhat, bp, variant)) * g
@@ -528,6 +586,8 @@ def signed_distance_capped_kernel(
     faces: wp.array(dtype=wp.int32),
     vertex_normals: wp.array(dtype=Any),
     edge_normals: wp.array(dtype=Any),
+    winding_ids: wp.array(dtype=wp.uint64),
+    first_piece: int,
     points_per_line: int,
     line_stride: int,
     points_per_batch: int,
@@ -541,10 +601,13 @@ def signed_distance_capped_kernel(
     gradient_out: wp.array(dtype=Any),
     side_out: wp.array(dtype=wp.int32),
     hit_distance_out: wp.array(dtype=float),
+    winding_out: wp.array(dtype=wp.int32),
 ):
     """Signed distance of points on polylines, pass 1 of 2: a query capped at
     max(max_distance, the point's link length) (`chain_query_radius`); a hit writes d clamped
-    to at most max_distance (gradient zero where clamped) and its side, a miss side 0.
+    to at most max_distance (gradient zero where clamped) and its side, a miss side 0;
+    `winding_out` 1 where the sign is the winding number's (`signed_distance_winding_kernel`
+    settles it before pass 2 reads the sides).
     """
     i = wp.tid()
     v = (i // line_stride) % points_per_line
@@ -552,14 +615,15 @@ def signed_distance_capped_kernel(
     body = (i // points_per_batch) * body_batch_stride
     p = points[i]
     found, d, g = body_signed_distance(
-        mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, body * body_vertex_count,
-        body * body_face_count * 3, p, chain_query_radius(points, i, v, line_stride, max_distance), zero_dist
+        mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece,
+        body * body_vertex_count, body * body_face_count * 3, p,
+        chain_query_radius(points, i, v, line_stride, max_distance), zero_dist
     )
     if found == 0 and v == 0:
         # The first point anchors its polyline's sides: measured at any distance.
         found, d, g = body_signed_distance(
-            mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, body * body_vertex_count,
-            body * body_face_count * 3, p, wp.float32(FAR), zero_dist
+            mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece,
+            body * body_vertex_count, body * body_face_count * 3, p, wp.float32(FAR), zero_dist
         )
     side = int(0)
     if found != 0:
@@ -573,6 +637,7 @@ def signed_distance_capped_kernel(
         g = p * zero
     distance_out[i] = d
     gradient_out[i] = g
+    winding_out[i] = int(found == 2)
 
 
 @wp.kernel
@@ -584,6 +649,8 @@ def signed_distance_far_kernel(
     faces: wp.array(dtype=wp.int32),
     vertex_normals: wp.array(dtype=Any),
     edge_normals: wp.array(dtype=Any),
+    winding_ids: wp.array(dtype=wp.uint64),
+    first_piece: int,
     points_per_line: int,
     line_stride: int,
     points_per_batch: int,
@@ -615,14 +682,19 @@ def signed_distance_far_kernel(
     body = (i // points_per_batch) * body_batch_stride
     radius = depth_query_radius(points, hit_distance, i, hit)
     found, d, g = body_signed_distance(
-        mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, body * body_vertex_count,
-        body * body_face_count * 3, p, radius, zero_dist
+        mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece,
+        body * body_vertex_count, body * body_face_count * 3, p, radius, zero_dist
     )
     if found == 0 and radius < wp.float32(FAR):
         found, d, g = body_signed_distance(
-            mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, body * body_vertex_count,
-            body * body_face_count * 3, p, wp.float32(FAR), zero_dist
+            mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece,
+            body * body_vertex_count, body * body_face_count * 3, p, wp.float32(FAR), zero_dist
         )
+    if found == 2 and d > zero:
+        # A piece of a face cut at a self-intersection: the chain of misses proved the point
+        # inside, whatever the piece's pseudo-normal says.
+        d = -d
+        g = -g
     if found == 0:
         d = max_distance
         g = p * zero
@@ -631,6 +703,107 @@ def signed_distance_far_kernel(
         g = p * zero
     distance_out[i] = d
     gradient_out[i] = g
+
+
+@wp.kernel
+def signed_distance_winding_kernel(
+    # In:
+    points: wp.array(dtype=Any),
+    mesh_ids: wp.array(dtype=wp.uint64),
+    body_vertices: wp.array(dtype=Any),
+    faces: wp.array(dtype=wp.int32),
+    vertex_normals: wp.array(dtype=Any),
+    edge_normals: wp.array(dtype=Any),
+    winding_ids: wp.array(dtype=wp.uint64),
+    first_piece: int,
+    points_per_batch: int,
+    body_vertex_count: int,
+    body_face_count: int,
+    body_batch_stride: int,
+    max_distance: Any,
+    zero_dist: Any,
+    winding: wp.array(dtype=wp.int32),
+    # Out:
+    distance_out: wp.array(dtype=Any),
+    gradient_out: wp.array(dtype=Any),
+    side_out: wp.array(dtype=wp.int32),
+):
+    """The points flagged in `winding` (closest face a piece of a face cut at a
+    self-intersection) again, unbounded, signed by the winding number (`winding_signed`);
+    distance clamped to max_distance (gradient zero there) and side written. Other threads
+    return at once: the winding query's code stays out of the hot kernels.
+    """
+    i = wp.tid()
+    if winding[i] == 0:
+        return
+    body = (i // points_per_batch) * body_batch_stride
+    p = points[i]
+    found, d, g = body_signed_distance(
+        mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece,
+        body * body_vertex_count, body * body_face_count * 3, p, wp.float32(FAR), zero_dist
+    )
+    d, g = winding_signed(winding_ids[body], p, found, d, g, zero_dist)
+    side = 1
+    if d < zero_dist * type(zero_dist)(0.0):
+        side = -1
+    side_out[i] = side
+    if d > max_distance:
+        d = max_distance
+        g = p * zero_dist * type(zero_dist)(0.0)
+    distance_out[i] = d
+    gradient_out[i] = g
+
+
+@wp.kernel
+def hair_body_energy_winding_kernel(
+    # In:
+    x: wp.array(dtype=Any),
+    mesh_ids: wp.array(dtype=wp.uint64),
+    body_vertices: wp.array(dtype=Any),
+    faces: wp.array(dtype=wp.int32),
+    vertex_normals: wp.array(dtype=Any),
+    edge_normals: wp.array(dtype=Any),
+    winding_ids: wp.array(dtype=wp.uint64),
+    first_piece: int,
+    num_strands: int,
+    num_vertices: int,
+    body_vertex_count: int,
+    body_face_count: int,
+    body_batch_stride: int,
+    xi: Any,
+    dhat: Any,
+    bp: Any,
+    weight: Any,
+    variant: int,
+    zero_dist: Any,
+    winding: wp.array(dtype=wp.int32),
+    # Out:
+    vertex_energy_out: wp.array(dtype=Any),
+    gradient_out: wp.array(dtype=Any),
+    side_out: wp.array(dtype=wp.int32),
+):
+    """The vertices flagged in `winding` by pass 1 (closest face a piece of a face cut at a
+    self-intersection) again, unbounded, signed by the winding number (`winding_signed`):
+    their side, energy and gradient rewritten. Other threads return at once.
+    """
+    i = wp.tid()
+    if winding[i] == 0:
+        return
+    v = i % num_vertices
+    body = (i // (num_strands * num_vertices)) * body_batch_stride
+    p = x[i]
+    found, d, g = body_signed_distance(
+        mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece,
+        body * body_vertex_count, body * body_face_count * 3, p, wp.float32(FAR), zero_dist
+    )
+    d, g = winding_signed(winding_ids[body], p, found, d, g, zero_dist)
+    side = 1
+    if d < xi * type(xi)(0.0):
+        side = -1
+    side_out[i] = side
+    if v >= 2:
+        vertex_energy_out[i] = weight * barrier_energy(d, xi, dhat, bp, variant)
+        gradient_out[i] = (weight * barrier_gradient(d, xi, dhat, bp, variant)) * g
 
 
 @wp.func
@@ -679,3 +852,98 @@ def crop_mark_faces_kernel(
         if aabb_distance_sq(centers[first + k], lower, upper) <= r * r:
             keep_out[i] = 1
             return
+
+
+# ---------------------------------------------------------------------------------------------
+# Self-intersections. A posed body mesh can pass through itself (an upper arm into the chest at
+# the armpit: skinning does not keep the skin's parts apart). The surface that bounds the body
+# is then the boundary of the union of its parts; the faces (or parts of faces) inside another
+# part are not on it, and the pseudo-normal of such a face signs the points inside that part
+# "outside". `hairwarp.ops.hair_body_contact` finds the faces that cross another face
+# (`self_intersecting_faces_kernel`) and the faces wholly inside (by the winding number,
+# `winding_inside_kernel`), and builds the contact surface without them.
+# ---------------------------------------------------------------------------------------------
+
+
+@wp.func
+def segment_crosses_triangle(p: wp.vec3, q: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
+    """True if the segment pq passes through the triangle abc (Moller & Trumbore 1997); a
+    segment parallel to the triangle's plane counts as not crossing.
+    """
+    e1 = b - a
+    e2 = c - a
+    direction = q - p
+    h = wp.cross(direction, e2)
+    det = wp.dot(e1, h)
+    if wp.abs(det) <= 1.0e-7 * wp.length(e1) * wp.length(e2) * wp.length(direction):
+        return False
+    inv = 1.0 / det
+    s = p - a
+    u = inv * wp.dot(s, h)
+    if u < 0.0 or u > 1.0:
+        return False
+    r = wp.cross(s, e1)
+    v = inv * wp.dot(direction, r)
+    if v < 0.0 or u + v > 1.0:
+        return False
+    t = inv * wp.dot(e2, r)
+    return t >= 0.0 and t <= 1.0
+
+
+@wp.kernel
+def self_intersecting_faces_kernel(
+    # In:
+    mesh: wp.uint64,
+    points: wp.array(dtype=wp.vec3),
+    faces: wp.array(dtype=wp.int32),
+    # Out:
+    flags_out: wp.array(dtype=wp.int32),
+):
+    """One thread per face: 1 if an edge of the face crosses another face that shares no vertex
+    with it, or an edge of such a face crosses it (two triangles cross exactly when one's edge
+    passes through the other); candidates from the mesh's BVH (box overlap).
+    """
+    f = wp.tid()
+    i0 = faces[3 * f + 0]
+    i1 = faces[3 * f + 1]
+    i2 = faces[3 * f + 2]
+    a = points[i0]
+    b = points[i1]
+    c = points[i2]
+    query = wp.mesh_query_aabb(mesh, wp.min(wp.min(a, b), c), wp.max(wp.max(a, b), c))
+    g = int(0)
+    hit = int(0)
+    while wp.mesh_query_next(query, g):
+        j0 = faces[3 * g + 0]
+        j1 = faces[3 * g + 1]
+        j2 = faces[3 * g + 2]
+        shares = (j0 == i0 or j0 == i1 or j0 == i2 or j1 == i0 or j1 == i1 or j1 == i2
+                  or j2 == i0 or j2 == i1 or j2 == i2)
+        if hit == 0 and not shares:
+            d = points[j0]
+            e = points[j1]
+            h = points[j2]
+            if (segment_crosses_triangle(a, b, d, e, h) or segment_crosses_triangle(b, c, d, e, h)
+                    or segment_crosses_triangle(c, a, d, e, h) or segment_crosses_triangle(d, e, a, b, c)
+                    or segment_crosses_triangle(e, h, a, b, c) or segment_crosses_triangle(h, d, a, b, c)):
+                hit = 1
+    flags_out[f] = hit
+
+
+@wp.kernel
+def winding_inside_kernel(
+    # In:
+    mesh: wp.uint64,
+    points: wp.array(dtype=wp.vec3),
+    # Out:
+    inside_out: wp.array(dtype=wp.int32),
+):
+    """1 where the mesh's winding number at the point is at least 1/2 (inside the union of a
+    self-intersecting closed mesh's parts), by Warp's fast winding number (the mesh built with
+    `support_winding_number=True`).
+    """
+    i = wp.tid()
+    q = wp.mesh_query_point_sign_winding_number(mesh, points[i], wp.float32(FAR), 2.0, 0.5)
+    inside_out[i] = 0
+    if q.result and q.sign < 0.0:
+        inside_out[i] = 1

@@ -180,3 +180,140 @@ def test_default_body_neck_and_torso_medial_axes_are_inside(region):
     points, v, f = _default_body_medial_points(100, *region)
     for dtype in DTYPES:
         _check_inside_everywhere(points, v, f, dtype, min_ties=20)
+
+
+# ------------------------------------------------------------------ self-intersecting bodies
+# A posed body passes through itself (skinning puts the upper arm into the chest at the armpit):
+# a point inside the arm whose closest face is a chest face lying inside the arm was signed by
+# that face, "outside". On `table1` (the default body, arms down) 487 vertices of the rigid
+# placement lay more than 1 mm inside by the winding number yet were called outside (up to
+# 93 mm deep), and the contact energy let L-BFGS park hair there (docs/contact.md 14).
+
+
+def box(lo, hi):
+    """Closed box [lo, hi] (12 outward triangles)."""
+    lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+    corners = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], dtype=np.float64)
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    f = np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))])
+    return lo + corners * (hi - lo), f
+
+
+def overlapping_boxes(shift=0.0):
+    """One closed mesh of two boxes that pass through each other: A = [0, 2] x [0, 1]^2 and a
+    thinner B = [1, 3] x [0.25, 0.75]^2 (moved by `shift` along x). B's face x = 1 lies wholly
+    inside A; A's face x = 2 crosses B."""
+    va, fa = box([0, 0, 0], [2, 1, 1])
+    vb, fb = box([1 + shift, 0.25, 0.25], [3 + shift, 0.75, 0.75])
+    return np.concatenate([va, vb]), np.concatenate([fa, fb + len(va)])
+
+
+# Points with their signed distance to the union's boundary, by hand: inside A only (closest
+# face of the mesh: B's face x = 1, inside A), inside B only (closest: A's face x = 2, inside B),
+# inside both, outside.
+UNION_POINTS = np.array([[0.9, 0.5, 0.5], [2.1, 0.5, 0.5], [1.5, 0.5, 0.5], [2.9, 0.5, 0.5], [2.5, 0.9, 0.5],
+                         [0.5, 0.5, 0.5], [-0.3, 0.5, 0.5]])
+UNION_DISTANCES = np.array([-0.5, -0.25, -0.5, -0.1, 0.15, -0.5, 0.3])
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_overlapping_boxes_are_signed_and_measured_as_their_union(rng, dtype):
+    v, f = overlapping_boxes()
+    vt, ft = torch.as_tensor(v, dtype=dtype), torch.as_tensor(f)
+    plain = BodyMesh(vt, ft, split_self_intersections=False)
+    body = BodyMesh(vt, ft)
+    # The hard case: the uncut mesh signs the points inside one box near the other's face "outside".
+    d_plain = hair_body_signed_distance(torch.as_tensor(UNION_POINTS, dtype=dtype)[None], plain)[0]
+    assert float(d_plain[0]) > 0 and float(d_plain[1]) > 0
+    cut = body.self_intersections
+    assert cut["crossing_faces"] == 10 and cut["inside_faces"] == 2 and cut["pieces"] > 0
+    d = hair_body_signed_distance(torch.as_tensor(UNION_POINTS, dtype=dtype)[None], body)[0]
+    atol = 1e-12 if dtype == torch.float64 else 1e-6
+    np.testing.assert_allclose(d.double().numpy(), UNION_DISTANCES, atol=atol)
+    # Random points: the sign is the float64 winding number's wherever the point is off the surface.
+    points = rng.uniform([-0.5, -0.3, -0.3], [3.5, 1.3, 1.3], size=(3000, 3))
+    d = hair_body_signed_distance(torch.as_tensor(points, dtype=dtype)[None], body)[0].double()
+    inside = winding_numbers(torch.as_tensor(points), torch.as_tensor(v), ft) > 0.5
+    off = d.abs() > 1e-5
+    assert int(off.sum()) > 2900 and int(inside.sum()) > 300
+    assert bool(((d < 0) == inside)[off].all())
+    # Outside the union the distance is the exact one: the nearer of the two boxes'.
+    outside = (~inside).numpy()
+    exact = np.minimum(_box_distance(points[outside], [0, 0, 0], [2, 1, 1]),
+                       _box_distance(points[outside], [1, 0.25, 0.25], [3, 0.75, 0.75]))
+    np.testing.assert_allclose(d.numpy()[outside], exact, atol=atol)
+
+
+def _box_distance(points, lo, hi):
+    """Distance from points outside the box [lo, hi] to it."""
+    return np.linalg.norm(np.maximum(np.maximum(np.asarray(lo) - points, points - np.asarray(hi)), 0.0), axis=1)
+
+
+def test_contact_energy_on_a_self_intersecting_body_equals_the_unbounded_queries():
+    """The two-pass energy kernel carries a capped query's side along a strand: on the cut
+    surface it matches the barrier of every vertex's own unbounded signed distance."""
+    from hairwarp.ops.barrier import barrier, barrier_variant_id
+    from hairwarp.ops.hair_body_contact import _energy_forward
+
+    v, f = overlapping_boxes()
+    body = BodyMesh(torch.as_tensor(v), torch.as_tensor(f))
+    # Strands from above the boxes down through A into the overlap and out through B's far end.
+    t = np.linspace(0.0, 1.0, 40)[:, None]
+    starts = np.array([[0.7, 1.2, 0.5], [1.6, 1.3, 0.4], [2.05, 1.2, 0.6]])
+    ends = np.array([[2.6, 0.5, 0.5], [3.4, 0.45, 0.55], [2.2, 0.5, 0.5]])
+    hair = torch.as_tensor(starts[:, None] + t[None] * (ends - starts)[:, None])[None]
+    d = hair_body_signed_distance(hair, body)
+    assert int((d < -0.05).sum()) > 30
+    xi, dhat, bp = 1e-3, 1.5e-3, 0.01
+    energy, _, _ = _energy_forward(hair, body, xi, dhat, bp, 1.0, barrier_variant_id("quadratic"), "vertex")
+    expected = barrier(d[:, :, 2:], xi, dhat, bp).sum()
+    np.testing.assert_allclose(float(energy.sum()), float(expected), rtol=1e-10)
+
+
+def test_poses_share_the_cut_and_update_moves_the_pieces(rng):
+    """Pose 0 overlaps, pose 1 has B moved clear of A: both signed as the winding number says;
+    a piece inside in one pose only stays (the sign near it is the winding number's)."""
+    v0, f = overlapping_boxes()
+    v1, _ = overlapping_boxes(shift=1.5)
+    ft = torch.as_tensor(f)
+    body = BodyMesh(torch.as_tensor(np.stack([v0, v1])), ft)
+    points = rng.uniform([-0.5, -0.3, -0.3], [5.0, 1.3, 1.3], size=(2000, 3))
+    pt = torch.as_tensor(points)
+    for poses in ((v0, v1), (v1, v0)):
+        d = hair_body_signed_distance(torch.stack([pt, pt])[:, :, None].reshape(2, -1, 1, 3), body).reshape(2, -1)
+        for b, vb in enumerate(poses):
+            inside = winding_numbers(pt, torch.as_tensor(vb), ft) > 0.5
+            off = d[b].abs() > 1e-6
+            assert bool(((d[b] < 0) == inside)[off].all()), f"pose {b}"
+        body.update(torch.as_tensor(np.stack(poses[::-1])))  # the uncut mesh's vertices
+
+
+# Hair vertices this close to the pieces [m] (the armpits) are checked against the winding number.
+_ARMPIT_RADIUS = 0.06
+
+
+@pytest.mark.slow
+def test_default_body_armpits_are_inside_where_the_winding_number_says():
+    """table1 (the default body, arms down): the rigid placement's vertices near the faces cut
+    at the armpits are signed as the float64 winding number says."""
+    from hairwarp.evaluation.scenes import comparison_scene
+
+    frames = comparison_scene("table1").frames(device=torch.device("cpu"))
+    v = frames.posed.vertices[0].double()
+    f = frames.scene.body.faces.long()
+    body = BodyMesh(v, f)
+    plain = BodyMesh(v, f, split_self_intersections=False)
+    assert body.self_intersections["crossing_faces"] > 0
+    x = frames.rigid.positions[0].reshape(-1, 3).double()
+    near = torch.zeros(len(x), dtype=torch.bool)
+    crossing = body.faces[body.num_faces - body.self_intersections["pieces"]:].long()  # the pieces
+    centres = body.vertices[crossing].mean(dim=1)
+    for start in range(0, len(x), 4096):
+        near[start:start + 4096] = torch.cdist(x[start:start + 4096], centres).amin(dim=1) < _ARMPIT_RADIUS
+    points = x[near]
+    inside = winding_numbers(points, v, f) > 0.5
+    d = hair_body_signed_distance(points[None, :, None], body).reshape(-1)
+    d_plain = hair_body_signed_distance(points[None, :, None], plain).reshape(-1)
+    off = d.abs() > 1e-4
+    assert int(inside.sum()) > 100 and int((inside & (d_plain > 1e-3)).sum()) > 50  # the hard case is here
+    assert bool(((d < 0) == inside)[off].all())

@@ -12,7 +12,11 @@ The edge and vertex pseudo-normals are computed here, on the device, from the me
 (found once when the body is built) and recomputed when the body moves (`update`); a crop keeps
 the one-ring of its faces (extra vertices and "normal faces" outside its BVH) so its normals
 are those of the full body. Meshes must be watertight, edge-manifold and
-consistently oriented with outward normals (counter-clockwise seen from outside).
+consistently oriented with outward normals (counter-clockwise seen from outside). A mesh that
+passes through itself (a posed arm into the chest) is queried as the boundary of the union of
+its parts: the faces inside another part left out, the crossing faces cut into pieces, and the
+pieces on the crossing signed by the uncut mesh's winding number (`BodyMesh`'s
+`split_self_intersections`; docs/contact.md 14).
 Gradients flow to the hair/points only: `wp.Mesh` queries give none to the body vertices.
 """
 
@@ -29,6 +33,9 @@ from hairwarp.kernels import hair_body_contact as kernels
 from hairwarp.ops.barrier import barrier_variant_id, check_barrier_parameters
 
 INDEX_DTYPES = (torch.int32, torch.int64)
+
+# The distance reported beyond any cap [m] (`kernels.hair_body_contact.FAR`).
+FAR_DISTANCE = 1.0e18
 
 # Below this distance [m] a point counts as on the surface and gets the face normal as the
 # gradient: in float32 the closest point carries ~1e-7 m of rounding at body scale.
@@ -152,6 +159,179 @@ def _pseudo_normals(points: torch.Tensor, faces: torch.Tensor, edge_inverse: tor
     return vertex, per_edge[:, inverse]
 
 
+# Self-intersections (`kernels.hair_body_contact`): a face that crosses another part of the
+# mesh is cut into pieces, down to this fraction of the body's bounding-box diagonal where they
+# straddle the other part (1 mm on the default body, 1.91 m: the union's boundary is followed to
+# about that); the pieces inside the body are left out. A fraction: a body in centimetres gets
+# the same surface.
+SELF_INTERSECTION_PIECE_FRACTION = 1.0e-3 / 1.91
+# A piece's children: its corners (a, b, c) and edge midpoints, as barycentric weights of
+# (a, b, c), oriented like it; and at most this many halvings of a cut face's edges.
+_MIDPOINT_SPLIT = (
+    ((1.0, 0.0, 0.0), (0.5, 0.5, 0.0), (0.5, 0.0, 0.5)),
+    ((0.5, 0.5, 0.0), (0.0, 1.0, 0.0), (0.0, 0.5, 0.5)),
+    ((0.5, 0.0, 0.5), (0.0, 0.5, 0.5), (0.0, 0.0, 1.0)),
+    ((0.5, 0.5, 0.0), (0.0, 0.5, 0.5), (0.5, 0.0, 0.5)),
+)
+_MAX_SPLIT_LEVELS = 6
+# The winding number is read this far outside a face or piece (times the pose's bounding-box
+# diagonal): past float32's rounding at body scale, well inside the pieces' size.
+_WINDING_OFFSET = 1.0e-6
+
+
+class _SplitSurface:
+    """Where the pieces of the faces split at self-intersections lie: piece p has corners
+    sum_j weights[p, c, j] * vertex[faces[parent[p], j]].
+    """
+
+    def __init__(self, num_vertices: int, faces: torch.Tensor, parent: torch.Tensor, weights: torch.Tensor):
+        self.num_vertices, self.faces, self.parent, self.weights = num_vertices, faces, parent, weights
+
+    def piece_corners(self, vertices: torch.Tensor) -> torch.Tensor:
+        """(B, V, 3) vertices -> (B, 3 P, 3) the pieces' corners, in their dtype."""
+        corners = vertices[:, self.faces[self.parent]]  # (B, P, 3, 3): parent's corners
+        weights = self.weights.to(device=vertices.device, dtype=vertices.dtype)
+        return torch.einsum("pcj,bpjk->bpck", weights, corners).reshape(vertices.shape[0], -1, 3)
+
+    def augment(self, vertices: torch.Tensor) -> torch.Tensor:
+        """(B, V, 3) the mesh's vertices -> (B, V + 3 P, 3) with the pieces' corners after them."""
+        return torch.cat([vertices, self.piece_corners(vertices)], dim=1)
+
+
+def _winding_inside(mesh: wp.Mesh, points: torch.Tensor) -> torch.Tensor:
+    """(P,) bool: points (P, 3) inside `mesh` (winding number >= 1/2)."""
+    inside = torch.zeros(points.shape[0], dtype=torch.int32, device=points.device)
+    if points.shape[0]:
+        _warp.launch(kernels.winding_inside_kernel, dim=points.shape[0],
+                     inputs=[mesh.id, _warp.as_warp(points.to(torch.float32).contiguous(), vec3=True)],
+                     outputs=[_warp.as_warp(inside)], device=_warp.warp_device(points.device))
+    return inside.bool()
+
+
+def _outside_sample(corners: torch.Tensor, offset: float) -> torch.Tensor:
+    """(..., 3, 3) triangles -> (..., 3) their centroids moved `offset` [m] along the unit normal."""
+    a, b, c = corners.unbind(-2)
+    normal = torch.nn.functional.normalize(torch.cross(b - a, c - a, dim=-1), dim=-1)
+    return (a + b + c) / 3.0 + offset * normal
+
+
+def _split_self_intersections(vertices: torch.Tensor, faces: torch.Tensor):
+    """The contact surface of a closed mesh that passes through itself: the boundary of the
+    union of its parts (points inside any part inside), approximated.
+
+    Per pose: the faces that cross another face (`self_intersecting_faces_kernel`), then the
+    faces wholly inside another part, found by the winding number from the crossing faces'
+    neighbours outward (a face that crosses nothing lies wholly on one side). A crossing face is
+    cut into pieces, down to `SELF_INTERSECTION_PIECE_FRACTION` of the body's size where they
+    straddle the other part;
+    the pieces and the faces inside the body are left out. Poses share the topology: a face is cut if it crosses or lies
+    inside in any pose, and a piece (or a face inside) is left out only if it lies inside in
+    every pose.
+
+    Args:
+        vertices: (B, V, 3) the posed meshes [m]; faces: (F, 3) int32, watertight.
+
+    Returns:
+        None when the mesh does not pass through itself; else (vertices (B, V + 3 P, 3) with
+        the kept pieces' corners appended, BVH faces (F', 3) int32 (the faces not cut, then the
+        pieces), normal faces (F + P, 3) int64 (every face, then the pieces: the pseudo-normals
+        of the faces around a cut keep their neighbours), face rows (F',) int64 (the BVH faces
+        among the normal faces), the `_SplitSurface`, counts).
+    """
+    batch, num_vertices = vertices.shape[:2]
+    device = vertices.device
+    f = faces.long()
+    num_faces = f.shape[0]
+    wp_device = _warp.warp_device(device)
+    faces_wp = _warp.as_warp(faces.contiguous())
+    # Faces adjacent across each edge (watertight: every edge has exactly two faces).
+    inverse, _ = _edge_inverse(f)
+    pairs = (torch.argsort(inverse, stable=True) // 3).view(-1, 2)
+    points32 = vertices.to(torch.float32).contiguous()
+    crossing, inside, meshes, offsets, diagonals = [], [], [], [], []
+    for b in range(batch):
+        mesh = wp.Mesh(points=_warp.as_warp(points32[b], vec3=True), indices=faces_wp, support_winding_number=True)
+        flags = torch.empty(num_faces, dtype=torch.int32, device=device)
+        _warp.launch(kernels.self_intersecting_faces_kernel, dim=num_faces,
+                     inputs=[mesh.id, _warp.as_warp(points32[b], vec3=True), faces_wp],
+                     outputs=[_warp.as_warp(flags)], device=wp_device)
+        cross = flags.bool()
+        diagonals.append(float(torch.linalg.vector_norm(points32[b].amax(0) - points32[b].amin(0))))
+        offset = _WINDING_OFFSET * diagonals[-1]
+        embedded = torch.zeros_like(cross)
+        tested = cross.clone()
+        front = cross
+        while bool(front.any()):
+            reached = torch.cat([pairs[front[pairs[:, 0]], 1], pairs[front[pairs[:, 1]], 0]])
+            candidates = torch.unique(reached[~tested[reached]])
+            if candidates.numel() == 0:
+                break
+            tested[candidates] = True
+            sample = _outside_sample(vertices[b, f[candidates]].to(torch.float64), offset)
+            inner = candidates[_winding_inside(mesh, sample)]
+            embedded[inner] = True
+            front = torch.zeros_like(cross)
+            front[inner] = True
+        crossing.append(cross)
+        inside.append(embedded)
+        meshes.append(mesh)
+        offsets.append(offset)
+    crossing, inside = torch.stack(crossing), torch.stack(inside)
+    cut = (crossing | inside).any(dim=0)
+    if not bool(cut.any()):
+        return None
+    # Pieces: each cut face split 1-to-4 at its edges' midpoints, again where a piece straddles
+    # the other part (its corners' and centre's outer sides disagree on the winding number in
+    # some pose; a crossing face at least once), down to SELF_INTERSECTION_PIECE_FRACTION of the
+    # largest pose's diagonal; a piece is left out if it lies inside in every pose. Pieces away
+    # from the crossing stay large: few small faces for the BVH's walks.
+    cut_faces = cut.nonzero().reshape(-1)
+    piece_size = SELF_INTERSECTION_PIECE_FRACTION * max(diagonals)
+    split_weights = torch.tensor(_MIDPOINT_SPLIT, dtype=torch.float64, device=device)
+    parent = cut_faces
+    weight = torch.eye(3, dtype=torch.float64, device=device).expand(cut_faces.numel(), 3, 3)
+    kept_parent, kept_weight, seam_parent, seam_weight = [], [], [], []
+    positions64 = vertices.to(torch.float64)
+    for level in range(_MAX_SPLIT_LEVELS + 1):
+        corners = torch.einsum("pcj,bpjk->bpck", weight, positions64[:, f[parent]])  # (B, N, 3, 3)
+        normal = torch.nn.functional.normalize(torch.cross(corners[:, :, 1] - corners[:, :, 0],
+                                                           corners[:, :, 2] - corners[:, :, 0], dim=-1), dim=-1)
+        samples = torch.cat([corners, corners.mean(dim=2, keepdim=True)], dim=2)  # (B, N, 4, 3)
+        sample_inside = inside[:, parent, None].expand(-1, -1, 4).clone()
+        for b in range(batch):
+            test = crossing[b, parent].nonzero().reshape(-1)
+            points = (samples[b, test] + offsets[b] * normal[b, test, None]).reshape(-1, 3)
+            sample_inside[b, test] = _winding_inside(meshes[b], points).view(-1, 4)
+        straddles = (sample_inside.any(dim=2) & ~sample_inside.all(dim=2)).any(dim=0)
+        if level == 0:
+            straddles |= crossing[:, parent].any(dim=0)
+        longest = torch.linalg.vector_norm(corners - corners.roll(1, dims=2), dim=-1).amax(dim=(0, 2))
+        split = straddles & (longest > piece_size) & (level < _MAX_SPLIT_LEVELS)
+        final = ~split & ~sample_inside.all(dim=2).all(dim=0)
+        # On the crossing (or inside in some pose): signed by the winding number, so kept last.
+        seam = straddles | sample_inside.all(dim=2).any(dim=0)
+        kept_parent.append(parent[final & ~seam])
+        kept_weight.append(weight[final & ~seam])
+        seam_parent.append(parent[final & seam])
+        seam_weight.append(weight[final & seam])
+        if not bool(split.any()):
+            break
+        parent = parent[split].repeat_interleave(4)
+        weight = torch.einsum("scj,pjk->psck", split_weights, weight[split]).reshape(-1, 3, 3)
+    parent, weight = torch.cat(kept_parent + seam_parent), torch.cat(kept_weight + seam_weight)
+    seam_pieces = sum(int(p.numel()) for p in seam_parent)
+    split = _SplitSurface(num_vertices, f, parent, weight)
+    num_pieces = parent.numel()
+    piece_faces = num_vertices + torch.arange(3 * num_pieces, device=device).view(num_pieces, 3)
+    uncut = (~cut).nonzero().reshape(-1)
+    bvh_faces = torch.cat([f[uncut], piece_faces]).to(torch.int32).contiguous()
+    normal_faces = torch.cat([f, piece_faces])
+    face_rows = torch.cat([uncut, num_faces + torch.arange(num_pieces, device=device)])
+    counts = {"crossing_faces": int(crossing.any(dim=0).sum()), "inside_faces": int(inside.any(dim=0).sum()),
+              "pieces": num_pieces, "seam_pieces": seam_pieces}
+    return split.augment(vertices), bvh_faces, normal_faces, face_rows, split, counts
+
+
 class BodyMesh:
     """A posed body surface (one mesh, or B meshes of one topology) for hair-body contact.
 
@@ -170,6 +350,14 @@ class BodyMesh:
         bvh: "sah" (default: the faster tree to query, built on the CPU) or "lbvh" (CUDA only,
             built on the GPU: 4x faster to build, for bodies built every training step). Crops
             keep their parent's.
+        split_self_intersections: for a watertight mesh, find where it passes through itself
+            (a posed arm into the chest) and query the boundary of the union of its parts
+            instead: the faces inside another part left out, the faces that cross one cut into
+            pieces (down to `SELF_INTERSECTION_PIECE_FRACTION` of its size) and the pieces inside left out
+            (`self_intersections` says what was found). Without it a point inside one part whose
+            closest face lies inside the other is signed "outside". Poses share the topology: a
+            piece is left out only where it lies inside in every pose; `update` moves the pieces
+            with the mesh but does not look for new crossings.
 
     Raises:
         ValueError: naming the argument, for bad shapes, dtypes, devices, NaN/Inf, empty or
@@ -178,7 +366,7 @@ class BodyMesh:
     """
 
     def __init__(self, vertices: torch.Tensor, faces: torch.Tensor, *, require_watertight: bool = True,
-                 bvh: str = "sah"):
+                 bvh: str = "sah", split_self_intersections: bool = True):
         if bvh not in BVH_CONSTRUCTORS:
             raise ValueError(f"bvh: expected one of {list(BVH_CONSTRUCTORS)}, got {bvh!r}")
         check_tensor("vertices", vertices, allow_empty=False)
@@ -196,13 +384,26 @@ class BodyMesh:
         batched = vertices.dim() == 3
         v = vertices.detach().reshape(-1, vertices.shape[-2], 3)
         faces = faces.to(torch.int32).contiguous()
-        self._setup(v, faces, batched, bool(require_watertight), None, None, faces.long(), None)
+        split = None
+        if require_watertight and split_self_intersections:
+            with _warp.launch_scope(vertices.device):
+                split = _split_self_intersections(v, faces)
+        if split is None:
+            self._setup(v, faces, batched, bool(require_watertight), None, None, faces.long(), None)
+            self._surface, self._self_intersections = None, {"crossing_faces": 0, "inside_faces": 0, "pieces": 0,
+                                                             "seam_pieces": 0}
+            self._setup_winding(None, self.num_faces)
+        else:
+            augmented, bvh_faces, normal_faces, face_rows, self._surface, self._self_intersections = split
+            self._setup(augmented, bvh_faces, batched, True, None, None, normal_faces, face_rows)
+            self._setup_winding(v, self.num_faces - self._self_intersections["seam_pieces"])
 
     @classmethod
     def _from_parts(cls, vertices, faces, batched, watertight, vertex_map, face_map, normal_faces, face_rows,
-                    bvh="sah"):
+                    bvh="sah", surface=None, self_intersections=None):
         body = cls.__new__(cls)
         body._bvh = bvh
+        body._surface, body._self_intersections = surface, self_intersections
         body._setup(vertices, faces, batched, watertight, vertex_map, face_map, normal_faces, face_rows)
         return body
 
@@ -243,7 +444,34 @@ class BodyMesh:
         """
         vertex_normals, edge_normals = self._normals_as(dtype)
         return [self._mesh_ids, _warp.as_warp(self._vertices_as(dtype), vec3=True), self._faces_wp,
-                _warp.as_warp(vertex_normals, vec3=True), _warp.as_warp(edge_normals, vec3=True)]
+                _warp.as_warp(vertex_normals, vec3=True), _warp.as_warp(edge_normals, vec3=True),
+                self._winding_ids, self._first_piece]
+
+    def _setup_winding(self, source_points: torch.Tensor | None, first_piece: int) -> None:
+        """The closed meshes a self-intersecting body was built from, with winding numbers, for
+        the sign near the pieces (`kernels.hair_body_contact.body_signed_distance`): faces from
+        `first_piece` on are pieces. Without pieces the kernels never read them (the BVH's own
+        meshes stand in).
+
+        Args:
+            source_points: (B, V, 3) the uncut mesh's vertices, or None without pieces.
+            first_piece: index of the first piece among the BVH's faces.
+        """
+        self._first_piece = int(first_piece)
+        if source_points is None:
+            self._winding_points, self._winding_meshes, self._winding_ids = None, [], self._mesh_ids
+            return
+        device = self.device
+        with _warp.launch_scope(device):
+            self._winding_points = source_points.detach().to(torch.float32).contiguous().clone()
+            faces = _warp.as_warp(self._surface.faces.to(torch.int32).contiguous())
+            self._winding_meshes = [
+                wp.Mesh(points=_warp.as_warp(self._winding_points[b], vec3=True), indices=faces,
+                        support_winding_number=True)
+                for b in range(self._winding_points.shape[0])
+            ]
+            self._winding_ids = wp.array([m.id for m in self._winding_meshes], dtype=wp.uint64,
+                                         device=_warp.warp_device(device))
 
     def _normals_as(self, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
         """(B V, 3) vertex and (3 B F, 3) face-edge pseudo-normals in `dtype`, contiguous."""
@@ -302,6 +530,17 @@ class BodyMesh:
         return self._faces.clone()
 
     @property
+    def self_intersections(self) -> dict:
+        """What `split_self_intersections` found: faces that cross another part
+        ("crossing_faces") or lie inside one ("inside_faces") in some pose, the pieces kept
+        of the cut faces ("pieces") and those of them on the crossing, signed by the winding
+        number ("seam_pieces"); all 0 for a mesh that does not pass through itself. A crop
+        reports its parent's. `vertices` and `faces` are the surface queried: the faces not cut,
+        then the kept pieces (their corners appended to the vertices).
+        """
+        return dict(self._self_intersections)
+
+    @property
     def face_indices(self) -> torch.Tensor | None:
         """For a crop: (F,) int64 indices of its faces in the uncropped body; None otherwise."""
         return None if self._face_map is None else self._face_map.clone()
@@ -334,6 +573,14 @@ class BodyMesh:
         if self._batched and vertices.shape[0] != self.batch_size:
             raise ValueError(f"vertices: expected batch size {self.batch_size}, got {vertices.shape[0]}")
         v = vertices.detach().reshape(-1, count, 3)
+        source = None  # the uncut mesh's vertices, for a body with pieces
+        if self._surface is not None and count == self._surface.num_vertices != self.num_vertices:
+            # The mesh the body was built from: the pieces of its cut faces follow it.
+            source = v
+            v = self._surface.augment(v.to(self._dtype))
+            count = v.shape[1]
+        elif self._surface is not None and self._vertex_map is None:
+            source = v[:, : self._surface.num_vertices]  # the uncut mesh's vertices come first
         if count != self.num_vertices:
             if self._vertex_map is None or count <= int(self._vertex_map.max()):
                 raise ValueError(f"vertices: expected {self.num_vertices} vertices per mesh, got {count}")
@@ -345,6 +592,13 @@ class BodyMesh:
             for mesh in self._meshes:
                 mesh.refit()
         self._normals = {}
+        if self._surface is not None:
+            # The winding numbers' meshes, rebuilt from the uncut mesh's vertices.
+            if source is None:
+                raise ValueError(
+                    f"vertices: a crop of a body that passes through itself moves through the uncut body's "
+                    f"{self._surface.num_vertices} vertices per mesh, got {vertices.shape[-2]}")
+            self._setup_winding(source, self._first_piece)
 
     def crop(self, reach_centers: torch.Tensor, reach_radii: torch.Tensor, bvh: str | None = None) -> "BodyMesh":
         """A BodyMesh with only the triangles that meet the union of balls B(center_k, radius_k).
@@ -438,9 +692,15 @@ class BodyMesh:
         source = self._points64 if self._points64 is not None else self._points32
         vertex_map = used if self._vertex_map is None else self._vertex_map[used]
         face_map = kept if self._face_map is None else self._face_map[kept]
-        return BodyMesh._from_parts(
-            source[:, used], new_faces, self._batched, False, vertex_map, face_map, normal_faces, face_rows, bvh
+        crop = BodyMesh._from_parts(
+            source[:, used], new_faces, self._batched, False, vertex_map, face_map, normal_faces, face_rows, bvh,
+            self._surface, self._self_intersections
         )
+        # The pieces on the crossing stay last (the kept faces keep their order); the crop is open,
+        # so the winding number is the uncut closed mesh's.
+        first_piece = int((kept < self._first_piece).sum()) if self._surface is not None else crop.num_faces
+        crop._setup_winding(self._winding_points, first_piece)
+        return crop
 
     def crop_for_hair(
         self, roots: torch.Tensor, strand_lengths: torch.Tensor, margin: float = 0.1, bvh: str | None = None
@@ -468,9 +728,14 @@ class BodyMesh:
 
     def __repr__(self) -> str:
         kind = "watertight" if self._watertight else "cropped/open"
+        cut = self._self_intersections
+        split = "" if not cut["pieces"] and not cut["inside_faces"] else (
+            f", self-intersections: {cut['crossing_faces']} faces cut into {cut['pieces']} kept pieces "
+            f"({cut['seam_pieces']} on the crossing), "
+            f"{cut['inside_faces']} inside")
         return (
             f"BodyMesh(batch={self.batch_size}, vertices={self.num_vertices}, faces={self.num_faces}, "
-            f"{kind}, device={self.device})"
+            f"{kind}{split}, device={self.device})"
         )
 
 
@@ -506,17 +771,30 @@ def _signed_distance_forward(points: torch.Tensor, body: BodyMesh, points_per_ba
     zero_dist = _warp.scalar(_ZERO_DISTANCE[points.dtype], points.dtype)
     outputs = [_warp.as_warp(distance), _warp.as_warp(gradient, vec3=True)]
     device = _warp.warp_device(points.device)
+    count = points.shape[0]
+    winding = _warp.as_warp(torch.empty(count, dtype=torch.int32, device=points.device))
+    side = _warp.as_warp(torch.empty(count, dtype=torch.int32, device=points.device))
+    cap = _warp.scalar(FAR_DISTANCE if max_distance is None else max_distance, points.dtype)
+
+    def settle_winding_signs():
+        # Points whose closest face is a piece on a self-intersection's crossing, signed by the
+        # winding number in a launch of their own (`kernels.hair_body_contact.winding_signed`).
+        if body._first_piece < body.num_faces:
+            _warp.launch(kernels.signed_distance_winding_kernel, dim=count,
+                         inputs=mesh + counts + [cap, zero_dist, winding], outputs=outputs + [side], device=device)
+
     with _warp.launch_scope(points.device):
         if max_distance is None:
-            _warp.launch(kernels.signed_distance_kernel, dim=points.shape[0], inputs=mesh + counts + [zero_dist],
-                         outputs=outputs, device=device)
+            _warp.launch(kernels.signed_distance_kernel, dim=count, inputs=mesh + counts + [zero_dist],
+                         outputs=outputs + [winding], device=device)
+            settle_winding_signs()
         else:
             inputs = mesh + [points_per_line, line_stride] + counts + [_warp.scalar(max_distance, points.dtype), zero_dist]
-            hits = [_warp.as_warp(torch.empty(points.shape[0], dtype=torch.int32, device=points.device)),
-                    _warp.as_warp(torch.empty(points.shape[0], dtype=torch.float32, device=points.device))]
-            _warp.launch(kernels.signed_distance_capped_kernel, dim=points.shape[0], inputs=inputs,
-                         outputs=outputs + hits, device=device)
-            _warp.launch(kernels.signed_distance_far_kernel, dim=points.shape[0], inputs=inputs + hits,
+            hits = [side, _warp.as_warp(torch.empty(count, dtype=torch.float32, device=points.device))]
+            _warp.launch(kernels.signed_distance_capped_kernel, dim=count, inputs=inputs,
+                         outputs=outputs + hits + [winding], device=device)
+            settle_winding_signs()  # before pass 2 reads the sides
+            _warp.launch(kernels.signed_distance_far_kernel, dim=count, inputs=inputs + hits,
                          outputs=outputs, device=device)
     return distance, gradient
 
@@ -674,8 +952,16 @@ def _energy_forward(x, body, xi, dhat, bp, weight, variant_id, strategy):
             hit_distance = _warp.as_warp(torch.empty(count, dtype=torch.float32, device=x.device))
             deep_flag = torch.empty(count, dtype=torch.int32, device=x.device)
             hit = _warp.as_warp(torch.empty(count, dtype=torch.int32, device=x.device))
+            # Hits whose closest face is a piece of a face cut at a self-intersection, signed by the
+            # winding number in a launch of their own before pass 2 reads the sides (pass 2's deep
+            # vertices are inside by the chain of misses).
+            winding = _warp.as_warp(torch.empty(count, dtype=torch.int32, device=x.device))
+            pieces = body._first_piece < body.num_faces
             _warp.launch(kernels.hair_body_energy_vertex_kernel, dim=count, inputs=common,
-                         outputs=outputs + [side, hit_distance], device=device)
+                         outputs=outputs + [side, hit_distance, winding], device=device)
+            if pieces:
+                _warp.launch(kernels.hair_body_energy_winding_kernel, dim=count, inputs=common + [winding],
+                             outputs=[outputs[0], outputs[1], side], device=device)
             _warp.launch(kernels.hair_body_deep_flags_kernel, dim=count, inputs=[side, num_vertices],
                          outputs=[_warp.as_warp(deep_flag), hit], device=device)
             # The deep vertices listed in vertex order by a prefix sum (its last entry: the count).

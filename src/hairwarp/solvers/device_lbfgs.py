@@ -34,9 +34,10 @@ is one energy evaluation; a rejected trial counts as one. Besides the energy an 
 ~25 kernels: the n-sized products by torch (cuBLAS), the decisions and the solves in Warp
 kernels (`hairwarp.kernels.device_lbfgs`).
 
-Measured (docs/contact.md, sections 7-13): full-size Table 1 on one H100 reaches the accuracy of
-300 strong-Wolfe iterations (1.6-1.9 s with its energy in a CUDA graph) in 0.25 s (0.37 s before
-the contact terms ran on side streams and the update was folded into kernels).
+Measured (docs/contact.md, sections 7-14): full-size Table 1 on one H100 reaches the accuracy of
+300 strong-Wolfe iterations (2.1-2.2 s with its energy in a CUDA graph) in 0.45-0.55 s, every run
+(0.25-0.28 s in two runs of three before the body's self-intersections were cut, when the third
+stopped short at a sign error of the armpits).
 """
 
 from __future__ import annotations
