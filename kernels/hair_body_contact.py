@@ -705,6 +705,34 @@ def signed_distance_far_kernel(
     gradient_out[i] = g
 
 
+@wp.func
+def winding_settled_distance(
+    mesh: wp.uint64,
+    vertices: wp.array(dtype=Any),
+    faces: wp.array(dtype=wp.int32),
+    vertex_normals: wp.array(dtype=Any),
+    edge_normals: wp.array(dtype=Any),
+    winding_mesh: wp.uint64,
+    first_piece: int,
+    vertex_offset: int,
+    edge_offset: int,
+    p: Any,
+    zero_dist: Any,
+):
+    """(d, dd/dp, side +1/-1) of a point flagged by a pass: its unbounded `body_signed_distance`
+    signed by the winding number (`winding_signed`); the fix-up passes' shared step.
+    """
+    found, d, g = body_signed_distance(
+        mesh, vertices, faces, vertex_normals, edge_normals, first_piece, vertex_offset, edge_offset, p,
+        wp.float32(FAR), zero_dist
+    )
+    d, g = winding_signed(winding_mesh, p, found, d, g, zero_dist)
+    side = 1
+    if d < zero_dist * type(zero_dist)(0.0):
+        side = -1
+    return d, g, side
+
+
 @wp.kernel
 def signed_distance_winding_kernel(
     # In:
@@ -738,14 +766,10 @@ def signed_distance_winding_kernel(
         return
     body = (i // points_per_batch) * body_batch_stride
     p = points[i]
-    found, d, g = body_signed_distance(
-        mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece,
-        body * body_vertex_count, body * body_face_count * 3, p, wp.float32(FAR), zero_dist
+    d, g, side = winding_settled_distance(
+        mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, winding_ids[body], first_piece,
+        body * body_vertex_count, body * body_face_count * 3, p, zero_dist
     )
-    d, g = winding_signed(winding_ids[body], p, found, d, g, zero_dist)
-    side = 1
-    if d < zero_dist * type(zero_dist)(0.0):
-        side = -1
     side_out[i] = side
     if d > max_distance:
         d = max_distance
@@ -792,14 +816,10 @@ def hair_body_energy_winding_kernel(
     v = i % num_vertices
     body = (i // (num_strands * num_vertices)) * body_batch_stride
     p = x[i]
-    found, d, g = body_signed_distance(
-        mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece,
-        body * body_vertex_count, body * body_face_count * 3, p, wp.float32(FAR), zero_dist
+    d, g, side = winding_settled_distance(
+        mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, winding_ids[body], first_piece,
+        body * body_vertex_count, body * body_face_count * 3, p, zero_dist
     )
-    d, g = winding_signed(winding_ids[body], p, found, d, g, zero_dist)
-    side = 1
-    if d < xi * type(xi)(0.0):
-        side = -1
     side_out[i] = side
     if v >= 2:
         vertex_energy_out[i] = weight * barrier_energy(d, xi, dhat, bp, variant)
