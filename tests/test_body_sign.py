@@ -317,3 +317,16 @@ def test_default_body_armpits_are_inside_where_the_winding_number_says():
     off = d.abs() > 1e-4
     assert int(inside.sum()) > 100 and int((inside & (d_plain > 1e-3)).sum()) > 50  # the hard case is here
     assert bool(((d < 0) == inside)[off].all())
+
+
+def test_scene_frames_cut_short_batches_and_keep_whole_motions_uncut():
+    """`Scene.frames` cuts the body's self-intersections for batches of at most SPLIT_MAX_FRAMES
+    frames (drapes, benchmark batches) and keeps a longer batch's surface uncut (a whole motion:
+    the per-pose search would cost ~0.3 s a pose on a 2-core CPU); the argument overrides."""
+    from hairwarp.scene.scene import SPLIT_MAX_FRAMES, default_scene
+
+    scene = default_scene("bob", "head_turn", strand_stride=64, num_vertices=10)
+    assert scene.frames([0]).body_mesh.self_intersections["crossing_faces"] > 0
+    long = torch.arange(SPLIT_MAX_FRAMES + 1) % scene.num_frames
+    assert scene.frames(long).body_mesh.self_intersections["crossing_faces"] == 0
+    assert scene.frames([0], split_self_intersections=False).body_mesh.self_intersections["pieces"] == 0
