@@ -34,9 +34,6 @@ from hairwarp.ops.barrier import barrier_variant_id, check_barrier_parameters
 
 INDEX_DTYPES = (torch.int32, torch.int64)
 
-# The distance reported beyond any cap [m] (`kernels.hair_body_contact.FAR`).
-FAR_DISTANCE = 1.0e18
-
 # Below this distance [m] a point counts as on the surface and gets the face normal as the
 # gradient: in float32 the closest point carries ~1e-7 m of rounding at body scale.
 _ZERO_DISTANCE = {torch.float32: 1.0e-6, torch.float64: 1.0e-12}
@@ -774,7 +771,7 @@ def _signed_distance_forward(points: torch.Tensor, body: BodyMesh, points_per_ba
     count = points.shape[0]
     winding = _warp.as_warp(torch.empty(count, dtype=torch.int32, device=points.device))
     side = _warp.as_warp(torch.empty(count, dtype=torch.int32, device=points.device))
-    cap = _warp.scalar(FAR_DISTANCE if max_distance is None else max_distance, points.dtype)
+    cap = _warp.scalar(kernels.FAR if max_distance is None else max_distance, points.dtype)
 
     def settle_winding_signs():
         # Points whose closest face is a piece on a self-intersection's crossing, signed by the
