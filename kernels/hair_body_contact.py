@@ -106,6 +106,18 @@ def feature_pseudo_normal(
 
 
 @wp.func
+def seam_inside_other_part(sides: wp.vec4, u: Any, v: Any, w: Any):
+    """True where the point u a + v b + w c of a piece on a self-intersection's crossing lies
+    strictly inside the other part: `sides` holds the signed distances of the piece's corners
+    a, b, c to the one face of the other part that crosses it (outward positive; its plane is
+    the other part's surface across the whole piece, so the side is affine in the barycentrics),
+    or -1 / +1 at every corner for a piece wholly inside / outside the other parts.
+    """
+    s = u * type(u)(sides[0]) + v * type(u)(sides[1]) + w * type(u)(sides[2])
+    return s < u * type(u)(0.0)
+
+
+@wp.func
 def body_signed_distance(
     mesh: wp.uint64,
     vertices: wp.array(dtype=Any),
@@ -113,6 +125,7 @@ def body_signed_distance(
     vertex_normals: wp.array(dtype=Any),
     edge_normals: wp.array(dtype=Any),
     first_piece: int,
+    seam_sides: wp.array(dtype=wp.vec4),
     vertex_offset: int,
     edge_offset: int,
     p: Any,
@@ -122,10 +135,12 @@ def body_signed_distance(
     """Signed distance d [m] from `p` to the mesh (negative inside) and dd/dp.
 
     Returns (found, d, gradient): found = 0 when no face lies strictly within `max_dist`
-    (then d = 0, gradient = 0); 2 when the closest face is a piece of a face cut at a
-    self-intersection, whose sign is the winding number's (`winding_signed`; a pass of its
-    own, `hair_body_energy_winding_kernel` and `signed_distance_winding_kernel`, so that the
-    winding query's code stays out of the hot kernels); else 1. The gradient is the unit vector sign * (p - closest), the
+    (then d = 0, gradient = 0); 2 when the closest face is a piece on a self-intersection's
+    crossing that more than one face of the other part crosses, whose sign is the winding
+    number's (`winding_signed`; a pass of its own, `hair_body_energy_winding_kernel` and
+    `signed_distance_winding_kernel`, so that the winding query's code stays out of the hot
+    kernels); else 1. On the other pieces of the crossing the side of the other part is read
+    from `seam_sides` (`seam_inside_other_part`). The gradient is the unit vector sign * (p - closest), the
     outward direction; within `zero_dist` of the surface, where that direction is rounding
     noise, it is the closest face's unit normal (the exact gradient on a face's interior).
     The sign is that of the closest feature's pseudo-normal (see the module docstring).
@@ -138,8 +153,9 @@ def body_signed_distance(
         edge_normals: edge pseudo-normals per face edge, (3 F per mesh), like `vertices`.
         first_piece: faces from this index on are pieces on a self-intersection's crossing
             (see the section at the end of this module): the closest point on one may lie
-            just inside the other part, so the sign is the winding number's there (found = 2;
-            `num faces` when there are none).
+            just inside the other part (`num faces` when there are none).
+        seam_sides: per face of each mesh (B F), for the pieces on the crossing, the other
+            part's side (`seam_piece_sides_kernel`); not read below `first_piece`.
         vertex_offset: index of this mesh's first vertex in `vertices` (batched bodies).
         edge_offset: index of this mesh's first face edge in `edge_normals` (3 F per mesh).
         p: query point (vec3 or vec3d).
@@ -164,7 +180,14 @@ def body_signed_distance(
         sign = type(zero_dist)(1.0)
     found = 1
     if q.face >= first_piece:
-        found = 2
+        # A piece on the crossing: an "outside" verdict is wrong where the closest point lies
+        # strictly inside the other part (the piece juts into it); "inside" is never wrong (a
+        # point outside the union has its closest point on the union's boundary).
+        sides = seam_sides[edge_offset // 3 + q.face]
+        if sides[3] != 0.0:
+            found = 2
+        elif sign > zero and seam_inside_other_part(sides, u, v, w):
+            sign = -sign
     if dist2 > zero_dist * zero_dist:
         # n: unit (p - closest), exactly the face normal's direction in the face region.
         dist, n, grad_a, grad_b, grad_c = point_triangle_distance_gradient_at(p, a, b, c, u, v, w)
@@ -206,6 +229,7 @@ def signed_distance_kernel(
     edge_normals: wp.array(dtype=Any),
     winding_ids: wp.array(dtype=wp.uint64),
     first_piece: int,
+    seam_sides: wp.array(dtype=wp.vec4),
     points_per_batch: int,
     body_vertex_count: int,
     body_face_count: int,
@@ -228,6 +252,7 @@ def signed_distance_kernel(
         vertex_normals,
         edge_normals,
         first_piece,
+        seam_sides,
         body * body_vertex_count,
         body * body_face_count * 3,
         points[i],
@@ -253,6 +278,7 @@ def hair_body_energy_strand_kernel(
     edge_normals: wp.array(dtype=Any),
     winding_ids: wp.array(dtype=wp.uint64),
     first_piece: int,
+    seam_sides: wp.array(dtype=wp.vec4),
     num_strands: int,
     num_vertices: int,
     body_vertex_count: int,
@@ -310,7 +336,7 @@ def hair_body_energy_strand_kernel(
         # Exact query bounded by ub: its distance lets the following vertices skip theirs.
         radius = wp.float32(wp.min(ub + slack * (type(xi)(1.0) + ub), type(xi)(FAR)))
         found, d, g = body_signed_distance(
-            mesh, body_vertices, faces, vertex_normals, edge_normals, first_piece,
+            mesh, body_vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides,
             vertex_offset, edge_offset,
             p, radius, zero_dist
         )
@@ -318,7 +344,7 @@ def hair_body_energy_strand_kernel(
         if found == 0 and radius < FAR:
             # A float32 miss at the bound (or a sliver skipped): retry unbounded.
             found, d, g = body_signed_distance(
-                mesh, body_vertices, faces, vertex_normals, edge_normals, first_piece,
+                mesh, body_vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides,
                 vertex_offset, edge_offset,
                 p, wp.float32(FAR), zero_dist
             )
@@ -394,6 +420,7 @@ def hair_body_energy_vertex_kernel(
     edge_normals: wp.array(dtype=Any),
     winding_ids: wp.array(dtype=wp.uint64),
     first_piece: int,
+    seam_sides: wp.array(dtype=wp.vec4),
     num_strands: int,
     num_vertices: int,
     body_vertex_count: int,
@@ -430,7 +457,7 @@ def hair_body_energy_vertex_kernel(
     p = x[i]
     body = (i // (num_strands * num_vertices)) * body_batch_stride
     found, d, g = body_signed_distance(
-        mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece,
+        mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides,
         body * body_vertex_count, body * body_face_count * 3, p, chain_query_radius(x, i, v, 1, xi + dhat),
         zero_dist
     )
@@ -439,7 +466,7 @@ def hair_body_energy_vertex_kernel(
         # The root anchors the strand's sides: measured at any distance (roots lie on the scalp,
         # so this is rare).
         found, d, g = body_signed_distance(
-            mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece,
+            mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides,
             body * body_vertex_count, body * body_face_count * 3, p, wp.float32(FAR), zero_dist
         )
         queries = 2
@@ -522,6 +549,7 @@ def hair_body_energy_far_kernel(
     edge_normals: wp.array(dtype=Any),
     winding_ids: wp.array(dtype=wp.uint64),
     first_piece: int,
+    seam_sides: wp.array(dtype=wp.vec4),
     num_strands: int,
     num_vertices: int,
     body_vertex_count: int,
@@ -555,14 +583,14 @@ def hair_body_energy_far_kernel(
     p = x[i]
     radius = depth_query_radius(x, hit_distance, i, hit)
     found, d, g = body_signed_distance(
-        mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece,
+        mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides,
         body * body_vertex_count, body * body_face_count * 3, p, radius, zero_dist
     )
     queries = 2
     if found == 0 and radius < wp.float32(FAR):
         # A float32 miss at the bound: retry unbounded.
         found, d, g = body_signed_distance(
-            mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece,
+            mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides,
             body * body_vertex_count, body * body_face_count * 3, p, wp.float32(FAR), zero_dist
         )
         queries = 3
@@ -588,6 +616,7 @@ def signed_distance_capped_kernel(
     edge_normals: wp.array(dtype=Any),
     winding_ids: wp.array(dtype=wp.uint64),
     first_piece: int,
+    seam_sides: wp.array(dtype=wp.vec4),
     points_per_line: int,
     line_stride: int,
     points_per_batch: int,
@@ -615,14 +644,14 @@ def signed_distance_capped_kernel(
     body = (i // points_per_batch) * body_batch_stride
     p = points[i]
     found, d, g = body_signed_distance(
-        mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece,
+        mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides,
         body * body_vertex_count, body * body_face_count * 3, p,
         chain_query_radius(points, i, v, line_stride, max_distance), zero_dist
     )
     if found == 0 and v == 0:
         # The first point anchors its polyline's sides: measured at any distance.
         found, d, g = body_signed_distance(
-            mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece,
+            mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides,
             body * body_vertex_count, body * body_face_count * 3, p, wp.float32(FAR), zero_dist
         )
     side = int(0)
@@ -651,6 +680,7 @@ def signed_distance_far_kernel(
     edge_normals: wp.array(dtype=Any),
     winding_ids: wp.array(dtype=wp.uint64),
     first_piece: int,
+    seam_sides: wp.array(dtype=wp.vec4),
     points_per_line: int,
     line_stride: int,
     points_per_batch: int,
@@ -682,12 +712,12 @@ def signed_distance_far_kernel(
     body = (i // points_per_batch) * body_batch_stride
     radius = depth_query_radius(points, hit_distance, i, hit)
     found, d, g = body_signed_distance(
-        mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece,
+        mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides,
         body * body_vertex_count, body * body_face_count * 3, p, radius, zero_dist
     )
     if found == 0 and radius < wp.float32(FAR):
         found, d, g = body_signed_distance(
-            mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece,
+            mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides,
             body * body_vertex_count, body * body_face_count * 3, p, wp.float32(FAR), zero_dist
         )
     if found == 2 and d > zero:
@@ -714,6 +744,7 @@ def winding_settled_distance(
     edge_normals: wp.array(dtype=Any),
     winding_mesh: wp.uint64,
     first_piece: int,
+    seam_sides: wp.array(dtype=wp.vec4),
     vertex_offset: int,
     edge_offset: int,
     p: Any,
@@ -723,7 +754,7 @@ def winding_settled_distance(
     signed by the winding number (`winding_signed`); the fix-up passes' shared step.
     """
     found, d, g = body_signed_distance(
-        mesh, vertices, faces, vertex_normals, edge_normals, first_piece, vertex_offset, edge_offset, p,
+        mesh, vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides, vertex_offset, edge_offset, p,
         wp.float32(FAR), zero_dist
     )
     d, g = winding_signed(winding_mesh, p, found, d, g, zero_dist)
@@ -744,6 +775,7 @@ def signed_distance_winding_kernel(
     edge_normals: wp.array(dtype=Any),
     winding_ids: wp.array(dtype=wp.uint64),
     first_piece: int,
+    seam_sides: wp.array(dtype=wp.vec4),
     points_per_batch: int,
     body_vertex_count: int,
     body_face_count: int,
@@ -767,7 +799,7 @@ def signed_distance_winding_kernel(
     body = (i // points_per_batch) * body_batch_stride
     p = points[i]
     d, g, side = winding_settled_distance(
-        mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, winding_ids[body], first_piece,
+        mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, winding_ids[body], first_piece, seam_sides,
         body * body_vertex_count, body * body_face_count * 3, p, zero_dist
     )
     side_out[i] = side
@@ -789,6 +821,7 @@ def hair_body_energy_winding_kernel(
     edge_normals: wp.array(dtype=Any),
     winding_ids: wp.array(dtype=wp.uint64),
     first_piece: int,
+    seam_sides: wp.array(dtype=wp.vec4),
     num_strands: int,
     num_vertices: int,
     body_vertex_count: int,
@@ -817,7 +850,7 @@ def hair_body_energy_winding_kernel(
     body = (i // (num_strands * num_vertices)) * body_batch_stride
     p = x[i]
     d, g, side = winding_settled_distance(
-        mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, winding_ids[body], first_piece,
+        mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, winding_ids[body], first_piece, seam_sides,
         body * body_vertex_count, body * body_face_count * 3, p, zero_dist
     )
     side_out[i] = side
@@ -910,6 +943,14 @@ def segment_crosses_triangle(p: wp.vec3, q: wp.vec3, a: wp.vec3, b: wp.vec3, c: 
     return t >= 0.0 and t <= 1.0
 
 
+@wp.func
+def triangles_cross(a: wp.vec3, b: wp.vec3, c: wp.vec3, d: wp.vec3, e: wp.vec3, h: wp.vec3):
+    """True if triangles abc and deh cross (an edge of one passes through the other)."""
+    return (segment_crosses_triangle(a, b, d, e, h) or segment_crosses_triangle(b, c, d, e, h)
+            or segment_crosses_triangle(c, a, d, e, h) or segment_crosses_triangle(d, e, a, b, c)
+            or segment_crosses_triangle(e, h, a, b, c) or segment_crosses_triangle(h, d, a, b, c))
+
+
 @wp.kernel
 def self_intersecting_faces_kernel(
     # In:
@@ -939,14 +980,8 @@ def self_intersecting_faces_kernel(
         j2 = faces[3 * g + 2]
         shares = (j0 == i0 or j0 == i1 or j0 == i2 or j1 == i0 or j1 == i1 or j1 == i2
                   or j2 == i0 or j2 == i1 or j2 == i2)
-        if hit == 0 and not shares:
-            d = points[j0]
-            e = points[j1]
-            h = points[j2]
-            if (segment_crosses_triangle(a, b, d, e, h) or segment_crosses_triangle(b, c, d, e, h)
-                    or segment_crosses_triangle(c, a, d, e, h) or segment_crosses_triangle(d, e, a, b, c)
-                    or segment_crosses_triangle(e, h, a, b, c) or segment_crosses_triangle(h, d, a, b, c)):
-                hit = 1
+        if hit == 0 and not shares and triangles_cross(a, b, c, points[j0], points[j1], points[j2]):
+            hit = 1
     flags_out[f] = hit
 
 
@@ -967,3 +1002,105 @@ def winding_inside_kernel(
     inside_out[i] = 0
     if q.result and q.sign < 0.0:
         inside_out[i] = 1
+
+
+@wp.func
+def winding_layers(mesh: wp.uint64, point: wp.vec3):
+    """How many layers of a self-intersecting closed mesh hold `point`: 0, 1 or 2 (2 or more),
+    by the winding number (thresholds 1/2 and 3/2); -1 when the query fails.
+    """
+    q = wp.mesh_query_point_sign_winding_number(mesh, point, wp.float32(FAR), 2.0, 0.5)
+    if not q.result:
+        return -1
+    if q.sign >= 0.0:
+        return 0
+    q = wp.mesh_query_point_sign_winding_number(mesh, point, wp.float32(FAR), 2.0, 1.5)
+    if not q.result:
+        return -1
+    if q.sign >= 0.0:
+        return 1
+    return 2
+
+
+@wp.kernel
+def seam_piece_sides_kernel(
+    # In:
+    points: wp.array(dtype=wp.vec3),
+    faces: wp.array(dtype=wp.int32),
+    face_parent: wp.array(dtype=wp.int32),
+    first_piece: int,
+    source_mesh: wp.uint64,
+    source_points: wp.array(dtype=wp.vec3),
+    source_faces: wp.array(dtype=wp.int32),
+    offset: float,
+    row: int,
+    # Out:
+    sides_out: wp.array(dtype=wp.vec4),
+):
+    """One thread per piece on a self-intersection's crossing (BVH faces from `first_piece` on,
+    corners in `points`), one pose: where the other part lies across the piece, for
+    `seam_inside_other_part`. The faces of the uncut closed mesh (`source_mesh`, with winding
+    numbers) that cross the piece, those sharing no vertex with its parent face:
+    - none: the piece lies wholly on one side: (-1, -1, -1, 0) inside the other parts,
+      (1, 1, 1, 0) outside;
+    - one, G: G's plane is the other part's surface across the piece (a second face would cross
+      it where the crossing leaves G): (s_a, s_b, s_c, 0), the corners' signed distances to it,
+      outward positive;
+    - more: (0, 0, 0, 1), the winding number's at query time.
+    Checked against the winding number at the centre and the corners, `offset` [m] outside
+    along the piece's normal (corners within 4 offsets of G's plane skipped): one layer inside
+    the other part, none outside. Where they disagree (the other part grazes an edge or a
+    corner of the piece, or a third part holds it) the piece is left to the winding number too.
+    """
+    f = first_piece + wp.tid()
+    a = points[faces[3 * f + 0]]
+    b = points[faces[3 * f + 1]]
+    c = points[faces[3 * f + 2]]
+    parent = face_parent[f]
+    i0 = source_faces[3 * parent + 0]
+    i1 = source_faces[3 * parent + 1]
+    i2 = source_faces[3 * parent + 2]
+    query = wp.mesh_query_aabb(source_mesh, wp.min(wp.min(a, b), c), wp.max(wp.max(a, b), c))
+    g = int(0)
+    count = int(0)
+    other = int(-1)
+    while wp.mesh_query_next(query, g):
+        j0 = source_faces[3 * g + 0]
+        j1 = source_faces[3 * g + 1]
+        j2 = source_faces[3 * g + 2]
+        shares = (j0 == i0 or j0 == i1 or j0 == i2 or j1 == i0 or j1 == i1 or j1 == i2
+                  or j2 == i0 or j2 == i1 or j2 == i2)
+        if not shares and triangles_cross(a, b, c, source_points[j0], source_points[j1], source_points[j2]):
+            count += 1
+            other = g
+    unknown = wp.vec4(0.0, 0.0, 0.0, 1.0)
+    if count > 1:
+        sides_out[row + f] = unknown
+        return
+    outward = wp.normalize(wp.cross(b - a, c - a)) * offset
+    centre = (a + b + c) / 3.0
+    if count == 0:
+        layers = winding_layers(source_mesh, centre + outward)
+        s = wp.vec3(1.0, 1.0, 1.0)
+        if layers == 1:
+            s = wp.vec3(-1.0, -1.0, -1.0)
+        elif layers != 0:
+            sides_out[row + f] = unknown
+            return
+    else:
+        d = source_points[source_faces[3 * other + 0]]
+        n = wp.normalize(wp.cross(source_points[source_faces[3 * other + 1]] - d,
+                                  source_points[source_faces[3 * other + 2]] - d))
+        s = wp.vec3(wp.dot(a - d, n), wp.dot(b - d, n), wp.dot(c - d, n))
+    for k in range(3):
+        corner = a
+        if k == 1:
+            corner = b
+        if k == 2:
+            corner = c
+        if wp.abs(s[k]) > 4.0 * offset:
+            layers = winding_layers(source_mesh, corner + outward)
+            if layers != int(s[k] < 0.0):
+                sides_out[row + f] = unknown
+                return
+    sides_out[row + f] = wp.vec4(s[0], s[1], s[2], 0.0)

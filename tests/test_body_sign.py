@@ -293,30 +293,43 @@ _ARMPIT_RADIUS = 0.06
 
 
 @pytest.mark.slow
-def test_default_body_armpits_are_inside_where_the_winding_number_says():
+def test_default_body_armpits_are_signed_as_the_winding_number_says():
     """table1 (the default body, arms down): the rigid placement's vertices near the faces cut
-    at the armpits are signed as the float64 winding number says."""
+    at the armpits, and random points around the crossing (2-60 mm away), are signed as the
+    float64 winding number says, but within 2.5 pieces' size of the surface (the pieces follow
+    the crossing to about their size). Before the faces touching a face inside were cut and the
+    pieces' edges took their parent's pseudo-normals, 315 of 20 000 such points up to 44 mm
+    deep were called outside."""
     from hairwarp.evaluation.scenes import comparison_scene
+    from hairwarp.ops.hair_body_contact import SELF_INTERSECTION_PIECE_FRACTION
 
     frames = comparison_scene("table1").frames(device=torch.device("cpu"))
     v = frames.posed.vertices[0].double()
     f = frames.scene.body.faces.long()
     body = BodyMesh(v, f)
     plain = BodyMesh(v, f, split_self_intersections=False)
-    assert body.self_intersections["crossing_faces"] > 0
+    cut = body.self_intersections
+    assert cut["crossing_faces"] > 0 and 0 < cut["winding_pieces"] < cut["seam_pieces"] / 2
+    pieces = body.faces[body.num_faces - cut["pieces"]:].long()
+    centres = body.vertices[pieces].mean(dim=1)
     x = frames.rigid.positions[0].reshape(-1, 3).double()
     near = torch.zeros(len(x), dtype=torch.bool)
-    crossing = body.faces[body.num_faces - body.self_intersections["pieces"]:].long()  # the pieces
-    centres = body.vertices[crossing].mean(dim=1)
     for start in range(0, len(x), 4096):
         near[start:start + 4096] = torch.cdist(x[start:start + 4096], centres).amin(dim=1) < _ARMPIT_RADIUS
-    points = x[near]
-    inside = winding_numbers(points, v, f) > 0.5
-    d = hair_body_signed_distance(points[None, :, None], body).reshape(-1)
-    d_plain = hair_body_signed_distance(points[None, :, None], plain).reshape(-1)
-    off = d.abs() > 1e-4
-    assert int(inside.sum()) > 100 and int((inside & (d_plain > 1e-3)).sum()) > 50  # the hard case is here
-    assert bool(((d < 0) == inside)[off].all())
+    generator = torch.Generator().manual_seed(0)
+    seam = body.vertices[body.faces[body.num_faces - cut["seam_pieces"]:].long()].mean(dim=1)
+    count = 2500
+    scale = torch.tensor([0.002, 0.01, 0.03, 0.06], dtype=torch.float64)[torch.randint(4, (count,), generator=generator)]
+    around = seam[torch.randint(len(seam), (count,), generator=generator)] + scale[:, None] * torch.randn(
+        count, 3, generator=generator, dtype=torch.float64)
+    for points, hair in ((x[near], True), (around, False)):
+        inside = winding_numbers(points, v, f) > 0.5
+        d = hair_body_signed_distance(points[None, :, None], body).reshape(-1)
+        d_plain = hair_body_signed_distance(points[None, :, None], plain).reshape(-1)
+        off = d.abs() > (1e-4 if hair else 2.5 * SELF_INTERSECTION_PIECE_FRACTION * float(
+            torch.linalg.vector_norm(v.amax(0) - v.amin(0))))
+        assert int((inside & off).sum()) > 100 and int((inside & (d_plain > 1e-3)).sum()) > 50  # the hard case
+        assert bool(((d < 0) == inside)[off].all()), f"{int(((d < 0) != inside)[off].sum())} wrong signs"
 
 
 def test_scene_frames_cut_short_batches_and_keep_whole_motions_uncut():

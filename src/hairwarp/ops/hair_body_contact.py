@@ -183,6 +183,7 @@ class _SplitSurface:
 
     def __init__(self, num_vertices: int, faces: torch.Tensor, parent: torch.Tensor, weights: torch.Tensor):
         self.num_vertices, self.faces, self.parent, self.weights = num_vertices, faces, parent, weights
+        self.first_piece_face = None  # index of the first piece among the uncut body's BVH faces
 
     def piece_corners(self, vertices: torch.Tensor) -> torch.Tensor:
         """(B, V, 3) vertices -> (B, 3 P, 3) the pieces' corners, in their dtype."""
@@ -193,6 +194,59 @@ class _SplitSurface:
     def augment(self, vertices: torch.Tensor) -> torch.Tensor:
         """(B, V, 3) the mesh's vertices -> (B, V + 3 P, 3) with the pieces' corners after them."""
         return torch.cat([vertices, self.piece_corners(vertices)], dim=1)
+
+    def piece_pseudo_normals(self, source: torch.Tensor, vertex_map: torch.Tensor | None,
+                             face_map: torch.Tensor | None, vertex: torch.Tensor, edge: torch.Tensor) -> None:
+        """The pieces' vertex and edge pseudo-normals, written in place: a piece's corners and
+        edges are its own (no other face shares them), so `_pseudo_normals` gives them its face
+        normal alone; where one lies on its parent face's edge or corner, the uncut mesh's pseudo-
+        normal there is the right one (a point on a sharp fold signed by one side's normal alone
+        can be called outside from deep inside), elsewhere the parent's face normal.
+
+        Args:
+            source: (B, V, 3) the uncut mesh's vertices.
+            vertex_map, face_map: the body's vertices and BVH faces in the uncut body with pieces
+                (None: that body itself), to find the pieces.
+            vertex: (B, V', 3) the body's vertex pseudo-normals; edge: (B, F', 3, 3) its BVH faces'.
+        """
+        device = vertex.device
+        if self.first_piece_face is None:
+            raise RuntimeError("piece_pseudo_normals: first_piece_face is not set")
+        source_vertex, source_edge = _pseudo_normals(source, self.faces, *_edge_inverse(self.faces), None)
+        corners = source[:, self.faces]  # (B, F, 3, 3)
+        face_normal = torch.cross(corners[:, :, 1] - corners[:, :, 0], corners[:, :, 2] - corners[:, :, 0], dim=-1)
+        face_normal = torch.nn.functional.normalize(face_normal, dim=-1)
+
+        def feature_normal(piece: torch.Tensor, zero: torch.Tensor) -> torch.Tensor:
+            # zero: (n, 3) bool, the parent's barycentric weights that are 0 at the feature.
+            parent = self.parent[piece]
+            normal = face_normal[:, parent]
+            on_edge = zero.sum(dim=1) == 1
+            k = zero.long().argmax(dim=1)  # the corner opposite the edge: edge (k + 1) % 3
+            if bool(on_edge.any()):
+                normal[:, on_edge] = source_edge[:, parent[on_edge], (k[on_edge] + 1) % 3]
+            at_corner = zero.sum(dim=1) == 2
+            if bool(at_corner.any()):
+                corner = (~zero[at_corner]).long().argmax(dim=1)
+                normal[:, at_corner] = source_vertex[:, self.faces[parent[at_corner], corner]]
+            return normal
+
+        ids = torch.arange(vertex.shape[1], device=device) if vertex_map is None else vertex_map
+        corner_of = ids - self.num_vertices
+        rows = (corner_of >= 0).nonzero().reshape(-1)
+        if rows.numel():
+            piece, corner = corner_of[rows] // 3, corner_of[rows] % 3
+            vertex[:, rows] = feature_normal(piece, self.weights[piece, corner] == 0)
+        faces = torch.arange(edge.shape[1], device=device) if face_map is None else face_map
+        piece_of = faces - self.first_piece_face
+        rows = (piece_of >= 0).nonzero().reshape(-1)
+        if rows.numel():
+            piece = piece_of[rows]
+            for e in range(3):
+                # Edge e joins the piece's corners e and e + 1: on the parent's boundary where
+                # both have the same zero weight.
+                zero = (self.weights[piece, e] == 0) & (self.weights[piece, (e + 1) % 3] == 0)
+                edge[:, rows, e] = feature_normal(piece, zero)
 
 
 def _winding_inside(mesh: wp.Mesh, points: torch.Tensor) -> torch.Tensor:
@@ -269,6 +323,11 @@ def _split_self_intersections(vertices: torch.Tensor, faces: torch.Tensor):
             embedded[inner] = True
             front = torch.zeros_like(cross)
             front[inner] = True
+        # A face that shares a corner with a face inside touches the other part there (a graze
+        # the crossing test can miss): cut it too, so the pieces at that corner are checked.
+        touching = torch.zeros(num_vertices, dtype=torch.bool, device=device)
+        touching[f[embedded].reshape(-1)] = True
+        cross = cross | (touching[f].any(dim=1) & ~embedded)
         crossing.append(cross)
         inside.append(embedded)
         meshes.append(mesh)
@@ -389,18 +448,25 @@ class BodyMesh:
             self._setup(v, faces, batched, bool(require_watertight), None, None, faces.long(), None)
             self._surface, self._self_intersections = None, {"crossing_faces": 0, "inside_faces": 0, "pieces": 0,
                                                              "seam_pieces": 0}
+            self._face_parent = None
             self._setup_winding(None, self.num_faces)
         else:
             augmented, bvh_faces, normal_faces, face_rows, self._surface, self._self_intersections = split
             self._setup(augmented, bvh_faces, batched, True, None, None, normal_faces, face_rows)
+            # The uncut face each BVH face lies on (rows past the uncut faces are pieces).
+            num_source = self._surface.faces.shape[0]
+            pieces = (face_rows - num_source).clamp_min(0)
+            self._face_parent = torch.where(face_rows < num_source, face_rows,
+                                            self._surface.parent[pieces]).to(torch.int32).contiguous()
+            self._surface.first_piece_face = self.num_faces - self._self_intersections["pieces"]
             self._setup_winding(v, self.num_faces - self._self_intersections["seam_pieces"])
 
     @classmethod
     def _from_parts(cls, vertices, faces, batched, watertight, vertex_map, face_map, normal_faces, face_rows,
-                    bvh="sah", surface=None, self_intersections=None):
+                    bvh="sah", surface=None, self_intersections=None, face_parent=None):
         body = cls.__new__(cls)
         body._bvh = bvh
-        body._surface, body._self_intersections = surface, self_intersections
+        body._surface, body._self_intersections, body._face_parent = surface, self_intersections, face_parent
         body._setup(vertices, faces, batched, watertight, vertex_map, face_map, normal_faces, face_rows)
         return body
 
@@ -442,7 +508,7 @@ class BodyMesh:
         vertex_normals, edge_normals = self._normals_as(dtype)
         return [self._mesh_ids, _warp.as_warp(self._vertices_as(dtype), vec3=True), self._faces_wp,
                 _warp.as_warp(vertex_normals, vec3=True), _warp.as_warp(edge_normals, vec3=True),
-                self._winding_ids, self._first_piece]
+                self._winding_ids, self._first_piece, self._seam_sides_wp]
 
     def _setup_winding(self, source_points: torch.Tensor | None, first_piece: int) -> None:
         """The closed meshes a self-intersecting body was built from, with winding numbers, for
@@ -456,9 +522,12 @@ class BodyMesh:
         """
         self._first_piece = int(first_piece)
         if source_points is None:
+            self._source_points = None
             self._winding_points, self._winding_meshes, self._winding_ids = None, [], self._mesh_ids
+            self._setup_seam_sides()
             return
         device = self.device
+        self._source_points = source_points.detach().clone()
         with _warp.launch_scope(device):
             self._winding_points = source_points.detach().to(torch.float32).contiguous().clone()
             faces = _warp.as_warp(self._surface.faces.to(torch.int32).contiguous())
@@ -469,6 +538,37 @@ class BodyMesh:
             ]
             self._winding_ids = wp.array([m.id for m in self._winding_meshes], dtype=wp.uint64,
                                          device=_warp.warp_device(device))
+        self._setup_seam_sides()
+
+    def _setup_seam_sides(self) -> None:
+        """Per pose, where the other part lies across each piece on a self-intersection's
+        crossing (`kernels.hair_body_contact.seam_piece_sides_kernel`): (B F, 4) float32, read
+        from `first_piece` on; `_seam_unknown` says whether any piece is left to the winding
+        number (then its pass runs). Reads that flag back to the host (building, not querying).
+        """
+        device = self.device
+        seam = self.num_faces - self._first_piece
+        rows = self.batch_size * self.num_faces if seam > 0 else 1
+        if getattr(self, "_seam_sides", None) is None or self._seam_sides.shape[0] != rows:
+            self._seam_sides = torch.zeros(rows, 4, dtype=torch.float32, device=device)
+            self._seam_sides_wp = wp.from_torch(self._seam_sides, dtype=wp.vec4)
+        self._seam_unknown, self._winding_pieces = False, 0
+        if seam > 0:
+            source_faces = _warp.as_warp(self._surface.faces.to(torch.int32).contiguous())
+            with _warp.launch_scope(device):
+                for b, mesh in enumerate(self._winding_meshes):
+                    source = self._winding_points[b]
+                    diagonal = float(torch.linalg.vector_norm(source.amax(0) - source.amin(0)))
+                    _warp.launch(
+                        kernels.seam_piece_sides_kernel, dim=seam,
+                        inputs=[_warp.as_warp(self._points32[b], vec3=True), self._faces_wp,
+                                _warp.as_warp(self._face_parent), self._first_piece, mesh.id,
+                                _warp.as_warp(source, vec3=True), source_faces, _WINDING_OFFSET * diagonal,
+                                b * self.num_faces],
+                        outputs=[self._seam_sides_wp], device=_warp.warp_device(device))
+            unknown = (self._seam_sides[:, 3] != 0).view(self.batch_size, self.num_faces).any(dim=0)
+            self._winding_pieces = int(unknown.sum())
+            self._seam_unknown = self._winding_pieces > 0
 
     def _normals_as(self, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
         """(B V, 3) vertex and (3 B F, 3) face-edge pseudo-normals in `dtype`, contiguous."""
@@ -476,6 +576,10 @@ class BodyMesh:
             vertex, edge = _pseudo_normals(
                 self._vertices_as(dtype), self._normal_faces, self._edge_inverse, self._num_edges, self._face_rows
             )
+            if self._surface is not None:
+                self._surface.piece_pseudo_normals(
+                    self._source_points.to(dtype), self._vertex_map, self._face_map, vertex, edge
+                )
             self._normals[dtype] = (vertex.reshape(-1, 3).contiguous(), edge.reshape(-1, 3).contiguous())
         return self._normals[dtype]
 
@@ -530,12 +634,16 @@ class BodyMesh:
     def self_intersections(self) -> dict:
         """What `split_self_intersections` found: faces that cross another part
         ("crossing_faces") or lie inside one ("inside_faces") in some pose, the pieces kept
-        of the cut faces ("pieces") and those of them on the crossing, signed by the winding
-        number ("seam_pieces"); all 0 for a mesh that does not pass through itself. A crop
-        reports its parent's. `vertices` and `faces` are the surface queried: the faces not cut,
-        then the kept pieces (their corners appended to the vertices).
+        of the cut faces ("pieces"), those of them on the crossing ("seam_pieces"), and of
+        those the ones signed by the winding number at query time in some pose
+        ("winding_pieces": more than one face of the other part crosses them, or the winding
+        number at a corner disagrees with the side found; the others know the other part's
+        side across them); all 0 for a mesh that does not pass through itself. A crop
+        reports its parent's counts and its own "winding_pieces". `vertices` and `faces` are
+        the surface queried: the faces not cut, then the kept pieces (their corners appended to
+        the vertices).
         """
-        return dict(self._self_intersections)
+        return dict(self._self_intersections, winding_pieces=self._winding_pieces)
 
     @property
     def face_indices(self) -> torch.Tensor | None:
@@ -691,12 +799,12 @@ class BodyMesh:
         face_map = kept if self._face_map is None else self._face_map[kept]
         crop = BodyMesh._from_parts(
             source[:, used], new_faces, self._batched, False, vertex_map, face_map, normal_faces, face_rows, bvh,
-            self._surface, self._self_intersections
+            self._surface, self._self_intersections, None if self._face_parent is None else self._face_parent[kept]
         )
         # The pieces on the crossing stay last (the kept faces keep their order); the crop is open,
         # so the winding number is the uncut closed mesh's.
         first_piece = int((kept < self._first_piece).sum()) if self._surface is not None else crop.num_faces
-        crop._setup_winding(self._winding_points, first_piece)
+        crop._setup_winding(self._source_points, first_piece)
         return crop
 
     def crop_for_hair(
@@ -728,7 +836,7 @@ class BodyMesh:
         cut = self._self_intersections
         split = "" if not cut["pieces"] and not cut["inside_faces"] else (
             f", self-intersections: {cut['crossing_faces']} faces cut into {cut['pieces']} kept pieces "
-            f"({cut['seam_pieces']} on the crossing), "
+            f"({cut['seam_pieces']} on the crossing, {self._winding_pieces} of them signed by the winding number), "
             f"{cut['inside_faces']} inside")
         return (
             f"BodyMesh(batch={self.batch_size}, vertices={self.num_vertices}, faces={self.num_faces}, "
@@ -776,7 +884,7 @@ def _signed_distance_forward(points: torch.Tensor, body: BodyMesh, points_per_ba
     def settle_winding_signs():
         # Points whose closest face is a piece on a self-intersection's crossing, signed by the
         # winding number in a launch of their own (`kernels.hair_body_contact.winding_signed`).
-        if body._first_piece < body.num_faces:
+        if body._seam_unknown:
             _warp.launch(kernels.signed_distance_winding_kernel, dim=count,
                          inputs=mesh + counts + [cap, zero_dist, winding], outputs=outputs + [side], device=device)
 
@@ -953,7 +1061,7 @@ def _energy_forward(x, body, xi, dhat, bp, weight, variant_id, strategy):
             # winding number in a launch of their own before pass 2 reads the sides (pass 2's deep
             # vertices are inside by the chain of misses).
             winding = _warp.as_warp(torch.empty(count, dtype=torch.int32, device=x.device))
-            pieces = body._first_piece < body.num_faces
+            pieces = body._seam_unknown
             _warp.launch(kernels.hair_body_energy_vertex_kernel, dim=count, inputs=common,
                          outputs=outputs + [side, hit_distance, winding], device=device)
             if pieces:
