@@ -197,21 +197,60 @@ def body_signed_distance(
     return found, sign * wp.sqrt(dist2), normal / wp.length(normal)
 
 
+# Past a ray's hit [m] before the next query: the same face is not hit twice.
+RAY_STEP = wp.constant(1.0e-6)
+
+
+@wp.func
+def ray_winding_number(mesh: wp.uint64, p: wp.vec3, direction: wp.vec3):
+    """The winding number of a closed mesh at p by one ray to infinity: the faces it leaves
+    through (hit from behind) minus those it enters through; 0 outside, 1 inside one layer, 2
+    where two parts overlap. A walk of ray queries, each a BVH descent: far cheaper than the
+    fast winding number near the surface, where its near field sums many triangles.
+    """
+    start = p
+    winding = int(0)
+    for k in range(64):
+        q = wp.mesh_query_ray(mesh, start, direction, wp.float32(FAR))
+        if not q.result:
+            break
+        if q.sign > 0.0:
+            winding -= 1
+        else:
+            winding += 1
+        start = start + direction * (q.t + RAY_STEP)
+    return winding
+
+
+@wp.func
+def ray_inside(mesh: wp.uint64, p: wp.vec3):
+    """True inside the union of a closed mesh's parts (winding number >= 1), by the majority of
+    three rays in directions that no face of a mesh built on axes lies along (a ray through a
+    silhouette edge miscounts; two rays rarely both do).
+    """
+    votes = int(0)
+    if ray_winding_number(mesh, p, wp.normalize(wp.vec3(0.5377, 0.7208, 0.4373))) > 0:
+        votes += 1
+    if ray_winding_number(mesh, p, wp.normalize(wp.vec3(-0.6421, 0.3119, 0.7003))) > 0:
+        votes += 1
+    if votes == 1 and ray_winding_number(mesh, p, wp.normalize(wp.vec3(0.2913, -0.8127, 0.5047))) > 0:
+        votes += 1
+    return votes >= 2
+
+
 @wp.func
 def winding_signed(winding_mesh: wp.uint64, p: Any, found: int, d: Any, g: Any, zero_dist: Any):
     """(d, g) of `body_signed_distance` with the sign of the closed mesh's winding number
-    where found == 2 (a piece on a self-intersection's crossing: its pseudo-normal can face
-    into the other part); unchanged otherwise. On the surface (|d| <= zero_dist) the gradient,
-    the face normal, keeps its direction.
+    (`ray_inside`) where found == 2 (a piece on a self-intersection's crossing whose side of the
+    other part is not known: its pseudo-normal can face into the other part); unchanged
+    otherwise. On the surface (|d| <= zero_dist) the gradient, the face normal, keeps its
+    direction.
     """
     if found != 2:
         return d, g
     p32 = wp.vec3(wp.float32(p[0]), wp.float32(p[1]), wp.float32(p[2]))
-    # The uncut mesh's closest face is at most as far as the pieces' (they lie on its faces).
-    reach = wp.float32(wp.abs(d)) * wp.float32(1.01) + wp.float32(1.0e-6)
-    winding = wp.mesh_query_point_sign_winding_number(winding_mesh, p32, reach, 2.0, 0.5)
     zero = d * type(d)(0.0)
-    if not winding.result or (winding.sign < 0.0) == (d < zero):
+    if ray_inside(winding_mesh, p32) == (d < zero):
         return d, g
     if wp.abs(d) <= zero_dist:
         return -d, g
@@ -1022,6 +1061,13 @@ def winding_layers(mesh: wp.uint64, point: wp.vec3):
     return 2
 
 
+@wp.func
+def point_triangle_distance_sq(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
+    """Squared distance from p to the triangle abc."""
+    u, v, w, dist2 = point_triangle_closest_barycentric(p, a, b, c)
+    return dist2
+
+
 @wp.kernel
 def seam_piece_sides_kernel(
     # In:
@@ -1034,23 +1080,26 @@ def seam_piece_sides_kernel(
     source_faces: wp.array(dtype=wp.int32),
     offset: float,
     row: int,
+    unknown_pieces: wp.array(dtype=wp.int32),
     # Out:
     sides_out: wp.array(dtype=wp.vec4),
 ):
     """One thread per piece on a self-intersection's crossing (BVH faces from `first_piece` on,
     corners in `points`), one pose: where the other part lies across the piece, for
     `seam_inside_other_part`. The faces of the uncut closed mesh (`source_mesh`, with winding
-    numbers) that cross the piece, those sharing no vertex with its parent face:
+    numbers) that cross the piece (a face sharing a corner with its parent counts only if it
+    keeps clear of the piece's corners: a fold of the skin through itself):
     - none: the piece lies wholly on one side: (-1, -1, -1, 0) inside the other parts,
       (1, 1, 1, 0) outside;
     - one, G: G's plane is the other part's surface across the piece (a second face would cross
       it where the crossing leaves G): (s_a, s_b, s_c, 0), the corners' signed distances to it,
       outward positive;
     - more: (0, 0, 0, 1), the winding number's at query time.
-    Checked against the winding number at the centre and the corners, `offset` [m] outside
-    along the piece's normal (corners within 4 offsets of G's plane skipped): one layer inside
-    the other part, none outside. Where they disagree (the other part grazes an edge or a
-    corner of the piece, or a third part holds it) the piece is left to the winding number too.
+    Checked against the winding number at the centre and near the corners, `offset` [m]
+    outside along the piece's normal (corners within 4 offsets of G's plane skipped): one layer
+    inside the other part, none outside. Where they disagree (the other part grazes an edge or
+    a corner of the piece, or a third part holds it) the piece is left to the winding number
+    too, as are those marked in `unknown` (a corner on a face left out inside, found on the host).
     """
     f = first_piece + wp.tid()
     a = points[faces[3 * f + 0]]
@@ -1060,6 +1109,7 @@ def seam_piece_sides_kernel(
     i0 = source_faces[3 * parent + 0]
     i1 = source_faces[3 * parent + 1]
     i2 = source_faces[3 * parent + 2]
+    touch = 1.0e-3 * wp.max(wp.max(wp.length(b - a), wp.length(c - b)), wp.length(a - c))
     query = wp.mesh_query_aabb(source_mesh, wp.min(wp.min(a, b), c), wp.max(wp.max(a, b), c))
     g = int(0)
     count = int(0)
@@ -1068,13 +1118,23 @@ def seam_piece_sides_kernel(
         j0 = source_faces[3 * g + 0]
         j1 = source_faces[3 * g + 1]
         j2 = source_faces[3 * g + 2]
+        if g == parent:
+            continue
+        d = source_points[j0]
+        e = source_points[j1]
+        h = source_points[j2]
         shares = (j0 == i0 or j0 == i1 or j0 == i2 or j1 == i0 or j1 == i1 or j1 == i2
                   or j2 == i0 or j2 == i1 or j2 == i2)
-        if not shares and triangles_cross(a, b, c, source_points[j0], source_points[j1], source_points[j2]):
+        # A face around the parent crosses the piece only away from the corner or edge they
+        # share (a fold of the skin passing through itself); one touching the piece is skipped.
+        if shares and wp.min(wp.min(point_triangle_distance_sq(a, d, e, h), point_triangle_distance_sq(b, d, e, h)),
+                             point_triangle_distance_sq(c, d, e, h)) <= touch * touch:
+            continue
+        if triangles_cross(a, b, c, d, e, h):
             count += 1
             other = g
     unknown = wp.vec4(0.0, 0.0, 0.0, 1.0)
-    if count > 1:
+    if count > 1 or unknown_pieces[f] != 0:
         sides_out[row + f] = unknown
         return
     outward = wp.normalize(wp.cross(b - a, c - a)) * offset
@@ -1099,7 +1159,9 @@ def seam_piece_sides_kernel(
         if k == 2:
             corner = c
         if wp.abs(s[k]) > 4.0 * offset:
-            layers = winding_layers(source_mesh, corner + outward)
+            # Just inside the piece from the corner: on a concave fold of the parent's boundary
+            # a point straight out from the corner could lie inside the parent's own part.
+            layers = winding_layers(source_mesh, corner + 0.01 * (centre - corner) + outward)
             if layers != int(s[k] < 0.0):
                 sides_out[row + f] = unknown
                 return

@@ -184,6 +184,33 @@ class _SplitSurface:
     def __init__(self, num_vertices: int, faces: torch.Tensor, parent: torch.Tensor, weights: torch.Tensor):
         self.num_vertices, self.faces, self.parent, self.weights = num_vertices, faces, parent, weights
         self.first_piece_face = None  # index of the first piece among the uncut body's BVH faces
+        self.touches_inside = torch.zeros(parent.shape[0], dtype=torch.bool, device=parent.device)
+
+    def mark_pieces_touching(self, inside_faces: torch.Tensor) -> None:
+        """Mark the pieces with a corner on a face left out inside the other part
+        (`touches_inside`): on their parent's edge next to one, or at a corner one shares. The
+        union's boundary leaves there through a hole the uncut mesh's pseudo-normals know
+        nothing of, and no face need cross the piece: the winding number signs them.
+
+        Args:
+            inside_faces: (F,) bool, the uncut faces left out (inside in every pose).
+        """
+        on_inside = torch.zeros(self.num_vertices, dtype=torch.bool, device=self.faces.device)
+        on_inside[self.faces[inside_faces].reshape(-1)] = True
+        inverse, _ = _edge_inverse(self.faces)
+        slots = torch.argsort(inverse, stable=True).view(-1, 2)  # watertight: two face edges per edge
+        across = torch.empty_like(inverse)
+        across[slots[:, 0]], across[slots[:, 1]] = slots[:, 1] // 3, slots[:, 0] // 3
+        across = across.view(-1, 3)  # across[f, e]: the face sharing edge e of face f
+        zero = self.weights == 0  # (P, 3 corners, 3 parent weights)
+        count = zero.sum(dim=-1)
+        parent = self.parent[:, None].expand(-1, 3)
+        # One zero weight k: on the parent's edge (k + 1) % 3; two: at the parent's other corner.
+        edge = (zero.long().argmax(dim=-1) + 1) % 3
+        corner = (~zero).long().argmax(dim=-1)
+        at_edge = (count == 1) & inside_faces[across[parent, edge]]
+        at_corner = (count == 2) & on_inside[self.faces[parent, corner]]
+        self.touches_inside = (at_edge | at_corner).any(dim=1)
 
     def piece_corners(self, vertices: torch.Tensor) -> torch.Tensor:
         """(B, V, 3) vertices -> (B, 3 P, 3) the pieces' corners, in their dtype."""
@@ -459,6 +486,9 @@ class BodyMesh:
             self._face_parent = torch.where(face_rows < num_source, face_rows,
                                             self._surface.parent[pieces]).to(torch.int32).contiguous()
             self._surface.first_piece_face = self.num_faces - self._self_intersections["pieces"]
+            kept = torch.zeros(num_source, dtype=torch.bool, device=faces.device)
+            kept[self._face_parent.long()] = True
+            self._surface.mark_pieces_touching(~kept)
             self._setup_winding(v, self.num_faces - self._self_intersections["seam_pieces"])
 
     @classmethod
@@ -555,6 +585,10 @@ class BodyMesh:
         self._seam_unknown, self._winding_pieces = False, 0
         if seam > 0:
             source_faces = _warp.as_warp(self._surface.faces.to(torch.int32).contiguous())
+            faces = torch.arange(self.num_faces, device=device) if self._face_map is None else self._face_map
+            piece = (faces - self._surface.first_piece_face).clamp_min(0)
+            unknown = _warp.as_warp((self._surface.touches_inside[piece] & (faces >= self._surface.first_piece_face))
+                                    .to(torch.int32).contiguous())
             with _warp.launch_scope(device):
                 for b, mesh in enumerate(self._winding_meshes):
                     source = self._winding_points[b]
@@ -564,7 +598,7 @@ class BodyMesh:
                         inputs=[_warp.as_warp(self._points32[b], vec3=True), self._faces_wp,
                                 _warp.as_warp(self._face_parent), self._first_piece, mesh.id,
                                 _warp.as_warp(source, vec3=True), source_faces, _WINDING_OFFSET * diagonal,
-                                b * self.num_faces],
+                                b * self.num_faces, unknown],
                         outputs=[self._seam_sides_wp], device=_warp.warp_device(device))
             unknown = (self._seam_sides[:, 3] != 0).view(self.batch_size, self.num_faces).any(dim=0)
             self._winding_pieces = int(unknown.sum())
@@ -636,9 +670,9 @@ class BodyMesh:
         ("crossing_faces") or lie inside one ("inside_faces") in some pose, the pieces kept
         of the cut faces ("pieces"), those of them on the crossing ("seam_pieces"), and of
         those the ones signed by the winding number at query time in some pose
-        ("winding_pieces": more than one face of the other part crosses them, or the winding
-        number at a corner disagrees with the side found; the others know the other part's
-        side across them); all 0 for a mesh that does not pass through itself. A crop
+        ("winding_pieces": more than one face of the other part crosses them, a corner lies on
+        a face left out inside, or the winding number near a corner disagrees with the side
+        found; the others know the other part's side across them); all 0 for a mesh that does not pass through itself. A crop
         reports its parent's counts and its own "winding_pieces". `vertices` and `faces` are
         the surface queried: the faces not cut, then the kept pieces (their corners appended to
         the vertices).
