@@ -279,6 +279,7 @@ def test_poses_share_the_cut_and_update_moves_the_pieces(rng):
     body = BodyMesh(torch.as_tensor(np.stack([v0, v1])), ft)
     points = rng.uniform([-0.5, -0.3, -0.3], [5.0, 1.3, 1.3], size=(2000, 3))
     pt = torch.as_tensor(points)
+    meshes = [m.id for m in body._winding_meshes]
     for poses in ((v0, v1), (v1, v0)):
         d = hair_body_signed_distance(torch.stack([pt, pt])[:, :, None].reshape(2, -1, 1, 3), body).reshape(2, -1)
         for b, vb in enumerate(poses):
@@ -286,6 +287,8 @@ def test_poses_share_the_cut_and_update_moves_the_pieces(rng):
             off = d[b].abs() > 1e-6
             assert bool(((d[b] < 0) == inside)[off].all()), f"pose {b}"
         body.update(torch.as_tensor(np.stack(poses[::-1])))  # the uncut mesh's vertices
+        # Refit in place: a CUDA graph captured before `update` keeps reading the same meshes.
+        assert [m.id for m in body._winding_meshes] == meshes
 
 
 # Hair vertices this close to the pieces [m] (the armpits) are checked against the winding number.

@@ -557,6 +557,15 @@ class BodyMesh:
             self._setup_seam_sides()
             return
         device = self.device
+        if getattr(self, "_winding_points", None) is not None and self._winding_points.shape == source_points.shape:
+            # `update`: moved in place and refit, so a captured graph keeps reading these meshes.
+            with _warp.launch_scope(device):
+                self._source_points.copy_(source_points.detach())
+                self._winding_points.copy_(source_points.detach())
+                for mesh in self._winding_meshes:
+                    mesh.refit()
+            self._setup_seam_sides()
+            return
         self._source_points = source_points.detach().clone()
         with _warp.launch_scope(device):
             self._winding_points = source_points.detach().to(torch.float32).contiguous().clone()
