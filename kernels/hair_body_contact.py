@@ -136,7 +136,7 @@ def body_signed_distance(
 
     Returns (found, d, gradient): found = 0 when no face lies strictly within `max_dist`
     (then d = 0, gradient = 0); 2 when the closest face is a piece on a self-intersection's
-    crossing that more than one face of the other part crosses, whose sign is the winding
+    crossing whose side of the other part is not known (`seam_sides`), whose sign is the winding
     number's (`winding_signed`; a pass of its own, `hair_body_energy_winding_kernel` and
     `signed_distance_winding_kernel`, so that the winding query's code stays out of the hot
     kernels); else 1. On the other pieces of the crossing the side of the other part is read

@@ -119,6 +119,14 @@ def _edge_inverse(faces: torch.Tensor) -> tuple[torch.Tensor, int]:
     return inverse, int(unique.numel())
 
 
+def _edge_slots(faces: torch.Tensor) -> torch.Tensor:
+    """(E, 2) the two face edges (index 3 f + k: edge k of face f) of each edge of a watertight
+    mesh's (F, 3) faces.
+    """
+    inverse, _ = _edge_inverse(faces)
+    return torch.argsort(inverse, stable=True).view(-1, 2)
+
+
 def _pseudo_normals(points: torch.Tensor, faces: torch.Tensor, edge_inverse: torch.Tensor, num_edges: int,
                     face_rows: torch.Tensor | None):
     """Vertex and edge pseudo-normals (Baerentzen & Aanaes 2005) of B posed meshes.
@@ -197,9 +205,8 @@ class _SplitSurface:
         """
         on_inside = torch.zeros(self.num_vertices, dtype=torch.bool, device=self.faces.device)
         on_inside[self.faces[inside_faces].reshape(-1)] = True
-        inverse, _ = _edge_inverse(self.faces)
-        slots = torch.argsort(inverse, stable=True).view(-1, 2)  # watertight: two face edges per edge
-        across = torch.empty_like(inverse)
+        slots = _edge_slots(self.faces)
+        across = torch.empty(slots.numel(), dtype=torch.long, device=slots.device)
         across[slots[:, 0]], across[slots[:, 1]] = slots[:, 1] // 3, slots[:, 0] // 3
         across = across.view(-1, 3)  # across[f, e]: the face sharing edge e of face f
         zero = self.weights == 0  # (P, 3 corners, 3 parent weights)
@@ -323,8 +330,7 @@ def _split_self_intersections(vertices: torch.Tensor, faces: torch.Tensor):
     wp_device = _warp.warp_device(device)
     faces_wp = _warp.as_warp(faces.contiguous())
     # Faces adjacent across each edge (watertight: every edge has exactly two faces).
-    inverse, _ = _edge_inverse(f)
-    pairs = (torch.argsort(inverse, stable=True) // 3).view(-1, 2)
+    pairs = _edge_slots(f) // 3
     points32 = vertices.to(torch.float32).contiguous()
     crossing, inside, meshes, offsets, diagonals = [], [], [], [], []
     for b in range(batch):
@@ -582,8 +588,8 @@ class BodyMesh:
     def _setup_seam_sides(self) -> None:
         """Per pose, where the other part lies across each piece on a self-intersection's
         crossing (`kernels.hair_body_contact.seam_piece_sides_kernel`): (B F, 4) float32, read
-        from `first_piece` on; `_seam_unknown` says whether any piece is left to the winding
-        number (then its pass runs). Reads that flag back to the host (building, not querying).
+        from `first_piece` on; `_winding_pieces` counts those left to the winding number (its pass
+        runs when there are any). Reads that count back to the host (building, not querying).
         """
         device = self.device
         seam = self.num_faces - self._first_piece
@@ -591,7 +597,7 @@ class BodyMesh:
         if getattr(self, "_seam_sides", None) is None or self._seam_sides.shape[0] != rows:
             self._seam_sides = torch.zeros(rows, 4, dtype=torch.float32, device=device)
             self._seam_sides_wp = wp.from_torch(self._seam_sides, dtype=wp.vec4)
-        self._seam_unknown, self._winding_pieces = False, 0
+        self._winding_pieces = 0
         if seam > 0:
             source_faces = _warp.as_warp(self._surface.faces.to(torch.int32).contiguous())
             faces = torch.arange(self.num_faces, device=device) if self._face_map is None else self._face_map
@@ -611,7 +617,6 @@ class BodyMesh:
                         outputs=[self._seam_sides_wp], device=_warp.warp_device(device))
             unknown = (self._seam_sides[:, 3] != 0).view(self.batch_size, self.num_faces).any(dim=0)
             self._winding_pieces = int(unknown.sum())
-            self._seam_unknown = self._winding_pieces > 0
 
     def _normals_as(self, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
         """(B V, 3) vertex and (3 B F, 3) face-edge pseudo-normals in `dtype`, contiguous."""
@@ -681,10 +686,10 @@ class BodyMesh:
         those the ones signed by the winding number at query time in some pose
         ("winding_pieces": more than one face of the other part crosses them, a corner lies on
         a face left out inside, or the winding number near a corner disagrees with the side
-        found; the others know the other part's side across them); all 0 for a mesh that does not pass through itself. A crop
-        reports its parent's counts and its own "winding_pieces". `vertices` and `faces` are
-        the surface queried: the faces not cut, then the kept pieces (their corners appended to
-        the vertices).
+        found; the others know the other part's side across them); all 0 for a mesh that does
+        not pass through itself. A crop reports its parent's counts and its own
+        "winding_pieces". `vertices` and `faces` are the surface queried: the faces not cut,
+        then the kept pieces (their corners appended to the vertices).
         """
         return dict(self._self_intersections, winding_pieces=self._winding_pieces)
 
@@ -925,9 +930,10 @@ def _signed_distance_forward(points: torch.Tensor, body: BodyMesh, points_per_ba
     cap = _warp.scalar(kernels.FAR if max_distance is None else max_distance, points.dtype)
 
     def settle_winding_signs():
-        # Points whose closest face is a piece on a self-intersection's crossing, signed by the
-        # winding number in a launch of their own (`kernels.hair_body_contact.winding_signed`).
-        if body._seam_unknown:
+        # Points whose closest face is a piece on a self-intersection's crossing whose side of the
+        # other part is not known, signed by the winding number in a launch of their own
+        # (`kernels.hair_body_contact.winding_signed`).
+        if body._winding_pieces:
             _warp.launch(kernels.signed_distance_winding_kernel, dim=count,
                          inputs=mesh + counts + [cap, zero_dist, winding], outputs=outputs + [side], device=device)
 
@@ -1104,7 +1110,7 @@ def _energy_forward(x, body, xi, dhat, bp, weight, variant_id, strategy):
             # winding number in a launch of their own before pass 2 reads the sides (pass 2's deep
             # vertices are inside by the chain of misses).
             winding = _warp.as_warp(torch.empty(count, dtype=torch.int32, device=x.device))
-            pieces = body._seam_unknown
+            pieces = body._winding_pieces > 0
             _warp.launch(kernels.hair_body_energy_vertex_kernel, dim=count, inputs=common,
                          outputs=outputs + [side, hit_distance, winding], device=device)
             if pieces:
