@@ -199,6 +199,10 @@ def body_signed_distance(
 
 # Past a ray's hit [m] before the next query: the same face is not hit twice.
 RAY_STEP = wp.constant(1.0e-6)
+# The rays' directions (unit): skew, so that no face of a mesh built on axes lies along one.
+RAY_DIRECTION_0 = wp.constant(wp.vec3(0.53772548, 0.72083416, 0.43732073))
+RAY_DIRECTION_1 = wp.constant(wp.vec3(-0.64210189, 0.31190092, 0.70030206))
+RAY_DIRECTION_2 = wp.constant(wp.vec3(0.29129140, -0.81267600, 0.50468509))
 
 
 @wp.func
@@ -229,11 +233,11 @@ def ray_inside(mesh: wp.uint64, p: wp.vec3):
     silhouette edge miscounts; two rays rarely both do).
     """
     votes = int(0)
-    if ray_winding_number(mesh, p, wp.normalize(wp.vec3(0.5377, 0.7208, 0.4373))) > 0:
+    if ray_winding_number(mesh, p, RAY_DIRECTION_0) > 0:
         votes += 1
-    if ray_winding_number(mesh, p, wp.normalize(wp.vec3(-0.6421, 0.3119, 0.7003))) > 0:
+    if ray_winding_number(mesh, p, RAY_DIRECTION_1) > 0:
         votes += 1
-    if votes == 1 and ray_winding_number(mesh, p, wp.normalize(wp.vec3(0.2913, -0.8127, 0.5047))) > 0:
+    if votes == 1 and ray_winding_number(mesh, p, RAY_DIRECTION_2) > 0:
         votes += 1
     return votes >= 2
 
@@ -1032,33 +1036,22 @@ def winding_inside_kernel(
     # Out:
     inside_out: wp.array(dtype=wp.int32),
 ):
-    """1 where the mesh's winding number at the point is at least 1/2 (inside the union of a
-    self-intersecting closed mesh's parts), by Warp's fast winding number (the mesh built with
-    `support_winding_number=True`).
+    """1 where the mesh's winding number at the point is at least 1 (inside the union of a
+    self-intersecting closed mesh's parts), by three rays (`ray_inside`).
     """
     i = wp.tid()
-    q = wp.mesh_query_point_sign_winding_number(mesh, points[i], wp.float32(FAR), 2.0, 0.5)
-    inside_out[i] = 0
-    if q.result and q.sign < 0.0:
-        inside_out[i] = 1
+    inside_out[i] = int(ray_inside(mesh, points[i]))
 
 
 @wp.func
 def winding_layers(mesh: wp.uint64, point: wp.vec3):
     """How many layers of a self-intersecting closed mesh hold `point`: 0, 1 or 2 (2 or more),
-    by the winding number (thresholds 1/2 and 3/2); -1 when the query fails.
+    the median of three rays' winding numbers (`ray_winding_number`; negative: a miscount).
     """
-    q = wp.mesh_query_point_sign_winding_number(mesh, point, wp.float32(FAR), 2.0, 0.5)
-    if not q.result:
-        return -1
-    if q.sign >= 0.0:
-        return 0
-    q = wp.mesh_query_point_sign_winding_number(mesh, point, wp.float32(FAR), 2.0, 1.5)
-    if not q.result:
-        return -1
-    if q.sign >= 0.0:
-        return 1
-    return 2
+    n0 = ray_winding_number(mesh, point, RAY_DIRECTION_0)
+    n1 = ray_winding_number(mesh, point, RAY_DIRECTION_1)
+    n2 = ray_winding_number(mesh, point, RAY_DIRECTION_2)
+    return wp.min(wp.max(wp.min(n0, n1), wp.min(wp.max(n0, n1), n2)), 2)
 
 
 @wp.func

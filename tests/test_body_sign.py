@@ -338,7 +338,7 @@ def test_default_body_armpits_are_signed_as_the_winding_number_says():
 def test_scene_frames_cut_short_batches_and_keep_whole_motions_uncut():
     """`Scene.frames` cuts the body's self-intersections for batches of at most SPLIT_MAX_FRAMES
     frames (drapes, benchmark batches) and keeps a longer batch's surface uncut (a whole motion:
-    the per-pose search would cost ~0.3 s a pose on a 2-core CPU); the argument overrides."""
+    the per-pose search would cost ~0.13 s a pose on a 2-core CPU); the argument overrides."""
     from hairwarp.scene.scene import SPLIT_MAX_FRAMES, default_scene
 
     scene = default_scene("bob", "head_turn", strand_stride=64, num_vertices=10)

@@ -334,7 +334,7 @@ def _split_self_intersections(vertices: torch.Tensor, faces: torch.Tensor):
     points32 = vertices.to(torch.float32).contiguous()
     crossing, inside, meshes, offsets, diagonals = [], [], [], [], []
     for b in range(batch):
-        mesh = wp.Mesh(points=_warp.as_warp(points32[b], vec3=True), indices=faces_wp, support_winding_number=True)
+        mesh = wp.Mesh(points=_warp.as_warp(points32[b], vec3=True), indices=faces_wp)
         flags = torch.empty(num_faces, dtype=torch.int32, device=device)
         _warp.launch(kernels.self_intersecting_faces_kernel, dim=num_faces,
                      inputs=[mesh.id, _warp.as_warp(points32[b], vec3=True), faces_wp],
@@ -577,8 +577,7 @@ class BodyMesh:
             self._winding_points = source_points.detach().to(torch.float32).contiguous().clone()
             faces = _warp.as_warp(self._surface.faces.to(torch.int32).contiguous())
             self._winding_meshes = [
-                wp.Mesh(points=_warp.as_warp(self._winding_points[b], vec3=True), indices=faces,
-                        support_winding_number=True)
+                wp.Mesh(points=_warp.as_warp(self._winding_points[b], vec3=True), indices=faces)
                 for b in range(self._winding_points.shape[0])
             ]
             self._winding_ids = wp.array([m.id for m in self._winding_meshes], dtype=wp.uint64,
