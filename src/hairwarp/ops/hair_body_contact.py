@@ -284,7 +284,9 @@ class _SplitSurface:
 
 
 def _winding_inside(mesh: wp.Mesh, points: torch.Tensor) -> torch.Tensor:
-    """(P,) bool: points (P, 3) inside `mesh` (winding number >= 1/2)."""
+    """(P,) bool: points (P, 3) inside `mesh`: winding number >= 1, by three rays
+    (`hairwarp.kernels.hair_body_contact.ray_inside`).
+    """
     inside = torch.zeros(points.shape[0], dtype=torch.int32, device=points.device)
     if points.shape[0]:
         _warp.launch(kernels.winding_inside_kernel, dim=points.shape[0],
