@@ -1152,9 +1152,10 @@ def seam_piece_sides_kernel(
         if k == 2:
             corner = c
         if wp.abs(s[k]) > 4.0 * offset:
-            # Just inside the piece from the corner: on a concave fold of the parent's boundary
-            # a point straight out from the corner could lie inside the parent's own part.
-            layers = winding_layers(source_mesh, corner + 0.01 * (centre - corner) + outward)
+            # A twentieth of the way in from the corner, a quarter offset out: where the skin
+            # folds over the parent's edge into a slit, a point straight out from the corner
+            # would cross the slit into the parent's own part.
+            layers = winding_layers(source_mesh, corner + 0.05 * (centre - corner) + 0.25 * outward)
             if layers != int(s[k] < 0.0):
                 sides_out[row + f] = unknown
                 return
