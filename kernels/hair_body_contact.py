@@ -831,8 +831,8 @@ def signed_distance_winding_kernel(
     gradient_out: wp.array(dtype=Any),
     side_out: wp.array(dtype=wp.int32),
 ):
-    """The points flagged in `winding` (closest face a piece of a face cut at a
-    self-intersection) again, unbounded, signed by the winding number (`winding_signed`);
+    """The points flagged in `winding` (closest face a crossing piece whose side of the other
+    part is not known, `seam_sides`) again, unbounded, signed by the winding number (`winding_signed`);
     distance clamped to max_distance (gradient zero there) and side written. Other threads
     return at once: the winding query's code stays out of the hot kernels.
     """
@@ -882,8 +882,8 @@ def hair_body_energy_winding_kernel(
     gradient_out: wp.array(dtype=Any),
     side_out: wp.array(dtype=wp.int32),
 ):
-    """The vertices flagged in `winding` by pass 1 (closest face a piece of a face cut at a
-    self-intersection) again, unbounded, signed by the winding number (`winding_signed`):
+    """The vertices flagged in `winding` by pass 1 (closest face a crossing piece whose side of
+    the other part is not known, `seam_sides`) again, unbounded, signed by the winding number (`winding_signed`):
     their side, energy and gradient rewritten. Other threads return at once.
     """
     i = wp.tid()

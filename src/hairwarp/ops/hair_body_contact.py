@@ -1107,8 +1107,8 @@ def _energy_forward(x, body, xi, dhat, bp, weight, variant_id, strategy):
             hit_distance = _warp.as_warp(torch.empty(count, dtype=torch.float32, device=x.device))
             deep_flag = torch.empty(count, dtype=torch.int32, device=x.device)
             hit = _warp.as_warp(torch.empty(count, dtype=torch.int32, device=x.device))
-            # Hits whose closest face is a piece of a face cut at a self-intersection, signed by the
-            # winding number in a launch of their own before pass 2 reads the sides (pass 2's deep
+            # Hits whose closest face is a crossing piece whose side of the other part is not known,
+            # signed by the winding number in a launch of their own before pass 2 reads the sides (pass 2's deep
             # vertices are inside by the chain of misses).
             winding = _warp.as_warp(torch.empty(count, dtype=torch.int32, device=x.device))
             pieces = body._winding_pieces > 0
