@@ -335,14 +335,35 @@ def test_default_body_armpits_are_signed_as_the_winding_number_says():
         assert bool(((d < 0) == inside)[off].all()), f"{int(((d < 0) != inside)[off].sum())} wrong signs"
 
 
-def test_scene_frames_cut_short_batches_and_keep_whole_motions_uncut():
-    """`Scene.frames` cuts the body's self-intersections for batches of at most SPLIT_MAX_FRAMES
-    frames (drapes, benchmark batches) and keeps a longer batch's surface uncut (a whole motion:
-    the per-pose search would cost ~0.13 s a pose on a 2-core CPU); the argument overrides."""
-    from hairwarp.scene.scene import SPLIT_MAX_FRAMES, default_scene
+@pytest.mark.slow
+def test_scene_frames_cut_whole_motions():
+    """`Scene.frames` cuts the body's self-intersections for a batch of any length (a whole
+    motion: 40 frames of the head turn here): the long hair's rigid placement has vertices inside
+    the chest that the uncut surface calls outside (its armpits' faces inside the other part);
+    the cut body signs them as the float64 winding number says, but within 2.5 pieces' size of
+    the surface. `split_self_intersections=False` keeps the uncut surface."""
+    from hairwarp.ops.hair_body_contact import SELF_INTERSECTION_PIECE_FRACTION
+    from hairwarp.scene.scene import default_scene
 
-    scene = default_scene("bob", "head_turn", strand_stride=64, num_vertices=10)
-    assert scene.frames([0]).body_mesh.self_intersections["crossing_faces"] > 0
-    long = torch.arange(SPLIT_MAX_FRAMES + 1) % scene.num_frames
-    assert scene.frames(long).body_mesh.self_intersections["crossing_faces"] == 0
-    assert scene.frames([0], split_self_intersections=False).body_mesh.self_intersections["pieces"] == 0
+    scene = default_scene("long_straight", "head_turn", strand_stride=8, num_vertices=30)
+    indices = torch.linspace(0, scene.num_frames - 1, 40).round().long()
+    frames = scene.frames(indices)
+    plain = scene.frames(indices, split_self_intersections=False)
+    assert frames.body_mesh.self_intersections["crossing_faces"] > 0
+    assert plain.body_mesh.self_intersections["pieces"] == 0
+    x = frames.rigid.positions
+    d = hair_body_signed_distance(x, frames.body_mesh).reshape(len(indices), -1)
+    d_plain = hair_body_signed_distance(x, plain.body_mesh).reshape(len(indices), -1)
+    disagree = (d < 0) != (d_plain < 0)
+    assert int(disagree.sum()) > 50, int(disagree.sum())  # the uncut surface lies there
+    f = scene.body.faces.long()
+    wrong = 0
+    for b in disagree.any(dim=1).nonzero().reshape(-1).tolist():
+        v = frames.posed.vertices[b].double()
+        points = x[b].reshape(-1, 3)[disagree[b]].double()
+        inside = winding_numbers(points, v, f) > 0.5
+        off = d[b, disagree[b]].abs() > 2.5 * SELF_INTERSECTION_PIECE_FRACTION * float(
+            torch.linalg.vector_norm(v.amax(0) - v.amin(0)))
+        assert bool((d_plain[b, disagree[b]] >= 0)[inside & off].all())  # the lie is "outside"
+        wrong += int(((d[b, disagree[b]] < 0) != inside)[off].sum())
+    assert wrong == 0, f"{wrong} wrong signs"

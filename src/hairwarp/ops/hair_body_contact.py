@@ -323,7 +323,8 @@ def _split_self_intersections(vertices: torch.Tensor, faces: torch.Tensor):
         the kept pieces' corners appended, BVH faces (F', 3) int32 (the faces not cut, then the
         pieces), normal faces (F + P, 3) int64 (every face, then the pieces: the pseudo-normals
         of the faces around a cut keep their neighbours), face rows (F',) int64 (the BVH faces
-        among the normal faces), the `_SplitSurface`, counts).
+        among the normal faces), the `_SplitSurface`, counts, (float32 vertices (B, V, 3), the
+        B uncut `wp.Mesh` on them: the body's winding meshes)).
     """
     batch, num_vertices = vertices.shape[:2]
     device = vertices.device
@@ -333,7 +334,8 @@ def _split_self_intersections(vertices: torch.Tensor, faces: torch.Tensor):
     faces_wp = _warp.as_warp(faces.contiguous())
     # Faces adjacent across each edge (watertight: every edge has exactly two faces).
     pairs = _edge_slots(f) // 3
-    points32 = vertices.to(torch.float32).contiguous()
+    # A copy: the meshes built on it become the body's winding meshes, moved by `update`.
+    points32 = vertices.to(torch.float32, copy=True).contiguous()
     crossing, inside, meshes, offsets, diagonals = [], [], [], [], []
     for b in range(batch):
         mesh = wp.Mesh(points=_warp.as_warp(points32[b], vec3=True), indices=faces_wp)
@@ -383,16 +385,42 @@ def _split_self_intersections(vertices: torch.Tensor, faces: torch.Tensor):
     weight = torch.eye(3, dtype=torch.float64, device=device).expand(cut_faces.numel(), 3, 3)
     kept_parent, kept_weight, seam_parent, seam_weight = [], [], [], []
     positions64 = vertices.to(torch.float64)
+    face_corners = positions64[:, f[cut_faces]]  # (B, C, 3, 3)
+    face_normal = torch.zeros(batch, num_faces, 3, dtype=torch.float64, device=device)
+    face_normal[:, cut_faces] = torch.nn.functional.normalize(torch.cross(
+        face_corners[:, :, 1] - face_corners[:, :, 0], face_corners[:, :, 2] - face_corners[:, :, 0], dim=-1), dim=-1)
+    # Samples are read off the cut face's plane (a piece's corner is shared by up to six pieces,
+    # and by its parent a level up): each sample is tested once per pose, keyed by its face and
+    # barycentric weights (multiples of 1 / (3 2^levels): exact in float64).
+    weight_scale = 3 * 2 ** _MAX_SPLIT_LEVELS
+    known = [(torch.empty(0, dtype=torch.int64, device=device), torch.empty(0, dtype=torch.bool, device=device))
+             for _ in range(batch)]
     for level in range(_MAX_SPLIT_LEVELS + 1):
         corners = torch.einsum("pcj,bpjk->bpck", weight, positions64[:, f[parent]])  # (B, N, 3, 3)
-        normal = torch.nn.functional.normalize(torch.cross(corners[:, :, 1] - corners[:, :, 0],
-                                                           corners[:, :, 2] - corners[:, :, 0], dim=-1), dim=-1)
-        samples = torch.cat([corners, corners.mean(dim=2, keepdim=True)], dim=2)  # (B, N, 4, 3)
+        sample_weight = torch.cat([weight, weight.mean(dim=1, keepdim=True)], dim=1)  # (N, 4, 3)
+        quantized = (sample_weight[..., :2] * weight_scale).round().long()
+        sample_key = (parent[:, None] * (weight_scale + 1) + quantized[..., 0]) * (weight_scale + 1) + quantized[..., 1]
         sample_inside = inside[:, parent, None].expand(-1, -1, 4).clone()
         for b in range(batch):
             test = crossing[b, parent].nonzero().reshape(-1)
-            points = (samples[b, test] + offsets[b] * normal[b, test, None]).reshape(-1, 3)
-            sample_inside[b, test] = _winding_inside(meshes[b], points).view(-1, 4)
+            keys, first = torch.unique(sample_key[test].reshape(-1), return_inverse=True)
+            known_keys, known_inside = known[b]
+            at = torch.searchsorted(known_keys, keys).clamp_max(max(known_keys.numel() - 1, 0))
+            found = known_keys[at] == keys if known_keys.numel() else torch.zeros_like(keys, dtype=torch.bool)
+            result = torch.zeros(keys.shape, dtype=torch.bool, device=device)
+            result[found] = known_inside[at[found]]
+            new = (~found).nonzero().reshape(-1)
+            if new.numel():
+                owner = torch.empty_like(keys)
+                owner[first] = torch.arange(first.numel(), device=device)  # one sample per new key
+                row = owner[new]
+                piece, slot = test[row // 4], row % 4
+                points = (torch.einsum("sj,sjk->sk", sample_weight[piece, slot], positions64[b, f[parent[piece]]])
+                          + offsets[b] * face_normal[b, parent[piece]])
+                result[new] = _winding_inside(meshes[b], points)
+                merged_keys, order = torch.sort(torch.cat([known_keys, keys[new]]))
+                known[b] = (merged_keys, torch.cat([known_inside, result[new]])[order])
+            sample_inside[b, test] = result[first].view(-1, 4)
         straddles = (sample_inside.any(dim=2) & ~sample_inside.all(dim=2)).any(dim=0)
         if level == 0:
             straddles |= crossing[:, parent].any(dim=0)
@@ -420,7 +448,7 @@ def _split_self_intersections(vertices: torch.Tensor, faces: torch.Tensor):
     face_rows = torch.cat([uncut, num_faces + torch.arange(num_pieces, device=device)])
     counts = {"crossing_faces": int(crossing.any(dim=0).sum()), "inside_faces": int(inside.any(dim=0).sum()),
               "pieces": num_pieces, "seam_pieces": seam_pieces}
-    return split.augment(vertices), bvh_faces, normal_faces, face_rows, split, counts
+    return split.augment(vertices), bvh_faces, normal_faces, face_rows, split, counts, (points32, meshes)
 
 
 class BodyMesh:
@@ -486,7 +514,7 @@ class BodyMesh:
             self._face_parent = None
             self._setup_winding(None, self.num_faces)
         else:
-            augmented, bvh_faces, normal_faces, face_rows, self._surface, self._self_intersections = split
+            augmented, bvh_faces, normal_faces, face_rows, self._surface, self._self_intersections, winding = split
             self._setup(augmented, bvh_faces, batched, True, None, None, normal_faces, face_rows)
             # The uncut face each BVH face lies on (rows past the uncut faces are pieces).
             num_source = self._surface.faces.shape[0]
@@ -497,7 +525,7 @@ class BodyMesh:
             kept = torch.zeros(num_source, dtype=torch.bool, device=faces.device)
             kept[self._face_parent.long()] = True
             self._surface.mark_pieces_touching(~kept)
-            self._setup_winding(v, self.num_faces - self._self_intersections["seam_pieces"])
+            self._setup_winding(v, self.num_faces - self._self_intersections["seam_pieces"], winding)
 
     @classmethod
     def _from_parts(cls, vertices, faces, batched, watertight, vertex_map, face_map, normal_faces, face_rows,
@@ -528,46 +556,70 @@ class BodyMesh:
         if vertices.dtype == torch.float64:
             self._points64 = vertices.contiguous().clone()
         self._dtype = vertices.dtype
-        device = vertices.device
-        with _warp.launch_scope(device):
+        with _warp.launch_scope(vertices.device):
             self._faces_wp = _warp.as_warp(self._faces)
-            self._meshes = [
-                wp.Mesh(points=_warp.as_warp(self._points32[b], vec3=True), indices=self._faces_wp,
-                        bvh_constructor=self._bvh, bvh_leaf_size=_BVH_LEAF_SIZE[self._bvh])
-                for b in range(self._points32.shape[0])
-            ]
-            ids = [m.id for m in self._meshes]
-            self._mesh_ids = wp.array(ids, dtype=wp.uint64, device=_warp.warp_device(device))
+        # The BVHs are built at the first query (`_query_ready`): a body built only to be cropped
+        # (`Scene.frames`, the stability runs) never builds its own.
+        self._meshes, self._mesh_ids = None, None
+
+    def _query_ready(self) -> None:
+        """Build what queries read and construction leaves for later: the BVHs, the winding
+        meshes of a self-intersecting body and the pieces' sides of the other part.
+        Builds on the host (and reads a count back): called before a query, never inside a
+        captured graph (`CapturedEnergy` warms up eagerly first).
+        """
+        device = self.device
+        if self._meshes is None:
+            with _warp.launch_scope(device):
+                self._meshes = [
+                    wp.Mesh(points=_warp.as_warp(self._points32[b], vec3=True), indices=self._faces_wp,
+                            bvh_constructor=self._bvh, bvh_leaf_size=_BVH_LEAF_SIZE[self._bvh])
+                    for b in range(self._points32.shape[0])
+                ]
+                self._mesh_ids = wp.array([m.id for m in self._meshes], dtype=wp.uint64,
+                                          device=_warp.warp_device(device))
+        if self._source_points is not None and self._winding_meshes is None:
+            with _warp.launch_scope(device):
+                points = self._source_points.to(torch.float32).contiguous().clone()
+                self._set_winding_meshes(points, [wp.Mesh(points=_warp.as_warp(points[b], vec3=True),
+                                                          indices=self._winding_faces())
+                                                  for b in range(points.shape[0])])
+        if self._seam_sides_stale:
+            self._setup_seam_sides()
 
     def _kernel_arrays(self, dtype: torch.dtype) -> list:
         """The body's arrays as the kernels take them, after the query points: mesh ids,
         vertices, faces, vertex and edge pseudo-normals (`kernels.hair_body_contact`).
         """
+        self._query_ready()
         vertex_normals, edge_normals = self._normals_as(dtype)
+        winding_ids = self._mesh_ids if self._winding_ids is None else self._winding_ids
         return [self._mesh_ids, _warp.as_warp(self._vertices_as(dtype), vec3=True), self._faces_wp,
                 _warp.as_warp(vertex_normals, vec3=True), _warp.as_warp(edge_normals, vec3=True),
-                self._winding_ids, self._first_piece, self._seam_sides_wp]
+                winding_ids, self._first_piece, self._seam_sides_wp]
 
-    def _setup_winding(self, source_points: torch.Tensor | None, first_piece: int) -> None:
+    def _setup_winding(self, source_points: torch.Tensor | None, first_piece: int, winding=None) -> None:
         """The closed meshes a self-intersecting body was built from, with winding numbers, for
         the sign near the pieces (`kernels.hair_body_contact.body_signed_distance`): faces from
         `first_piece` on are pieces. Without pieces the kernels never read them (the BVH's own
-        meshes stand in).
+        meshes stand in). The meshes and the pieces' sides are built at the first query
+        (`_query_ready`), or refit and recomputed at once by `update` once built.
 
         Args:
             source_points: (B, V, 3) the uncut mesh's vertices, or None without pieces.
             first_piece: index of the first piece among the BVH's faces.
+            winding: None, or (float32 points (B, V, 3), their B `wp.Mesh`) already built on
+                `source_points` (the self-intersection search's), taken as they are.
         """
         self._first_piece = int(first_piece)
+        self._seam_sides_stale = True
         if source_points is None:
             self._source_points = None
-            self._winding_points, self._winding_meshes, self._winding_ids = None, [], self._mesh_ids
-            self._setup_seam_sides()
+            self._winding_points, self._winding_meshes, self._winding_ids = None, [], None
             return
-        device = self.device
-        if getattr(self, "_winding_points", None) is not None and self._winding_points.shape == source_points.shape:
+        if getattr(self, "_winding_meshes", None) and self._winding_points.shape == source_points.shape:
             # `update`: moved in place and refit, so a captured graph keeps reading these meshes.
-            with _warp.launch_scope(device):
+            with _warp.launch_scope(self.device):
                 self._source_points.copy_(source_points.detach())
                 self._winding_points.copy_(source_points.detach())
                 for mesh in self._winding_meshes:
@@ -575,21 +627,33 @@ class BodyMesh:
             self._setup_seam_sides()
             return
         self._source_points = source_points.detach().clone()
-        with _warp.launch_scope(device):
-            self._winding_points = source_points.detach().to(torch.float32).contiguous().clone()
-            faces = _warp.as_warp(self._surface.faces.to(torch.int32).contiguous())
-            self._winding_meshes = [
-                wp.Mesh(points=_warp.as_warp(self._winding_points[b], vec3=True), indices=faces)
-                for b in range(self._winding_points.shape[0])
-            ]
-            self._winding_ids = wp.array([m.id for m in self._winding_meshes], dtype=wp.uint64,
-                                         device=_warp.warp_device(device))
-        self._setup_seam_sides()
+        self._winding_points, self._winding_meshes, self._winding_ids = None, None, None
+        if winding is not None:
+            self._set_winding_meshes(*winding)
+
+    def _winding_faces(self) -> wp.array:
+        return _warp.as_warp(self._surface.faces.to(torch.int32).contiguous())
+
+    def _set_winding_meshes(self, points: torch.Tensor, meshes: list) -> None:
+        self._winding_points, self._winding_meshes = points, meshes
+        self._winding_ids = wp.array([m.id for m in meshes], dtype=wp.uint64, device=_warp.warp_device(self.device))
+
+    def _give_winding_meshes(self):
+        """(points, meshes) of the winding meshes, handed over (a crop takes them rather than
+        build the same again); this body builds its own again if it is ever queried. None if
+        not built.
+        """
+        if not self._winding_meshes:
+            return None
+        winding = (self._winding_points, self._winding_meshes)
+        self._winding_points, self._winding_meshes, self._winding_ids = None, None, None
+        self._seam_sides_stale = True
+        return winding
 
     def _setup_seam_sides(self) -> None:
         """Per pose, where the other part lies across each piece on a self-intersection's
         crossing (`kernels.hair_body_contact.seam_piece_sides_kernel`): (B F, 4) float32, read
-        from `first_piece` on; `_winding_pieces` counts those left to the winding number (its pass
+        from `first_piece` on; `_winding_piece_count` counts those left to the winding number (its pass
         runs when there are any). Reads that count back to the host (building, not querying).
         """
         device = self.device
@@ -598,7 +662,8 @@ class BodyMesh:
         if getattr(self, "_seam_sides", None) is None or self._seam_sides.shape[0] != rows:
             self._seam_sides = torch.zeros(rows, 4, dtype=torch.float32, device=device)
             self._seam_sides_wp = wp.from_torch(self._seam_sides, dtype=wp.vec4)
-        self._winding_pieces = 0
+        self._seam_sides_stale = False
+        self._winding_piece_count = 0
         if seam > 0:
             source_faces = _warp.as_warp(self._surface.faces.to(torch.int32).contiguous())
             faces = torch.arange(self.num_faces, device=device) if self._face_map is None else self._face_map
@@ -617,7 +682,13 @@ class BodyMesh:
                                 b * self.num_faces, unknown],
                         outputs=[self._seam_sides_wp], device=_warp.warp_device(device))
             unknown = (self._seam_sides[:, 3] != 0).view(self.batch_size, self.num_faces).any(dim=0)
-            self._winding_pieces = int(unknown.sum())
+            self._winding_piece_count = int(unknown.sum())
+
+    @property
+    def _winding_pieces(self) -> int:
+        """Pieces signed by the winding number at query time in some pose (0: no fix-up pass)."""
+        self._query_ready()
+        return self._winding_piece_count
 
     def _normals_as(self, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
         """(B V, 3) vertex and (3 B F, 3) face-edge pseudo-normals in `dtype`, contiguous."""
@@ -743,7 +814,7 @@ class BodyMesh:
             self._points32.copy_(v)
             if self._points64 is not None:
                 self._points64.copy_(v)
-            for mesh in self._meshes:
+            for mesh in self._meshes or ():
                 mesh.refit()
         self._normals = {}
         if self._surface is not None:
@@ -853,7 +924,9 @@ class BodyMesh:
         # The pieces on the crossing stay last (the kept faces keep their order); the crop is open,
         # so the winding number is the uncut closed mesh's.
         first_piece = int((kept < self._first_piece).sum()) if self._surface is not None else crop.num_faces
-        crop._setup_winding(self._source_points, first_piece)
+        # A body not queried yet (one built to be cropped) hands its winding meshes over.
+        crop._setup_winding(self._source_points, first_piece,
+                            self._give_winding_meshes() if self._meshes is None else None)
         return crop
 
     def crop_for_hair(

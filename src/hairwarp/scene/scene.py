@@ -19,11 +19,6 @@ from hairwarp.scene.motion import Motion, procedural_motion
 from hairwarp.scene.placement import RigidHair, rigid_placement, root_search
 from hairwarp.scene.scalp import Scalp, build_scalp
 
-# `Scene.frames` cuts the posed body's self-intersections for batches of at most this many
-# frames: the drapes, the benchmarks' batches of 32 (docs/contact.md 14). A whole motion (241
-# frames of the head turn) would spend ~70 s on it on the 2-core CPU instead of 7 s posing.
-SPLIT_MAX_FRAMES = 32
-
 
 @dataclass(eq=False)
 class SceneFrames:
@@ -103,7 +98,7 @@ class Scene:
         return self._cache[key]
 
     def frames(self, indices=None, *, device="cpu", dtype=torch.float32, crop: bool = True,
-               split_self_intersections: bool | None = None) -> SceneFrames:
+               split_self_intersections: bool = True) -> SceneFrames:
         """Pose the body and place the hair rigidly (Eq. 1) for a batch of frames.
 
         Args:
@@ -114,10 +109,9 @@ class Scene:
                 contact result, fewer triangles to query).
             split_self_intersections: query the posed body as the union of its parts where it
                 passes through itself (`BodyMesh`; the default body's arms enter its chest at the
-                armpits). None: for batches of at most `SPLIT_MAX_FRAMES` frames; a longer
-                batch (a whole motion) keeps the uncut surface, whose search costs ~0.13 s per
-                pose on a 2-core CPU (the head turn's 241 frames: 37-40 s against 7 s uncut;
-                docs/contact.md 14-15).
+                armpits, and the uncut surface calls points up to 9 cm inside the chest outside).
+                The search costs ~55 ms per pose on a 2-core CPU (the head turn's 241 frames:
+                20-23 s against 6-7 s uncut; docs/contact.md 16); False keeps the uncut surface.
 
         Returns:
             SceneFrames.
@@ -152,8 +146,6 @@ class Scene:
                                 root_uv=cache["root_uv"], search=cache["search"])
         faces = self.body.faces.to(device=device, dtype=torch.int32)
         # The full body is only cropped (a tree fast to build), the crop is queried (the better tree).
-        if split_self_intersections is None:
-            split_self_intersections = len(indices) <= SPLIT_MAX_FRAMES
         body_mesh = BodyMesh(posed.vertices.to(dtype), faces, bvh="lbvh" if crop else "sah",
                              split_self_intersections=split_self_intersections)
         if crop:
