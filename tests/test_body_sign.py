@@ -291,6 +291,51 @@ def test_poses_share_the_cut_and_update_moves_the_pieces(rng):
         assert [m.id for m in body._winding_meshes] == meshes
 
 
+def test_a_body_builds_at_its_first_query_once_and_a_crop_takes_its_winding_meshes(rng, monkeypatch):
+    """A body builds its trees, winding meshes and pieces' sides at its first query, not before;
+    a crop of a body not yet queried takes that body's winding meshes (the self-intersection
+    search's) instead of building them again, and the body builds its own again if queried
+    after; four threads querying a new body at once build it once. Every answer the same."""
+    import threading
+
+    import warp as wp
+
+    v, f = overlapping_boxes()
+    points = torch.as_tensor(rng.uniform([-0.5, -0.3, -0.3], [3.5, 1.3, 1.3], size=(500, 3)))[None, :, None]
+    reference = hair_body_signed_distance(points, BodyMesh(torch.as_tensor(v), torch.as_tensor(f)))
+    built = []
+
+    class CountingMesh(wp.Mesh):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            built.append(self)
+
+    monkeypatch.setattr(wp, "Mesh", CountingMesh)
+    body = BodyMesh(torch.as_tensor(v), torch.as_tensor(f))
+    assert len(built) == 1 and body._meshes is None  # the search's uncut mesh only
+    crop = body.crop(torch.tensor([[1.5, 0.5, 0.5]]), torch.tensor([5.0]))
+    assert len(built) == 1 and crop._winding_meshes is not None and body._winding_meshes is None
+    assert torch.equal(hair_body_signed_distance(points, crop), reference)
+    assert len(built) == 2  # the crop's tree; its winding meshes were handed over
+    assert torch.equal(hair_body_signed_distance(points, body), reference)
+    assert len(built) == 4  # the body's own tree and winding mesh, built when it was queried
+    fresh = BodyMesh(torch.as_tensor(v), torch.as_tensor(f))
+    del built[:]
+    results = [None] * 4
+    barrier = threading.Barrier(4)
+
+    def query(k):
+        barrier.wait()
+        results[k] = hair_body_signed_distance(points, fresh)
+
+    threads = [threading.Thread(target=query, args=(k,)) for k in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(built) == 1 and all(torch.equal(r, reference) for r in results)
+
+
 # Hair vertices this close to the pieces [m] (the armpits) are checked against the winding number.
 _ARMPIT_RADIUS = 0.06
 

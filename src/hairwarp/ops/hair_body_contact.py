@@ -23,6 +23,7 @@ Gradients flow to the hair/points only: `wp.Mesh` queries give none to the body 
 from __future__ import annotations
 
 import math
+import threading
 
 import torch
 import warp as wp
@@ -561,13 +562,21 @@ class BodyMesh:
         # The BVHs are built at the first query (`_query_ready`): a body built only to be cropped
         # (`Scene.frames`, the stability runs) never builds its own.
         self._meshes, self._mesh_ids = None, None
+        self._build_lock = threading.Lock()
 
     def _query_ready(self) -> None:
         """Build what queries read and construction leaves for later: the BVHs, the winding
         meshes of a self-intersecting body and the pieces' sides of the other part.
         Builds on the host (and reads a count back): called before a query, never inside a
-        captured graph (`CapturedEnergy` warms up eagerly first).
+        captured graph (`CapturedEnergy` warms up eagerly first). Under a lock: two threads
+        querying a new body (the CPU runs contact terms side by side) build it once.
         """
+        if self._meshes is not None and self._winding_meshes is not None and not self._seam_sides_stale:
+            return
+        with self._build_lock:
+            self._build_for_queries()
+
+    def _build_for_queries(self) -> None:
         device = self.device
         if self._meshes is None:
             with _warp.launch_scope(device):
