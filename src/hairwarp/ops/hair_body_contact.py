@@ -455,8 +455,9 @@ def _split_self_intersections(vertices: torch.Tensor, faces: torch.Tensor):
 class BodyMesh:
     """A posed body surface (one mesh, or B meshes of one topology) for hair-body contact.
 
-    Validation runs once here; `update` refits the BVHs in place for a deforming body, and
-    `crop` / `crop_for_hair` return a smaller BodyMesh with only the triangles hair can reach.
+    Validation runs once here, the BVHs are built at the first query; `update` refits them in
+    place for a deforming body, and `crop` / `crop_for_hair` return a smaller BodyMesh with only
+    the triangles hair can reach.
     Vertices [m]: (V, 3) or (B, V, 3) float32/float64 (one pose per batch item); faces (F, 3)
     int32/int64, counter-clockwise seen from outside. The meshes are float32 (`wp.Mesh`); a
     float64 copy of the vertices is kept for float64 queries. No gradient reaches the vertices.
@@ -641,6 +642,7 @@ class BodyMesh:
             self._set_winding_meshes(*winding)
 
     def _winding_faces(self) -> wp.array:
+        """The uncut closed mesh's faces, as the winding meshes and the pieces' sides take them."""
         return _warp.as_warp(self._surface.faces.to(torch.int32).contiguous())
 
     def _set_winding_meshes(self, points: torch.Tensor, meshes: list) -> None:
@@ -674,7 +676,7 @@ class BodyMesh:
         self._seam_sides_stale = False
         self._winding_piece_count = 0
         if seam > 0:
-            source_faces = _warp.as_warp(self._surface.faces.to(torch.int32).contiguous())
+            source_faces = self._winding_faces()
             faces = torch.arange(self.num_faces, device=device) if self._face_map is None else self._face_map
             piece = (faces - self._surface.first_piece_face).clamp_min(0)
             unknown = _warp.as_warp((self._surface.touches_inside[piece] & (faces >= self._surface.first_piece_face))

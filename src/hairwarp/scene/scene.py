@@ -145,7 +145,8 @@ class Scene:
         rigid = rigid_placement(cache["strands"], posed, self.body, scalp=self.scalp,
                                 root_uv=cache["root_uv"], search=cache["search"])
         faces = self.body.faces.to(device=device, dtype=torch.int32)
-        # The full body is only cropped (a tree fast to build), the crop is queried (the better tree).
+        # The full body is only cropped (its tree, built at a first query, is never built), the
+        # crop is queried (the better tree).
         body_mesh = BodyMesh(posed.vertices.to(dtype), faces, bvh="lbvh" if crop else "sah",
                              split_self_intersections=split_self_intersections)
         if crop:
