@@ -336,6 +336,43 @@ def test_a_body_builds_at_its_first_query_once_and_a_crop_takes_its_winding_mesh
     assert len(built) == 1 and all(torch.equal(r, reference) for r in results)
 
 
+@pytest.mark.parametrize("cut", [False, True])
+def test_update_moves_what_queries_read_in_place(rng, cut):
+    """After `update` every array a query reads (trees, vertices, pseudo-normals, winding
+    meshes, pieces' sides) is where it was, as a CUDA graph captured before needs, and holds the
+    moved body: distances equal those of a body built on the new vertices, in float32 and
+    float64. Cut: the two-box poses swapped (the same cut either way); uncut: a capsule moved and
+    stretched."""
+    if cut:
+        v0, f = overlapping_boxes()
+        v1, _ = overlapping_boxes(shift=1.5)
+        poses = torch.as_tensor(np.stack([v0, v1]))
+        moved = poses.flip(0)
+    else:
+        v, f = capsule()
+        poses = torch.as_tensor(v)
+        moved = poses * torch.tensor([1.2, 0.9, 1.0], dtype=poses.dtype) + torch.tensor([0.1, 0.0, -0.05],
+                                                                                          dtype=poses.dtype)
+    ft = torch.as_tensor(f)
+    body = BodyMesh(poses, ft)
+    lo, hi = moved.reshape(-1, 3).amin(0) - 0.3, moved.reshape(-1, 3).amax(0) + 0.3
+    points = lo + (hi - lo) * torch.as_tensor(rng.uniform(size=(len(poses) if cut else 1, 800, 1, 3)))
+
+    def addresses():
+        return [a.ptr if hasattr(a, "ptr") else a for dtype in (torch.float32, torch.float64)
+                for a in body._kernel_arrays(dtype)]
+
+    for dtype in (torch.float32, torch.float64):
+        hair_body_signed_distance(points.to(dtype), body)
+    before = addresses()
+    body.update(moved)
+    assert addresses() == before
+    fresh = BodyMesh(moved, ft)
+    for dtype, atol in ((torch.float32, 1e-6), (torch.float64, 1e-12)):
+        d = hair_body_signed_distance(points.to(dtype), body)
+        torch.testing.assert_close(d, hair_body_signed_distance(points.to(dtype), fresh), rtol=0, atol=atol)
+
+
 # Hair vertices this close to the pieces [m] (the armpits) are checked against the winding number.
 _ARMPIT_RADIUS = 0.06
 

@@ -75,6 +75,23 @@ def test_cuda_graph_energy_equals_eager():
     captured.check()
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device; this machine has none")
+def test_cuda_graph_follows_a_moved_body():
+    """`BodyMesh.update` moves everything a query reads in place: a graph captured before it
+    gives the moved body's energy and gradient (the eager call on the same body's)."""
+    scene = default_scene("long_straight", "head_turn", strand_stride=4, num_vertices=30)
+    x, inputs = _small_inputs("cuda")
+    captured = CapturedEnergy(x, inputs, dynamic=True)
+    before, _ = captured(x)
+    moved = scene.frames([60, 200], device="cuda").posed.vertices  # the uncut body's vertices
+    inputs.body.update(moved)
+    eager, g_eager = _eager(x, inputs)
+    energy, gradient = captured(x)
+    assert not torch.allclose(eager.total.detach(), before, rtol=1e-3)  # the move mattered
+    torch.testing.assert_close(energy, eager.total.detach(), rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(gradient, g_eager, rtol=1e-4, atol=1e-4)
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="side streams need a CUDA device; this machine has none")
 @pytest.mark.parametrize("side, forks", [("hair_hair", True), ("hair_body", True), ("hair_hair", False)])
 def test_contact_terms_side_by_side_equal_one_stream(monkeypatch, side, forks):

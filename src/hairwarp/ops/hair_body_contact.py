@@ -704,15 +704,18 @@ class BodyMesh:
     def _normals_as(self, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
         """(B V, 3) vertex and (3 B F, 3) face-edge pseudo-normals in `dtype`, contiguous."""
         if dtype not in self._normals:
-            vertex, edge = _pseudo_normals(
-                self._vertices_as(dtype), self._normal_faces, self._edge_inverse, self._num_edges, self._face_rows
-            )
-            if self._surface is not None:
-                self._surface.piece_pseudo_normals(
-                    self._source_points.to(dtype), self._vertex_map, self._face_map, vertex, edge
-                )
-            self._normals[dtype] = (vertex.reshape(-1, 3).contiguous(), edge.reshape(-1, 3).contiguous())
+            self._normals[dtype] = self._pseudo_normals(dtype)
         return self._normals[dtype]
+
+    def _pseudo_normals(self, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+        vertex, edge = _pseudo_normals(
+            self._vertices_as(dtype), self._normal_faces, self._edge_inverse, self._num_edges, self._face_rows
+        )
+        if self._surface is not None:
+            self._surface.piece_pseudo_normals(
+                self._source_points.to(dtype), self._vertex_map, self._face_map, vertex, edge
+            )
+        return vertex.reshape(-1, 3).contiguous(), edge.reshape(-1, 3).contiguous()
 
     @property
     def batch_size(self) -> int:
@@ -792,6 +795,10 @@ class BodyMesh:
     def update(self, vertices: torch.Tensor) -> None:
         """Move the vertices (same topology) and refit the BVHs in place, no rebuild.
 
+        Everything a query reads stays where it was (vertices, trees, pseudo-normals, the winding
+        meshes and pieces' sides): a CUDA graph captured before (`CapturedEnergy`) follows the
+        moved body.
+
         Args:
             vertices: new positions [m], shaped like the body's own vertices ((V, 3) or
                 (B, V, 3)); a cropped body also accepts the uncropped body's vertices and
@@ -827,7 +834,6 @@ class BodyMesh:
                 self._points64.copy_(v)
             for mesh in self._meshes or ():
                 mesh.refit()
-        self._normals = {}
         if self._surface is not None:
             # The winding numbers' meshes, rebuilt from the uncut mesh's vertices.
             if source is None:
@@ -835,6 +841,13 @@ class BodyMesh:
                     f"vertices: a crop of a body that passes through itself moves through the uncut body's "
                     f"{self._surface.num_vertices} vertices per mesh, got {vertices.shape[-2]}")
             self._setup_winding(source, self._first_piece)
+        # The pseudo-normals recomputed into the same tensors: a graph captured before `update`
+        # (`CapturedEnergy`) reads the moved body's (after the pieces' source points moved).
+        with _warp.launch_scope(self.device):
+            for dtype, (vertex, edge) in self._normals.items():
+                new_vertex, new_edge = self._pseudo_normals(dtype)
+                vertex.copy_(new_vertex)
+                edge.copy_(new_edge)
 
     def crop(self, reach_centers: torch.Tensor, reach_radii: torch.Tensor, bvh: str | None = None) -> "BodyMesh":
         """A BodyMesh with only the triangles that meet the union of balls B(center_k, radius_k).
