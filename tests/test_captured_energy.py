@@ -2,6 +2,8 @@
 from a CUDA graph on the GPU (eager, same results, on the CPU), and the graph-safe energy it
 captures (`total_energy(graph_safe=True)`: nothing read back to the host)."""
 
+import math
+
 import pytest
 import torch
 
@@ -83,11 +85,15 @@ def test_cuda_graph_follows_a_moved_body():
     x, inputs = _small_inputs("cuda")
     captured = CapturedEnergy(x, inputs, dynamic=True)
     before, _ = captured(x)
-    moved = scene.frames([60, 200], device="cuda").posed.vertices  # the uncut body's vertices
-    inputs.body.update(moved)
+    posed = scene.frames([0, scene.num_frames - 1], device="cuda").posed.vertices  # the uncut body's vertices
+    # Turned 0.15 rad about the vertical through its centre and raised 1 cm: new normals too.
+    c, s = math.cos(0.15), math.sin(0.15)
+    turn = torch.tensor([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]], device="cuda")
+    centre = posed.mean(dim=1, keepdim=True)
+    inputs.body.update((posed - centre) @ turn.T + centre + torch.tensor([0.0, 0.01, 0.0], device="cuda"))
     eager, g_eager = _eager(x, inputs)
     energy, gradient = captured(x)
-    assert not torch.allclose(eager.total.detach(), before, rtol=1e-3)  # the move mattered
+    assert bool(((eager.total.detach() - before).abs() > 1e-3 * before.abs()).all())  # the move mattered
     torch.testing.assert_close(energy, eager.total.detach(), rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(gradient, g_eager, rtol=1e-4, atol=1e-4)
 
