@@ -704,10 +704,10 @@ class BodyMesh:
     def _normals_as(self, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
         """(B V, 3) vertex and (3 B F, 3) face-edge pseudo-normals in `dtype`, contiguous."""
         if dtype not in self._normals:
-            self._normals[dtype] = self._pseudo_normals(dtype)
+            self._normals[dtype] = self._compute_normals(dtype)
         return self._normals[dtype]
 
-    def _pseudo_normals(self, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    def _compute_normals(self, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
         vertex, edge = _pseudo_normals(
             self._vertices_as(dtype), self._normal_faces, self._edge_inverse, self._num_edges, self._face_rows
         )
@@ -845,7 +845,7 @@ class BodyMesh:
         # (`CapturedEnergy`) reads the moved body's (after the pieces' source points moved).
         with _warp.launch_scope(self.device):
             for dtype, (vertex, edge) in self._normals.items():
-                new_vertex, new_edge = self._pseudo_normals(dtype)
+                new_vertex, new_edge = self._compute_normals(dtype)
                 vertex.copy_(new_vertex)
                 edge.copy_(new_edge)
 
