@@ -329,7 +329,7 @@ def hair_body_energy_strand_kernel(
     body_batch_stride: int,
     xi: Any,
     dhat: Any,
-    bp: Any,
+    join_fraction: wp.array(dtype=Any),
     weight: Any,
     variant: int,
     zero_dist: Any,
@@ -345,6 +345,7 @@ def hair_body_energy_strand_kernel(
     fixed vertices 0, 1 and for vertices beyond the reach), the strand's energy and its number
     of mesh queries.
     """
+    bp = join_fraction[0]  # a device scalar: a captured graph follows its value
     s = wp.tid()
     base = s * num_vertices
     body = (s // num_strands) * body_batch_stride
@@ -471,7 +472,7 @@ def hair_body_energy_vertex_kernel(
     body_batch_stride: int,
     xi: Any,
     dhat: Any,
-    bp: Any,
+    join_fraction: wp.array(dtype=Any),
     weight: Any,
     variant: int,
     zero_dist: Any,
@@ -494,6 +495,7 @@ def hair_body_energy_vertex_kernel(
     The cap keeps the BVH walk short: an unbounded query from a vertex far outside visits most
     of the tree, and most hair is far outside.
     """
+    bp = join_fraction[0]  # a device scalar: a captured graph follows its value
     i = wp.tid()
     v = i % num_vertices
     zero = xi * type(xi)(0.0)
@@ -600,7 +602,7 @@ def hair_body_energy_far_kernel(
     body_batch_stride: int,
     xi: Any,
     dhat: Any,
-    bp: Any,
+    join_fraction: wp.array(dtype=Any),
     weight: Any,
     variant: int,
     zero_dist: Any,
@@ -617,6 +619,7 @@ def hair_body_energy_far_kernel(
     list's count, `deep_count[0]`, return): an exact query capped by its hit's distance plus the way to it
     (`depth_query_radius`) gives its depth.
     """
+    bp = join_fraction[0]  # a device scalar: a captured graph follows its value
     t = wp.tid()
     if t >= deep_count[0]:
         return
@@ -872,7 +875,7 @@ def hair_body_energy_winding_kernel(
     body_batch_stride: int,
     xi: Any,
     dhat: Any,
-    bp: Any,
+    join_fraction: wp.array(dtype=Any),
     weight: Any,
     variant: int,
     zero_dist: Any,
@@ -886,6 +889,7 @@ def hair_body_energy_winding_kernel(
     the other part is not known, `seam_sides`) again, unbounded, signed by the winding number (`winding_signed`):
     their side, energy and gradient rewritten. Other threads return at once.
     """
+    bp = join_fraction[0]  # a device scalar: a captured graph follows its value
     i = wp.tid()
     if winding[i] == 0:
         return

@@ -576,7 +576,7 @@ def hair_hair_pairs_cpu_kernel(
     with_energy: int,
     xi: Any,
     dhat: Any,
-    bp: Any,
+    join_fraction: wp.array(dtype=Any),
     weight: Any,
     variant: int,
     # Out:
@@ -607,6 +607,7 @@ def hair_hair_pairs_cpu_kernel(
     With `with_energy` != 0 each pair found also adds its energy and gradient (the arguments
     of `hair_hair_energy_kernel`; pass capacity 0 to count the pairs without writing them).
     """
+    bp = join_fraction[0]  # a device scalar: a captured graph follows its value
     rank = query_ranks[wp.tid()]
     i = sorted_ids[rank]
     segs_per_strand = num_vertices - 1
@@ -690,7 +691,7 @@ def hair_hair_candidates_kernel(
     with_energy: int,
     xi: Any,
     dhat: Any,
-    bp: Any,
+    join_fraction: wp.array(dtype=Any),
     weight: Any,
     variant: int,
     # Out:
@@ -704,6 +705,7 @@ def hair_hair_candidates_kernel(
     (`queried_in`: `hair_hair_pairs_cpu_kernel` found those); with `with_energy` != 0 also add
     their energy and gradient (as `hair_hair_pairs_cpu_kernel`).
     """
+    bp = join_fraction[0]  # a device scalar: a captured graph follows its value
     k = wp.tid()
     i = candidates_in[2 * k]
     j = candidates_in[2 * k + 1]
@@ -727,7 +729,7 @@ def hair_hair_energy_kernel(
     num_strands: int,
     xi: Any,
     dhat: Any,
-    bp: Any,
+    join_fraction: wp.array(dtype=Any),
     weight: Any,
     variant: int,
     # Out:
@@ -740,6 +742,7 @@ def hair_hair_energy_kernel(
     accumulated in float64 whatever the input precision (a float32 running sum of 1.6 M terms
     was measured 0.3 % off). Each vertex gradient sums only tens of terms: input precision.
     """
+    bp = join_fraction[0]  # a device scalar: a captured graph follows its value
     k = wp.tid()
     # Launched over the buffer (or the count read by the host): pairs past the count are empty.
     if k >= wp.min(count_in[0], capacity):
@@ -1096,7 +1099,7 @@ def hair_hair_hit_pairs_kernel(
     with_energy: int,
     xi: Any,
     dhat: Any,
-    bp: Any,
+    join_fraction: wp.array(dtype=Any),
     weight: Any,
     variant: int,
     # Out:
@@ -1111,6 +1114,7 @@ def hair_hair_hit_pairs_kernel(
     are mostly full, the last ones' mostly empty and done at once (row-major measured the same
     on an H100: the tests, not the idle lanes, take the time).
     """
+    bp = join_fraction[0]  # a device scalar: a captured graph follows its value
     t = wp.tid()
     hit_rows = hit_state.shape[0]
     row = t % hit_rows
@@ -1152,7 +1156,7 @@ def hair_hair_cell_pairs_kernel(
     with_energy: int,
     xi: Any,
     dhat: Any,
-    bp: Any,
+    join_fraction: wp.array(dtype=Any),
     weight: Any,
     variant: int,
     # Out:
@@ -1170,6 +1174,7 @@ def hair_hair_cell_pairs_kernel(
     `_cell_walk_length`), by one lane. Lanes share a crowded cell's long walks where the launch
     leaves the GPU room (a small batch; docs/contact.md 12).
     """
+    bp = join_fraction[0]  # a device scalar: a captured graph follows its value
     tid = wp.tid()
     pos = tid % num_entries
     lane = tid // num_entries
@@ -1309,7 +1314,7 @@ def hair_hair_long_pairs_kernel(
     with_energy: int,
     xi: Any,
     dhat: Any,
-    bp: Any,
+    join_fraction: wp.array(dtype=Any),
     weight: Any,
     variant: int,
     # Out:
@@ -1325,6 +1330,7 @@ def hair_hair_long_pairs_kernel(
     l + LONG_LANES, ... of i's batch item's list for long partners, keeping those shorter than i
     (ties: the lower id tests the pair).
     """
+    bp = join_fraction[0]  # a device scalar: a captured graph follows its value
     t = wp.tid()
     lane = t % LONG_LANES
     segs_per_strand = num_vertices - 1

@@ -63,6 +63,55 @@ def test_captured_energy_on_the_cpu_equals_total_energy_and_flags_overflow():
         captured(x[:1])
 
 
+def _join_fraction_cases(captured, bp, x, inputs):
+    """For two values written into `bp`: the captured call against the eager energy with the
+    config holding that value."""
+    from dataclasses import replace
+
+    from hairwarp.config import EnergyConfig
+
+    results = []
+    for value in (0.3, 0.02):
+        bp.fill_(value)
+        eager, g_eager = _eager(x, inputs, config=replace(EnergyConfig(), barrier_join_fraction=value))
+        energy, gradient = captured(x)
+        torch.testing.assert_close(energy, eager.total.detach(), rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(gradient, g_eager, rtol=1e-4, atol=1e-4)
+        results.append(energy)
+    assert not torch.allclose(results[0], results[1], rtol=1e-3)  # the value matters
+
+
+def test_the_join_fraction_is_read_from_a_tensor_at_each_call():
+    """b_p given as a one-element tensor (`total_energy(barrier_join_fraction=)`, the contact
+    ops' `bp`) is read when the kernels run: a value written into it between calls is the one
+    used, as with a float of that value; a bad tensor is refused naming bp."""
+    from hairwarp.ops import hair_body_contact_energy, hair_hair_contact_energy
+
+    x, inputs = _small_inputs("cpu")
+    bp = torch.tensor([0.3])
+    _join_fraction_cases(CapturedEnergy(x, inputs, dynamic=True, barrier_join_fraction=bp), bp, x, inputs)
+    for dtype in (torch.float32, torch.float64):
+        xd = x.to(dtype)
+        bp64 = torch.tensor(0.2, dtype=torch.float64)
+        torch.testing.assert_close(hair_body_contact_energy(xd, inputs.body, 1e-3, 1.5e-3, bp64),
+                                   hair_body_contact_energy(xd, inputs.body, 1e-3, 1.5e-3, 0.2), rtol=0, atol=0)
+        torch.testing.assert_close(hair_hair_contact_energy(xd, 5e-4, 7.5e-4, bp64)[0],
+                                   hair_hair_contact_energy(xd, 5e-4, 7.5e-4, 0.2)[0], rtol=0, atol=0)
+    for bad, match in ((torch.tensor([0.2, 0.3]), "one-element"), (torch.tensor([1]), "floating"),
+                       (torch.tensor([1.5]), r"\(0, 1\)")):
+        with pytest.raises(ValueError, match="bp: expected.*" + match):
+            hair_body_contact_energy(x, inputs.body, 1e-3, 1.5e-3, bad)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device; this machine has none")
+def test_cuda_graph_follows_the_join_fraction_tensor():
+    x, inputs = _small_inputs("cuda")
+    bp = torch.tensor([0.3], device="cuda")
+    captured = CapturedEnergy(x, inputs, dynamic=True, barrier_join_fraction=bp)
+    assert captured.captured
+    _join_fraction_cases(captured, bp, x, inputs)
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device; this machine has none")
 def test_cuda_graph_energy_equals_eager():
     x, inputs = _small_inputs("cuda")

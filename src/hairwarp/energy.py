@@ -95,6 +95,7 @@ def total_energy(
     graph_safe: bool = False,
     hair_hair_capacity: int | None = None,
     hair_hair_cache=None,
+    barrier_join_fraction: torch.Tensor | None = None,
 ) -> EnergyResult:
     """The total energy of hair positions `x`: Eq. 5, or Eq. 6 (without L_func_reg) when `dynamic`.
 
@@ -113,6 +114,10 @@ def total_energy(
         hair_hair_cache: a `hairwarp.ops.hair_hair_contact.HairHairPairCache` that keeps the
             hair-hair pair list across calls (CPU only, not with `graph_safe`): the same
             energy, cheaper for an optimizer's evaluations of slowly moving hair.
+        barrier_join_fraction: a one-element tensor on `x`'s device in place of
+            `config.barrier_join_fraction`: the contact kernels read it at launch, so a graph
+            captured with it follows the value it holds (training's annealed b_p); None: the
+            config's.
 
     Returns:
         EnergyResult with `total` of shape (B,) ((1,) for an unbatched `x`).
@@ -134,6 +139,7 @@ def total_energy(
 
     with_hair_body = "hair_body_contact" in wanted and inputs.body is not None and config.hair_body_weight != 0.0
     with_hair_hair = "hair_hair_contact" in wanted and config.hair_hair_weight != 0.0
+    bp = config.barrier_join_fraction if barrier_join_fraction is None else barrier_join_fraction
     if hair_hair_capacity is None:
         segments = xb.shape[1] * (xb.shape[2] - 1)
         hair_hair_capacity = config.hair_hair_capacity_per_segment * segments * xb.shape[0]
@@ -143,7 +149,7 @@ def total_energy(
             xb,
             config.hair_diameter,
             config.hair_hair_dhat,
-            config.barrier_join_fraction,
+            bp,
             weight=config.hair_hair_weight,
             variant=config.barrier_variant,
             capacity=hair_hair_capacity,
@@ -157,7 +163,7 @@ def total_energy(
             inputs.body,
             config.hair_body_xi,
             config.hair_body_dhat,
-            config.barrier_join_fraction,
+            bp,
             weight=config.hair_body_weight,
             variant=config.barrier_variant,
         )
@@ -237,8 +243,9 @@ class CapturedEnergy:
 
     Args:
         x: (B, M, N, 3) example hair positions [m]: shape, dtype and device of every call.
-        inputs, config, dynamic, terms: as `total_energy` (held by reference: the graph reads
-            the body, rest lengths and previous states they hold at replay time).
+        inputs, config, dynamic, terms, barrier_join_fraction: as `total_energy` (held by
+            reference: the graph reads the body, rest lengths, previous states and the join
+            fraction's tensor as they are at replay time).
         use_graph: capture on CUDA (default); False evaluates eagerly everywhere.
 
     Call: `energy, gradient = captured(x)`: (B,) energies [J] and (B, M, N, 3) d energy / d x
@@ -246,11 +253,13 @@ class CapturedEnergy:
     """
 
     def __init__(self, x: torch.Tensor, inputs: EnergyInputs, config: EnergyConfig | None = None, *,
-                 dynamic: bool = False, terms: tuple[str, ...] | None = None, use_graph: bool = True):
+                 dynamic: bool = False, terms: tuple[str, ...] | None = None, use_graph: bool = True,
+                 barrier_join_fraction: torch.Tensor | None = None):
         from hairwarp._validate import check_tensor
 
         check_tensor("x", x, shape=(None, None, None, 3), allow_empty=False)
         self.inputs, self.config, self.dynamic, self.terms = inputs, config or EnergyConfig(), dynamic, terms
+        self.barrier_join_fraction = barrier_join_fraction
         self.shape, self.dtype, self.device = tuple(x.shape), x.dtype, x.device
         # Eager warm-up: checks the inputs, compiles the kernels, and sizes the pair buffer.
         probe = self._evaluate(x, graph_safe=False, capacity=None)
@@ -279,7 +288,8 @@ class CapturedEnergy:
         xg = x.detach().requires_grad_(True)
         with torch.enable_grad():
             result = total_energy(xg, self.inputs, self.config, dynamic=self.dynamic, terms=self.terms,
-                                  graph_safe=graph_safe, hair_hair_capacity=capacity)
+                                  graph_safe=graph_safe, hair_hair_capacity=capacity,
+                                  barrier_join_fraction=self.barrier_join_fraction)
             (gradient,) = torch.autograd.grad(result.total.sum(), xg)
         return result.total.detach(), gradient, result.hair_hair_info
 

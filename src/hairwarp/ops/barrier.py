@@ -8,7 +8,7 @@ import torch
 from torch.autograd.function import once_differentiable
 
 from hairwarp import _warp
-from hairwarp._validate import check_positive, check_tensor
+from hairwarp._validate import check_positive, check_tensor, finite_checks_enabled
 from hairwarp.config import BARRIER_VARIANTS
 from hairwarp.kernels import barrier as barrier_kernels
 
@@ -23,14 +23,37 @@ def barrier_variant_id(variant: str) -> int:
     return _VARIANT_IDS[variant]
 
 
-def check_barrier_parameters(xi: float, dhat: float, bp: float) -> tuple[float, float, float]:
-    """Validate (xi, dhat, bp): xi > 0 [m], dhat > 0 [m], 0 < bp < 1."""
+def check_barrier_parameters(xi: float, dhat: float, bp) -> tuple[float, float, float | torch.Tensor]:
+    """Validate (xi, dhat, bp): xi > 0 [m], dhat > 0 [m], 0 < bp < 1.
+
+    `bp` may be a one-element floating tensor (a device scalar the contact kernels read at
+    launch, `join_fraction_tensor`): returned as it is; its value is read back and checked only
+    while input checks are on (`hairwarp._validate.set_finite_checks`: a captured graph turns
+    them off).
+    """
     xi = check_positive("xi", xi)
     dhat = check_positive("dhat", dhat)
+    if isinstance(bp, torch.Tensor):
+        if bp.numel() != 1 or not bp.is_floating_point():
+            raise ValueError(f"bp: expected a float or a one-element floating tensor, got shape "
+                             f"{tuple(bp.shape)} and dtype {bp.dtype}")
+        if finite_checks_enabled() and not 0.0 < float(bp) < 1.0:
+            raise ValueError(f"bp: expected a join fraction in (0, 1), got {float(bp)}")
+        return xi, dhat, bp.detach()
     bp = float(bp)
     if not 0.0 < bp < 1.0:
         raise ValueError(f"bp: expected a join fraction in (0, 1), got {bp}")
     return xi, dhat, bp
+
+
+def join_fraction_tensor(bp: float | torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """`bp` as the (1,) tensor the contact kernels read at launch, in `like`'s dtype and device:
+    a float is written into a new one; a one-element tensor is viewed as it is (or cast), so a
+    CUDA graph captured with it follows the value it holds at each replay.
+    """
+    if isinstance(bp, torch.Tensor):
+        return bp.detach().reshape(1).to(device=like.device, dtype=like.dtype).contiguous()
+    return torch.full((1,), bp, dtype=like.dtype, device=like.device)
 
 
 def _launch(kernel, d: torch.Tensor, xi: float, dhat: float, bp: float, variant_id: int, outputs) -> None:
@@ -111,4 +134,4 @@ def barrier(d: torch.Tensor, xi: float, dhat: float, bp: float, variant: str = "
     check_tensor("d", d)
     xi, dhat, bp = check_barrier_parameters(xi, dhat, bp)
     variant_id = barrier_variant_id(variant)
-    return _Barrier.apply(d.contiguous(), xi, dhat, bp, variant_id)
+    return _Barrier.apply(d.contiguous(), xi, dhat, float(bp), variant_id)

@@ -31,7 +31,7 @@ import warp as wp
 from hairwarp import _warp
 from hairwarp._validate import check_positive, check_tensor
 from hairwarp.kernels import hair_body_contact as kernels
-from hairwarp.ops.barrier import barrier_variant_id, check_barrier_parameters
+from hairwarp.ops.barrier import barrier_variant_id, check_barrier_parameters, join_fraction_tensor
 
 INDEX_DTYPES = (torch.int32, torch.int64)
 
@@ -1180,7 +1180,7 @@ def _energy_forward(x, body, xi, dhat, bp, weight, variant_id, strategy):
         stride,
         _warp.scalar(xi, x.dtype),
         _warp.scalar(dhat, x.dtype),
-        _warp.scalar(bp, x.dtype),
+        _warp.as_warp(join_fraction_tensor(bp, x)),
         _warp.scalar(weight, x.dtype),
         variant_id,
         _warp.scalar(_ZERO_DISTANCE[x.dtype], x.dtype),
@@ -1248,7 +1248,7 @@ def hair_body_contact_energy(
     body: BodyMesh,
     xi: float,
     dhat: float,
-    bp: float,
+    bp: float | torch.Tensor,
     weight: float = 1.0,
     variant: str = "quadratic",
 ) -> torch.Tensor:
@@ -1267,7 +1267,8 @@ def hair_body_contact_energy(
             (shared by every hair batch item) or B.
         xi: hard barrier [m] (1 mm for hair-body contact in the paper).
         dhat: soft barrier width [m] (1.5 mm in the paper).
-        bp: join fraction in (0, 1) (annealed 0.9 -> 0.01 in the paper).
+        bp: join fraction in (0, 1) (annealed 0.9 -> 0.01 in the paper): a float, or a
+            one-element tensor the kernels read at launch (a captured graph follows its value).
         weight: lambda_hb, the weight per vertex [J].
         variant: "quadratic" (default), "monotone" or "paper" (Eq. 12-14 literally), see `barrier`.
 

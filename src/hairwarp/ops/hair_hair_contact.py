@@ -54,7 +54,7 @@ from hairwarp import _warp
 from hairwarp._validate import check_positive, check_tensor
 from hairwarp.config import EnergyConfig
 from hairwarp.kernels import hair_hair_contact as hh_kernels
-from hairwarp.ops.barrier import barrier_variant_id, check_barrier_parameters
+from hairwarp.ops.barrier import barrier_variant_id, check_barrier_parameters, join_fraction_tensor
 from hairwarp.runtime import StreamFork
 
 OVERFLOW_POLICIES = ("grow", "raise", "warn", "defer")
@@ -396,7 +396,7 @@ class _CpuGrid:
                     _warp.as_warp(self.cell_start), self.origin, self.inv_width, self.dims, _warp.as_warp(ranks),
                     _warp.as_warp(by_rank), all_queried, self.params_wp, n, m, skip_root_segments, float(cutoff),
                     _RADIUS_SLACK, _warp.scalar(cutoff, x4.dtype), room,
-                    *_PairEnergyArgs.inputs(energy, x4.dtype)],
+                    *_PairEnergyArgs.inputs(energy, x4)],
             outputs=[_warp.as_warp(count), _warp.as_warp(pairs), *_PairEnergyArgs.outputs(energy, x4.dtype)],
             device="cpu",
         )
@@ -411,23 +411,24 @@ class _PairEnergyArgs:
 
     xi: float
     dhat: float
-    bp: float
+    bp: torch.Tensor  # (1,): `join_fraction_tensor`
     weight: float
     variant_id: int
     energy: torch.Tensor
     gradient: torch.Tensor
 
     @staticmethod
-    def inputs(args: _PairEnergyArgs | None, dtype: torch.dtype, mode: int = 1) -> list:
+    def inputs(args: _PairEnergyArgs | None, like: torch.Tensor, mode: int = 1) -> list:
         """with_energy, xi, dhat, bp, weight, variant of the kernels (zeros without `args`);
         `mode` the kernels' with_energy (1: every pair found adds to energy[batch item]; 3: to
         energy[lower segment id], counted per segment, no pair list).
         """
-        if args is None:
+        dtype = like.dtype
+        if args is None:  # the kernels read a join fraction all the same: a stand-in
             zero = _warp.scalar(0.0, dtype)
-            return [0, zero, zero, zero, zero, 0]
+            return [0, zero, zero, _warp.as_warp(torch.zeros(1, dtype=dtype, device=like.device)), zero, 0]
         return [mode, _warp.scalar(args.xi, dtype), _warp.scalar(args.dhat, dtype),
-                _warp.scalar(args.bp, dtype), _warp.scalar(args.weight, dtype), args.variant_id]
+                _warp.as_warp(args.bp), _warp.scalar(args.weight, dtype), args.variant_id]
 
     @staticmethod
     def outputs(args: _PairEnergyArgs | None, dtype: torch.dtype) -> list:
@@ -644,7 +645,7 @@ def _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy=None):
             room = 0  # no pair list
         pairs = _pair_buffer(device, room, cap)
         common_out = [_warp.as_warp(count), _warp.as_warp(pairs)] + _PairEnergyArgs.outputs(energy, x4.dtype)
-        pair_inputs = [_warp.scalar(cutoff, x4.dtype), room] + _PairEnergyArgs.inputs(energy, x4.dtype, 3)
+        pair_inputs = [_warp.scalar(cutoff, x4.dtype), room] + _PairEnergyArgs.inputs(energy, x4, 3)
         # The long segments' kernel beside the cells kernel (CUDA): a few hundred threads
         # walking wide boxes, latency more than work (both add to the sums atomically).
         fork = StreamFork(device, "hair_hair_long")
@@ -876,7 +877,7 @@ def _cached_broad_phase(x4, cutoff, skip_root_segments, max_pairs, cache: HairHa
         if candidates.shape[0] > 0:
             _warp.launch(hh_kernels.hair_hair_candidates_kernel, dim=candidates.shape[0],
                          inputs=[x_wp, _warp.as_warp(candidates), _warp.as_warp(queried), n, m,
-                              _warp.scalar(cutoff, x4.dtype), room, *_PairEnergyArgs.inputs(energy, x4.dtype)],
+                              _warp.scalar(cutoff, x4.dtype), room, *_PairEnergyArgs.inputs(energy, x4)],
                          outputs=[_warp.as_warp(count), _warp.as_warp(pairs),
                                *_PairEnergyArgs.outputs(energy, x4.dtype)], device="cpu")
         return pairs
@@ -908,7 +909,7 @@ def _pair_energies(x4, pairs, count, energy) -> None:
             dim=pairs.shape[0],
             inputs=[_warp.as_warp(x4, vec3=True), _warp.as_warp(pairs.contiguous()), _warp.as_warp(count),
                     pairs.shape[0], n, m, _warp.scalar(energy.xi, x4.dtype), _warp.scalar(energy.dhat, x4.dtype),
-                    _warp.scalar(energy.bp, x4.dtype), _warp.scalar(energy.weight, x4.dtype), energy.variant_id],
+                    _warp.as_warp(energy.bp), _warp.scalar(energy.weight, x4.dtype), energy.variant_id],
             outputs=[_warp.as_warp(energy.energy), _warp.as_warp(energy.gradient, vec3=True)],
             device=_warp.warp_device(x4.device),
         )
@@ -952,7 +953,7 @@ class _HairHairContactEnergy(torch.autograd.Function):
                         m,
                         _warp.scalar(xi, x4.dtype),
                         _warp.scalar(dhat, x4.dtype),
-                        _warp.scalar(bp, x4.dtype),
+                        _warp.as_warp(join_fraction_tensor(bp, x4)),
                         _warp.scalar(weight, x4.dtype),
                         variant_id,
                     ],
@@ -1099,7 +1100,8 @@ def hair_hair_contact_energy(
         if on_overflow != "grow":
             raise ValueError(f"pair_cache: needs on_overflow='grow', got {on_overflow!r}")
         b = x4c.shape[0]
-        args = _PairEnergyArgs(xi, dhat, bp, weight, variant_id, torch.zeros(b, dtype=torch.float64),
+        args = _PairEnergyArgs(xi, dhat, join_fraction_tensor(bp, x4c), weight, variant_id,
+                               torch.zeros(b, dtype=torch.float64),
                                torch.zeros_like(x4c, memory_format=torch.contiguous_format))
         _, count, found, requested = _cached_broad_phase(
             x4c.detach(), xi + dhat, skip_root_segments, max_pairs, pair_cache, energy=args
@@ -1116,7 +1118,7 @@ def hair_hair_contact_energy(
         # and `info`), only the energy is never partial.
         b, m, n = x4c.shape[:3]
         num_segments = b * m * (n - 1)
-        args = _PairEnergyArgs(xi, dhat, bp, weight, variant_id,
+        args = _PairEnergyArgs(xi, dhat, join_fraction_tensor(bp, x4c), weight, variant_id,
                                torch.zeros(num_segments, dtype=torch.float64, device=x4c.device),
                                torch.zeros_like(x4c, memory_format=torch.contiguous_format))
         run, per_segment = _cell_broad_phase(x4c.detach(), xi + dhat, skip_root_segments,
