@@ -407,6 +407,61 @@ def test_resume_continues_with_identical_results(tmp_path, static_config, sample
     assert len(state_a) > 10 and all(torch.equal(state_a[k], state_b[k]) for k in state_a)
 
 
+def test_captured_steps_train_as_the_eager_ones(monkeypatch, static_config, sampler):
+    """The captured step's bookkeeping (`_CapturedStaticStep`, run eagerly on the CPU through the
+    same buffers): batches copied into fixed tensors, one uncropped body refit to each batch's
+    poses, b_p written into a device scalar each step, a new capture where the batch shape (phase
+    0's single sample) or the clip changes, a batch that overflows the hair-hair buffer redone
+    with a larger one. Four steps give the eager trainer's losses and weights."""
+    from hairwarp.training import static as static_module
+
+    config = static_config.replace(phase_steps=(1, 1, 1, 2), energy={"hair_hair_weight": 1.0})
+    eager = StaticTrainer(config.replace(cuda_graph=False), sampler=sampler)
+    expected = eager.train(progress=False)
+    monkeypatch.setattr(static_module, "_CAPTURED_STEP_ON_CPU", True)
+    made = []
+    real = static_module._CapturedStaticStep
+
+    class Counted(real):
+        def __init__(self, *args, **kwargs):
+            if len(made) == 1:  # the second capture's pair buffer too small: redone with a larger one
+                kwargs["capacity"] = 1
+            made.append(kwargs.get("capacity"))
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(static_module, "_CapturedStaticStep", Counted)
+    captured = StaticTrainer(config, sampler=sampler)
+    got = [captured.train_step() for _ in range(config.total_steps)]
+    # Phase 0 (one sample, clipped), phase 1 (two samples, unclipped: buffer of 1), its redo.
+    assert made[:2] == [None, 1] and made[2] > 1 and len(made) == 3
+    for e, g in zip(expected, got):
+        assert g["bp"] == e["bp"] and g["phase"] == e["phase"]
+        assert g["loss"] == pytest.approx(e["loss"], rel=1e-5)
+        assert g["terms"].keys() == e["terms"].keys()
+    state_a, state_b = eager.model.state_dict(), captured.model.state_dict()
+    for k in state_a:
+        torch.testing.assert_close(state_b[k], state_a[k], rtol=1e-4, atol=1e-6)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device; this machine has none")
+def test_cuda_graph_training_steps_equal_eager(data):
+    """On CUDA the default trainer replays each step from a CUDA graph: the same losses and
+    weights as the eager trainer, to float-atomics noise."""
+    cuda_sampler = TrainingSampler(data, seed=0, device="cuda")
+    config = StaticTrainingConfig.tiny().replace(phase_steps=(1, 1, 1, 2), data=data,
+                                                 energy={"hair_hair_weight": 1.0})
+    eager = StaticTrainer(config.replace(cuda_graph=False), device="cuda", sampler=cuda_sampler)
+    expected = eager.train(progress=False)
+    captured = StaticTrainer(config, device="cuda", sampler=cuda_sampler)
+    got = captured.train(progress=False)
+    assert captured._captured is not None and captured._captured._graph is not None
+    for e, g in zip(expected, got):
+        assert g["loss"] == pytest.approx(e["loss"], rel=1e-4)
+    state_a, state_b = eager.model.state_dict(), captured.model.state_dict()
+    for k in state_a:
+        torch.testing.assert_close(state_b[k], state_a[k], rtol=1e-3, atol=1e-5)
+
+
 def test_non_finite_loss_raises_and_keeps_weights(static_config, sampler):
     trainer = StaticTrainer(static_config, sampler=sampler)
     with torch.no_grad():

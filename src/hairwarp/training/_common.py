@@ -115,6 +115,12 @@ class Trainer:
     def compute_loss(self, batch, step: int, model=None):  # pragma: no cover - abstract
         raise NotImplementedError
 
+    def captured_loss(self, batch, step: int):
+        """(loss, terms, extras) with the gradients already in `.grad` (a captured step), or None:
+        `compute_loss` and a backward instead (the default).
+        """
+        return None
+
     def _before_resume(self) -> None:
         """Wait until every rank gets here before a checkpoint is read (rank 0 of this very run
         may have just written it).
@@ -142,7 +148,12 @@ class Trainer:
             batch = self.next_batch(step)
         self.model.train()
         self.optimizer.zero_grad(set_to_none=True)
-        if self._ddp is None:
+        captured = self.captured_loss(batch, step) if self._ddp is None else None
+        if captured is not None:  # forward and backward replayed from a CUDA graph
+            loss, terms, extras = captured
+            check_finite_loss(loss, step, terms)
+            value = float(loss)
+        elif self._ddp is None:
             loss, terms, extras = self.compute_loss(batch, step)
             check_finite_loss(loss, step, terms)
             loss.backward()

@@ -338,6 +338,9 @@ class StaticTrainingConfig(_TrainingConfig):
             log(1 + E): a sample deep inside the body pulls with the relative, not the absolute,
             size of its contact gradient, and the weights return to ~1 as the drapes settle.
         checkpoint_every: write `checkpoint.pt` every this many steps (0: only at the end).
+        cuda_graph: on CUDA in one process, replay each step's forward and backward from a CUDA
+            graph (`hairwarp.training.static`; 2.0-2.5x faster steps at batch 32 on an H100,
+            docs/contact.md 16); False: eager. The CPU and data-parallel runs are eager.
         dtype: "float32" (training) or "float64" (checks).
         curve_every: record the learning curve (`hairwarp.training.monitor`: per-term gradient
             norms w.r.t. the map, displacement by vertex index, held-out scores) at step 0, every
@@ -367,6 +370,7 @@ class StaticTrainingConfig(_TrainingConfig):
     grad_clip_norm: float = 0.0
     loss_normalization: str = "none"
     checkpoint_every: int = 1000
+    cuda_graph: bool = True
     dtype: str = "float32"
     curve_every: int = 500
     curve_scenes: list = field(default_factory=lambda: ["table1", "medium_poses"])
@@ -403,6 +407,8 @@ class StaticTrainingConfig(_TrainingConfig):
         _number(owner, "grad_clip_norm", self.grad_clip_norm)
         _choice(owner, "loss_normalization", self.loss_normalization, LOSS_NORMALIZATIONS)
         _int(owner, "checkpoint_every", self.checkpoint_every)
+        if not isinstance(self.cuda_graph, bool):
+            _fail(owner, "cuda_graph", "True or False", self.cuda_graph)
         _choice(owner, "dtype", self.dtype, DTYPES)
         _check_energy(owner, self.energy)
         if isinstance(self.data, dict):

@@ -154,6 +154,8 @@ class HairBatch:
         share: weight of this batch's mean in the global batch's mean: samples held / samples
             of the global batch (1 in a single process; 1 / world_size for a batch replicated
             on every rank).
+        body_vertices: (B, V, 3) the posed bodies' vertices [m] (uncropped; the faces are the
+            sampler's `body_faces`), or None.
     """
 
     z: torch.Tensor
@@ -167,6 +169,7 @@ class HairBatch:
     hairstyle_ids: list
     info: dict = field(default_factory=dict)
     share: float = 1.0
+    body_vertices: torch.Tensor | None = None
 
     @property
     def batch_size(self) -> int:
@@ -335,6 +338,11 @@ class TrainingSampler:
     def latent_dim(self) -> int:
         """d_z (512)."""
         return self.basis.latent_dim
+
+    @property
+    def body_faces(self) -> torch.Tensor:
+        """(F, 3) int32 faces of the body model (every batch's `body_vertices` share them)."""
+        return self._faces
 
     def generator(self, stream: int, step: int) -> np.random.Generator:
         """The generator of one global batch: keyed by (seed, stream, step), the same on every
@@ -543,7 +551,7 @@ class TrainingSampler:
                               body=body_mesh)
         ids = list(hairstyle_ids) if hairstyle_ids is not None else []
         return HairBatch(z.to(device=device, dtype=dtype), betas, poses, trans, strands, self.root_uv, rigid,
-                         inputs, ids, dict(info or {}))
+                         inputs, ids, dict(info or {}), body_vertices=posed.vertices)
 
     # ------------------------------------------------------------------------------ static
     def head_rotation(self, g: np.random.Generator, radius_fraction: float) -> np.ndarray:

@@ -143,18 +143,118 @@ def static_loss(model: nn.Module, batch: HairBatch, energy, clip: float | None =
     Returns:
         (loss () tensor, terms {name: batch-mean float}, positions (B, M, N, 3)).
     """
+    loss, result, positions = _static_loss(model, batch, energy, clip, normalization)
+    return loss, term_means(result.terms), positions
+
+
+def _static_loss(model, batch, energy, clip, normalization, **energy_options):
+    """`static_loss` with the `EnergyResult` in place of the terms' means (nothing read back to
+    the host: a CUDA graph captures it); `energy_options` go to `total_energy`.
+    """
     deformation = network_deformation(model, batch.z, batch.betas, batch.poses, batch.rigid, batch.root_uv,
                                       batch.inputs.body, clip)
     positions = apply_deformation(batch.rigid, deformation, batch.root_uv, length_projection_of(model))
-    result = total_energy(positions, batch.inputs, energy)
+    result = total_energy(positions, batch.inputs, energy, **energy_options)
     if normalization == "inverse":
         weight = 1.0 / (1.0 + result.total.detach().abs())
-        return (result.total * weight).mean(), term_means(result.terms), positions
+        return (result.total * weight).mean(), result, positions
     if normalization == "rigid":
         with torch.no_grad():
-            scale = total_energy(batch.rigid, batch.inputs, energy).total.abs() + LOSS_NORMALIZATION_FLOOR
-        return (result.total / scale).mean(), term_means(result.terms), positions
-    return result.total.mean(), term_means(result.terms), positions
+            scale = total_energy(batch.rigid, batch.inputs, energy, **energy_options).total.abs()
+            scale = scale + LOSS_NORMALIZATION_FLOOR
+        return (result.total / scale).mean(), result, positions
+    return result.total.mean(), result, positions
+
+
+# Run the captured step's buffers on the CPU too (eagerly, no graph): tests of its bookkeeping.
+_CAPTURED_STEP_ON_CPU = False
+
+
+class _CapturedStaticStep:
+    """A static training step's forward and backward for one batch shape, replayed from a CUDA
+    graph (docs/contact.md 16): each new batch is copied into the graph's buffers, the body is one
+    uncropped `BodyMesh` refit to each batch's poses (`update` keeps every array a query reads in
+    place; the crop changes no contact result), b_p a device scalar written before each replay
+    (`total_energy(barrier_join_fraction=)`), the hair-hair pair buffer sized from the first batch
+    (twice its pairs, at least one per segment). The optimizer steps outside the graph, so a
+    batch that overflows the pair buffer is redone with a larger one (`overflowed`). On the CPU
+    (tests) the same buffers are evaluated eagerly.
+
+    Args:
+        trainer: the `StaticTrainer` (its model, config and sampler's body faces).
+        batch: a batch with `body_vertices`, whose shapes every later batch shares.
+        clip: the deformation clip the graph holds (None: none).
+        bp: b_p for the sizing call.
+        capacity: hair-hair pair-buffer capacity; None: sized from `batch`.
+    """
+
+    def __init__(self, trainer, batch: HairBatch, clip, bp: float, capacity: int | None = None):
+        from hairwarp.ops import BodyMesh
+        from hairwarp.runtime import CapturedCall
+
+        model, config = trainer.model, trainer.config
+        self.clip, self.shape = clip, tuple(batch.rigid.shape)
+        self.body = BodyMesh(batch.body_vertices, trainer.sampler.body_faces, require_watertight=False, bvh="lbvh")
+        rigid = batch.rigid.clone()
+        inputs = dataclasses.replace(batch.inputs, rest_lengths=batch.inputs.rest_lengths.clone(), rigid=rigid,
+                                     scalp_normals=batch.inputs.scalp_normals.clone(), body=self.body)
+        self.batch = dataclasses.replace(batch, z=batch.z.clone(), betas=batch.betas.clone(),
+                                         poses=batch.poses.clone(), rigid=rigid, inputs=inputs, body_vertices=None)
+        self.bp = torch.full((1,), bp, dtype=rigid.dtype, device=rigid.device)
+        energy = energy_config(config.energy, barrier_join_fraction=bp)  # b_p read from self.bp
+        args = (model, self.batch, energy, clip, config.loss_normalization)
+        params = [p for p in model.parameters() if p.requires_grad]
+        if capacity is None:
+            with torch.no_grad():
+                _, result, _ = _static_loss(*args, barrier_join_fraction=self.bp)
+            segments = rigid.shape[0] * rigid.shape[1] * (rigid.shape[2] - 1)
+            found = 0 if result.hair_hair_info is None else int(result.hair_hair_info.pair_count)
+            capacity = max(2 * found, segments, 1)
+        self.capacity = capacity
+
+        def step():
+            for p in params:  # allocated by the backward (inside a capture: in the graph's pool)
+                p.grad = None
+            loss, result, _ = _static_loss(*args, graph_safe=True, hair_hair_capacity=capacity,
+                                           barrier_join_fraction=self.bp)
+            loss.backward()
+            self._out = (loss.detach(), {k: v.detach() for k, v in result.terms.items()}, result.hair_hair_info)
+            return self._out[0]
+
+        self._step, self._params = step, params
+        self._graph = CapturedCall(step) if rigid.device.type == "cuda" else None
+        self._grads = [p.grad for p in params]
+
+    def matches(self, batch: HairBatch, clip) -> bool:
+        """Whether `batch` (its shapes) and `clip` are the ones this step holds."""
+        return tuple(batch.rigid.shape) == self.shape and clip == self.clip and batch.body_vertices is not None
+
+    def __call__(self, batch: HairBatch, bp: float):
+        """Copy `batch` in, replay: (loss () tensor, terms {name: (B,) tensor}); the gradients
+        are left in the parameters' `.grad`.
+        """
+        static = self.batch
+        for dst, src in ((static.z, batch.z), (static.betas, batch.betas), (static.poses, batch.poses),
+                         (static.rigid, batch.rigid), (static.inputs.rest_lengths, batch.inputs.rest_lengths),
+                         (static.inputs.scalp_normals, batch.inputs.scalp_normals)):
+            dst.copy_(src)
+        self.body.update(batch.body_vertices)
+        self.bp.fill_(bp)
+        if self._graph is None:
+            self._step()
+            self._grads = [p.grad for p in self._params]
+        else:
+            self._graph()
+            for p, g in zip(self._params, self._grads):  # the graph's gradient buffers
+                p.grad = g
+        return self._out[0], self._out[1]
+
+    def overflowed(self) -> int:
+        """0, or the hair-hair pairs of the last call when they overflowed the buffer (reads the
+        device).
+        """
+        info = self._out[2]
+        return int(info.pair_count) if info is not None and info.overflow else 0
 
 
 class StaticTrainer(Trainer):
@@ -242,6 +342,7 @@ class StaticTrainer(Trainer):
             for group in self.optimizer.param_groups:
                 group["lr"] = config.learning_rate
         self._setup_run(out, seed, rank, world_size, 0 if ckpt is None else ckpt.step)
+        self._captured = None  # the step's CUDA graph (`captured_loss`), made at the first step
         if config.curve_every > 0:
             from hairwarp.training.monitor import LearningCurve
 
@@ -264,6 +365,28 @@ class StaticTrainer(Trainer):
         s = self.schedule(step)
         pool = {2: cfg.phase2_hairstyles, 3: cfg.phase3_hairstyles}.get(s["phase"], 1)
         return self.sampler.static_batch(step, s["phase"], s["progress"], cfg.batch_size, pool)
+
+    def captured_loss(self, batch: HairBatch, step: int):
+        """The step's loss through `_CapturedStaticStep` (gradients left in `.grad`): (loss, terms,
+        extras) like `compute_loss`, or None where it does not apply (`cuda_graph` off, not CUDA,
+        data-parallel, a batch without `body_vertices`). Captures again for a new batch shape or
+        clip, and redoes a batch that overflowed the hair-hair buffer with twice its pairs.
+        """
+        on = self.device.type == "cuda" or _CAPTURED_STEP_ON_CPU
+        if not (self.config.cuda_graph and on and self.world_size == 1 and batch.body_vertices is not None):
+            return None
+        s = self.schedule(step)
+        if self._captured is None or not self._captured.matches(batch, s["clip"]):
+            self._captured = None  # its graph's memory first
+            self._captured = _CapturedStaticStep(self, batch, s["clip"], s["bp"])
+        loss, terms = self._captured(batch, s["bp"])
+        needed = self._captured.overflowed()
+        if needed:
+            self._captured = None
+            self._captured = _CapturedStaticStep(self, batch, s["clip"], s["bp"], capacity=2 * needed)
+            loss, terms = self._captured(batch, s["bp"])
+        size = batch.info.get("global_batch_size", batch.batch_size)
+        return loss, term_means(terms), {"phase": s["phase"], "bp": s["bp"], "clip": s["clip"], "batch_size": size}
 
     def compute_loss(self, batch: HairBatch, step: int, model: nn.Module | None = None):
         s = self.schedule(step)
