@@ -413,12 +413,13 @@ def test_captured_steps_train_as_the_eager_ones(monkeypatch, static_config, samp
     poses, b_p written into a device scalar each step, a new capture where the batch shape (phase
     0's single sample) or the clip changes, a batch that overflows the hair-hair buffer redone
     with a larger one. Four steps give the eager trainer's losses and weights."""
+    from hairwarp.training import capture
     from hairwarp.training import static as static_module
 
     config = static_config.replace(phase_steps=(1, 1, 1, 2), energy={"hair_hair_weight": 1.0})
     eager = StaticTrainer(config.replace(cuda_graph=False), sampler=sampler)
     expected = eager.train(progress=False)
-    monkeypatch.setattr(static_module, "_CAPTURED_STEP_ON_CPU", True)
+    monkeypatch.setattr(capture, "CAPTURE_ON_CPU", True)
     made = []
     real = static_module._CapturedStaticStep
 
@@ -454,7 +455,7 @@ def test_cuda_graph_training_steps_equal_eager(data):
     expected = eager.train(progress=False)
     captured = StaticTrainer(config, device="cuda", sampler=cuda_sampler)
     got = captured.train(progress=False)
-    assert captured._captured is not None and captured._captured._graph is not None
+    assert captured._captured is not None and captured._captured.step.captured
     for e, g in zip(expected, got):
         assert g["loss"] == pytest.approx(e["loss"], rel=1e-4)
     state_a, state_b = eager.model.state_dict(), captured.model.state_dict()
@@ -520,6 +521,61 @@ def test_dynamic_loss_feeds_detached_previous_states(monkeypatch, dynamic_config
     assert torch.equal(prev[:, 1:], positions[:, :-1].detach())
     assert terms["inertia"] > 0 and terms["func_reg"] == 0.0  # the dynamic head starts as the static head
     assert positions.shape == (b, r, 64, 20, 3)
+
+
+def test_captured_dynamic_steps_train_as_the_eager_ones(monkeypatch, dynamic_config, sampler):
+    """The dynamic trainer's captured step (warm-up and rollout frames in fixed buffers, their
+    bodies refit per batch, the intervals a tensor; run eagerly on the CPU through the same
+    buffers), its first pair buffer too small and the batch redone: three steps give the eager
+    trainer's losses and weights."""
+    from hairwarp.training import capture
+    from hairwarp.training import dynamic as dynamic_module
+
+    config = dynamic_config.replace(steps=3, energy={"hair_hair_weight": 1.0})
+    eager = DynamicTrainer(config.replace(cuda_graph=False), sampler=sampler)
+    expected = eager.train(progress=False)
+    monkeypatch.setattr(capture, "CAPTURE_ON_CPU", True)
+    made = []
+    real = dynamic_module._CapturedDynamicStep
+
+    class Counted(real):
+        def __init__(self, *args, **kwargs):
+            if not made:
+                kwargs["capacity"] = 1
+            made.append(kwargs.get("capacity"))
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(dynamic_module, "_CapturedDynamicStep", Counted)
+    captured = DynamicTrainer(config, sampler=sampler)
+    got = captured.train(progress=False)
+    assert made[0] == 1 and len(made) == 2 and made[1] > 1
+    for e, g in zip(expected, got):
+        assert g["loss"] == pytest.approx(e["loss"], rel=1e-5)
+        assert g["terms"].keys() == e["terms"].keys() and g["intervals"] == e["intervals"]
+    # Within a tenth of one Adam step (lr 1e-3): Adam normalises each gradient element, so an
+    # element whose gradient is float noise (1e-8 of the largest, the pair buffer's other sum
+    # order) moves by a fraction of a step either way.
+    state_a, state_b = eager.model.state_dict(), captured.model.state_dict()
+    for k in state_a:
+        torch.testing.assert_close(state_b[k], state_a[k], rtol=1e-3, atol=1e-4)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device; this machine has none")
+def test_cuda_graph_dynamic_training_steps_equal_eager(data, dynamic_config):
+    """On CUDA the dynamic trainer replays each step from a CUDA graph: the eager trainer's
+    losses and weights, to float-atomics noise."""
+    cuda_sampler = TrainingSampler(data, seed=0, device="cuda")
+    config = dynamic_config.replace(steps=3, energy={"hair_hair_weight": 1.0})
+    eager = DynamicTrainer(config.replace(cuda_graph=False), device="cuda", sampler=cuda_sampler)
+    expected = eager.train(progress=False)
+    captured = DynamicTrainer(config, device="cuda", sampler=cuda_sampler)
+    got = captured.train(progress=False)
+    assert captured._captured is not None and captured._captured.step.captured
+    for e, g in zip(expected, got):
+        assert g["loss"] == pytest.approx(e["loss"], rel=1e-4)
+    state_a, state_b = eager.model.state_dict(), captured.model.state_dict()
+    for k in state_a:
+        torch.testing.assert_close(state_b[k], state_a[k], rtol=1e-3, atol=1e-4)
 
 
 def test_one_dynamic_step_lowers_the_loss_and_keeps_the_static_network(dynamic_config, sampler):

@@ -482,6 +482,9 @@ class DynamicTrainingConfig(_TrainingConfig):
         deformation_clip: optional clamp of each deformation component [m] (None: off).
         grad_clip_norm: clip the gradient norm to this (0: off).
         checkpoint_every: write `checkpoint.pt` every this many steps (0: only at the end).
+        cuda_graph: on CUDA in one process, replay each step's forward and backward from a CUDA
+            graph (`hairwarp.training.capture`); False: eager. The CPU and data-parallel runs are
+            eager.
         dtype: "float32" or "float64".
         energy: overrides of `EnergyConfig` fields.
         data: what the sampler draws (its strand subset and N must match the static network).
@@ -508,6 +511,7 @@ class DynamicTrainingConfig(_TrainingConfig):
     deformation_clip: float | None = None
     grad_clip_norm: float = 0.0
     checkpoint_every: int = 1000
+    cuda_graph: bool = True
     dtype: str = "float32"
     energy: dict = field(default_factory=dict)
     data: DataConfig = field(default_factory=DataConfig)
@@ -546,6 +550,8 @@ class DynamicTrainingConfig(_TrainingConfig):
             _number(owner, "deformation_clip", self.deformation_clip, strict=True)
         _number(owner, "grad_clip_norm", self.grad_clip_norm)
         _int(owner, "checkpoint_every", self.checkpoint_every)
+        if not isinstance(self.cuda_graph, bool):
+            _fail(owner, "cuda_graph", "True or False", self.cuda_graph)
         _choice(owner, "dtype", self.dtype, DTYPES)
         _check_energy(owner, self.energy)
         if isinstance(self.data, dict):

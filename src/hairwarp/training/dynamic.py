@@ -36,6 +36,7 @@ from hairwarp.training._common import (
     stored_seed,
     term_means,
 )
+from hairwarp.training.capture import CapturedLossStep, FixedHairBatch, capture_applies
 from hairwarp.training.config import DynamicTrainingConfig, energy_config
 from hairwarp.training.data import MOTION_DIM, SequenceBatch, TrainingSampler
 
@@ -86,6 +87,15 @@ def dynamic_loss(model: DynamicNetwork, batch: SequenceBatch, energy, clip: floa
         (loss () tensor, terms {name: mean float, "func_reg" included},
         positions (B, R, M, N, 3)).
     """
+    loss, terms, positions, _ = _dynamic_loss(model, batch, energy, clip, inertia_time_step)
+    return loss, term_means(terms), positions
+
+
+def _dynamic_loss(model, batch, energy, clip, inertia_time_step, **energy_options):
+    """`dynamic_loss` with the terms as tensors (func_reg a 0-d one) and the hair-hair info,
+    nothing read back to the host (a CUDA graph captures it); `energy_options` go to
+    `total_energy`; `batch.intervals` may be a tensor.
+    """
     b, w, r = batch.batch_size, batch.warmup_frames, batch.rollout_frames
     m, n = batch.rollout.rigid.shape[1], batch.rollout.rigid.shape[2]
     root_uv = batch.rollout.root_uv
@@ -108,16 +118,73 @@ def dynamic_loss(model: DynamicNetwork, batch: SequenceBatch, energy, clip: floa
         # Eq. 16 ~ 1 / h^2: a sequence sampled every k frames has h = k dt.
         k = torch.as_tensor(batch.intervals, dtype=positions.dtype, device=positions.device)
         scale = (1.0 / k**2).repeat_interleave(r)
-        static = total_energy(positions, inputs, energy)
-        inertia = total_energy(positions, inputs, energy, dynamic=True, terms=("inertia",))
+        static = total_energy(positions, inputs, energy, **energy_options)
+        inertia = total_energy(positions, inputs, energy, dynamic=True, terms=("inertia",), **energy_options)
         total = static.total + inertia.total * scale
-        terms = term_means({**static.terms, "inertia": inertia.terms["inertia"] * scale})
+        terms = {**static.terms, "inertia": inertia.terms["inertia"] * scale}
+        info = static.hair_hair_info
     else:
-        result = total_energy(positions, inputs, energy, dynamic=True)
-        total, terms = result.total, term_means(result.terms)
+        result = total_energy(positions, inputs, energy, dynamic=True, **energy_options)
+        total, terms, info = result.total, dict(result.terms), result.hair_hair_info
     func_reg = model.functional_regularization(out.static_features)
-    terms["func_reg"] = float(func_reg.detach())
-    return total.mean() + func_reg, terms, positions.reshape(b, r, m, n, 3)
+    terms["func_reg"] = func_reg.detach()
+    return total.mean() + func_reg, terms, positions.reshape(b, r, m, n, 3), info
+
+
+class _CapturedDynamicStep:
+    """A dynamic training step's forward and backward (warm-up, rollout, Eq. 6) for one shape of
+    sequence batch, replayed from a CUDA graph (`hairwarp.training.capture`): the warm-up and
+    rollout frames in fixed buffers, each with one uncropped body refit per batch (the warm-up's
+    only when the network reads contact features), the intervals a device tensor.
+
+    Args:
+        trainer: the `DynamicTrainer`.
+        batch: a sequence batch whose frames carry `body_vertices`.
+        capacity: hair-hair pair-buffer capacity; None: sized from `batch`.
+    """
+
+    def __init__(self, trainer, batch: SequenceBatch, capacity: int | None = None):
+        cfg = trainer.config
+        faces = trainer.sampler.body_faces
+        self.shape = self._shape(batch)
+        self.warmup = FixedHairBatch(batch.warmup, faces, with_body=batch.warmup.inputs.body is not None)
+        self.rollout = FixedHairBatch(batch.rollout, faces)
+        rigid = batch.rollout.rigid
+        self.intervals = torch.as_tensor(batch.intervals, dtype=rigid.dtype).to(rigid.device)
+        self.batch = dataclasses.replace(batch, z=batch.z.clone(), betas=batch.betas.clone(), poses=batch.poses.clone(),
+                                         motion=batch.motion.clone(), warmup=self.warmup.batch,
+                                         rollout=self.rollout.batch, intervals=self.intervals)
+        energy = trainer.energy()
+
+        def evaluate(graph_safe, capacity):
+            loss, terms, _, info = _dynamic_loss(trainer.model, self.batch, energy, cfg.deformation_clip,
+                                                 cfg.inertia_time_step, graph_safe=graph_safe,
+                                                 hair_hair_capacity=capacity)
+            return loss, terms, info
+
+        b, m, n = rigid.shape[:3]
+        self.step = CapturedLossStep(trainer.model, evaluate, b * m * (n - 1), capacity)
+
+    @staticmethod
+    def _shape(batch: SequenceBatch):
+        return (tuple(batch.poses.shape), tuple(batch.motion.shape), tuple(batch.warmup.rigid.shape),
+                tuple(batch.rollout.rigid.shape), batch.warmup.inputs.body is not None)
+
+    def matches(self, batch: SequenceBatch) -> bool:
+        """Whether `batch` has the shapes this step holds (and carries its posed bodies)."""
+        return (self._shape(batch) == self.shape and batch.rollout.body_vertices is not None
+                and batch.warmup.body_vertices is not None)
+
+    def __call__(self, batch: SequenceBatch):
+        """Copy `batch` in, replay: (loss () tensor, terms {name: tensor}); gradients in `.grad`."""
+        fixed = self.batch
+        for dst, src in ((fixed.z, batch.z), (fixed.betas, batch.betas), (fixed.poses, batch.poses),
+                         (fixed.motion, batch.motion)):
+            dst.copy_(src)
+        self.intervals.copy_(torch.as_tensor(batch.intervals, dtype=self.intervals.dtype))
+        self.warmup.copy_from(batch.warmup)
+        self.rollout.copy_from(batch.rollout)
+        return self.step.run()
 
 
 def dynamic_model_config(config: DynamicTrainingConfig, static_config) -> DynamicConfig:
@@ -230,6 +297,7 @@ class DynamicTrainer(Trainer):
             for group in self.optimizer.param_groups:
                 group["lr"] = config.learning_rate
         self._setup_run(out, seed, rank, world_size, ckpt.step if resume is not None else 0)
+        self._captured = None  # the step's CUDA graph (`captured_loss`), made at the first step
 
     @property
     def total_steps(self) -> int:
@@ -245,19 +313,44 @@ class DynamicTrainer(Trainer):
             long_hair_fraction=cfg.long_hair_fraction,
         )
 
-    def compute_loss(self, batch: SequenceBatch, step: int, model: DynamicNetwork | None = None):
+    def energy(self):
+        """The run's `EnergyConfig`: b_p fixed, Eq. 16's dt the motions' frame time by default."""
         cfg = self.config
         fixed = {"barrier_join_fraction": cfg.barrier_join_fraction}
         if "time_step" not in cfg.energy:
             # Eq. 16's dt is the frame time the motions are played at (1/60 s in the paper).
             fixed["time_step"] = 1.0 / cfg.data.fps
-        energy = energy_config(cfg.energy, **fixed)
-        loss, terms, _ = dynamic_loss(self.model if model is None else model, batch, energy, cfg.deformation_clip,
-                                      cfg.inertia_time_step)
+        return energy_config(cfg.energy, **fixed)
+
+    def _extras(self, batch: SequenceBatch) -> dict:
         # The global batch's size and intervals (every rank drew them all).
-        extras = {"bp": cfg.barrier_join_fraction, "batch_size": batch.info.get("global_batch_size", batch.batch_size),
-                  "intervals": list(batch.info.get("intervals", batch.intervals))}
-        return loss, terms, extras
+        cfg = self.config
+        return {"bp": cfg.barrier_join_fraction, "batch_size": batch.info.get("global_batch_size", batch.batch_size),
+                "intervals": list(batch.info.get("intervals", batch.intervals))}
+
+    def compute_loss(self, batch: SequenceBatch, step: int, model: DynamicNetwork | None = None):
+        cfg = self.config
+        loss, terms, _ = dynamic_loss(self.model if model is None else model, batch, self.energy(),
+                                      cfg.deformation_clip, cfg.inertia_time_step)
+        return loss, terms, self._extras(batch)
+
+    def captured_loss(self, batch: SequenceBatch, step: int):
+        """The step's loss through `_CapturedDynamicStep` (gradients left in `.grad`), or None
+        where it does not apply (see `hairwarp.training.capture.capture_applies`); a new capture
+        for new shapes, a batch that overflowed the hair-hair buffer redone with twice its pairs.
+        """
+        if not capture_applies(self, batch.rollout):
+            return None
+        if self._captured is None or not self._captured.matches(batch):
+            self._captured = None  # its graph's memory first
+            self._captured = _CapturedDynamicStep(self, batch)
+        loss, terms = self._captured(batch)
+        needed = self._captured.step.overflowed()
+        if needed:
+            self._captured = None
+            self._captured = _CapturedDynamicStep(self, batch, capacity=2 * needed)
+            loss, terms = self._captured(batch)
+        return loss, term_means(terms), self._extras(batch)
 
 
 def train_dynamic(

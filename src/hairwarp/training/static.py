@@ -33,6 +33,7 @@ from hairwarp.models import (
 )
 from hairwarp.models.contact_features import network_deformation
 from hairwarp.training import distributed
+from hairwarp.training.capture import CapturedLossStep, FixedHairBatch, capture_applies
 from hairwarp.training._common import (
     DTYPES,
     Trainer,
@@ -166,19 +167,10 @@ def _static_loss(model, batch, energy, clip, normalization, **energy_options):
     return result.total.mean(), result, positions
 
 
-# Run the captured step's buffers on the CPU too (eagerly, no graph): tests of its bookkeeping.
-_CAPTURED_STEP_ON_CPU = False
-
-
 class _CapturedStaticStep:
-    """A static training step's forward and backward for one batch shape, replayed from a CUDA
-    graph (docs/contact.md 16): each new batch is copied into the graph's buffers, the body is one
-    uncropped `BodyMesh` refit to each batch's poses (`update` keeps every array a query reads in
-    place; the crop changes no contact result), b_p a device scalar written before each replay
-    (`total_energy(barrier_join_fraction=)`), the hair-hair pair buffer sized from the first batch
-    (twice its pairs, at least one per segment). The optimizer steps outside the graph, so a
-    batch that overflows the pair buffer is redone with a larger one (`overflowed`). On the CPU
-    (tests) the same buffers are evaluated eagerly.
+    """A static training step's forward and backward for one batch shape and clip, replayed from
+    a CUDA graph (`hairwarp.training.capture`); b_p is a device scalar written before each
+    replay (`total_energy(barrier_join_fraction=)`).
 
     Args:
         trainer: the `StaticTrainer` (its model, config and sampler's body faces).
@@ -189,41 +181,20 @@ class _CapturedStaticStep:
     """
 
     def __init__(self, trainer, batch: HairBatch, clip, bp: float, capacity: int | None = None):
-        from hairwarp.ops import BodyMesh
-        from hairwarp.runtime import CapturedCall
-
-        model, config = trainer.model, trainer.config
+        config = trainer.config
         self.clip, self.shape = clip, tuple(batch.rigid.shape)
-        self.body = BodyMesh(batch.body_vertices, trainer.sampler.body_faces, require_watertight=False, bvh="lbvh")
-        rigid = batch.rigid.clone()
-        inputs = dataclasses.replace(batch.inputs, rest_lengths=batch.inputs.rest_lengths.clone(), rigid=rigid,
-                                     scalp_normals=batch.inputs.scalp_normals.clone(), body=self.body)
-        self.batch = dataclasses.replace(batch, z=batch.z.clone(), betas=batch.betas.clone(),
-                                         poses=batch.poses.clone(), rigid=rigid, inputs=inputs, body_vertices=None)
-        self.bp = torch.full((1,), bp, dtype=rigid.dtype, device=rigid.device)
+        self.fixed = FixedHairBatch(batch, trainer.sampler.body_faces)
+        self.bp = torch.full((1,), bp, dtype=batch.rigid.dtype, device=batch.rigid.device)
         energy = energy_config(config.energy, barrier_join_fraction=bp)  # b_p read from self.bp
-        args = (model, self.batch, energy, clip, config.loss_normalization)
-        params = [p for p in model.parameters() if p.requires_grad]
-        if capacity is None:
-            with torch.no_grad():
-                _, result, _ = _static_loss(*args, barrier_join_fraction=self.bp)
-            segments = rigid.shape[0] * rigid.shape[1] * (rigid.shape[2] - 1)
-            found = 0 if result.hair_hair_info is None else int(result.hair_hair_info.pair_count)
-            capacity = max(2 * found, segments, 1)
-        self.capacity = capacity
 
-        def step():
-            for p in params:  # allocated by the backward (inside a capture: in the graph's pool)
-                p.grad = None
-            loss, result, _ = _static_loss(*args, graph_safe=True, hair_hair_capacity=capacity,
+        def evaluate(graph_safe, capacity):
+            loss, result, _ = _static_loss(trainer.model, self.fixed.batch, energy, clip, config.loss_normalization,
+                                           graph_safe=graph_safe, hair_hair_capacity=capacity,
                                            barrier_join_fraction=self.bp)
-            loss.backward()
-            self._out = (loss.detach(), {k: v.detach() for k, v in result.terms.items()}, result.hair_hair_info)
-            return self._out[0]
+            return loss, result.terms, result.hair_hair_info
 
-        self._step, self._params = step, params
-        self._graph = CapturedCall(step) if rigid.device.type == "cuda" else None
-        self._grads = [p.grad for p in params]
+        b, m, n = self.shape[:3]
+        self.step = CapturedLossStep(trainer.model, evaluate, b * m * (n - 1), capacity)
 
     def matches(self, batch: HairBatch, clip) -> bool:
         """Whether `batch` (its shapes) and `clip` are the ones this step holds."""
@@ -233,28 +204,9 @@ class _CapturedStaticStep:
         """Copy `batch` in, replay: (loss () tensor, terms {name: (B,) tensor}); the gradients
         are left in the parameters' `.grad`.
         """
-        static = self.batch
-        for dst, src in ((static.z, batch.z), (static.betas, batch.betas), (static.poses, batch.poses),
-                         (static.rigid, batch.rigid), (static.inputs.rest_lengths, batch.inputs.rest_lengths),
-                         (static.inputs.scalp_normals, batch.inputs.scalp_normals)):
-            dst.copy_(src)
-        self.body.update(batch.body_vertices)
+        self.fixed.copy_from(batch)
         self.bp.fill_(bp)
-        if self._graph is None:
-            self._step()
-            self._grads = [p.grad for p in self._params]
-        else:
-            self._graph()
-            for p, g in zip(self._params, self._grads):  # the graph's gradient buffers
-                p.grad = g
-        return self._out[0], self._out[1]
-
-    def overflowed(self) -> int:
-        """0, or the hair-hair pairs of the last call when they overflowed the buffer (reads the
-        device).
-        """
-        info = self._out[2]
-        return int(info.pair_count) if info is not None and info.overflow else 0
+        return self.step.run()
 
 
 class StaticTrainer(Trainer):
@@ -372,15 +324,14 @@ class StaticTrainer(Trainer):
         data-parallel, a batch without `body_vertices`). Captures again for a new batch shape or
         clip, and redoes a batch that overflowed the hair-hair buffer with twice its pairs.
         """
-        on = self.device.type == "cuda" or _CAPTURED_STEP_ON_CPU
-        if not (self.config.cuda_graph and on and self.world_size == 1 and batch.body_vertices is not None):
+        if not capture_applies(self, batch):
             return None
         s = self.schedule(step)
         if self._captured is None or not self._captured.matches(batch, s["clip"]):
             self._captured = None  # its graph's memory first
             self._captured = _CapturedStaticStep(self, batch, s["clip"], s["bp"])
         loss, terms = self._captured(batch, s["bp"])
-        needed = self._captured.overflowed()
+        needed = self._captured.step.overflowed()
         if needed:
             self._captured = None
             self._captured = _CapturedStaticStep(self, batch, s["clip"], s["bp"], capacity=2 * needed)
