@@ -1032,7 +1032,7 @@ def hair_hair_contact_energy(
     x: torch.Tensor,
     xi: float,
     dhat: float,
-    bp: float,
+    bp: float | torch.Tensor,
     weight: float = 1.0,
     variant: str = "quadratic",
     capacity: int | None = None,
@@ -1053,7 +1053,9 @@ def hair_hair_contact_energy(
         x: hair positions [m], (M, N, 3) or (B, M, N, 3), float32 or float64; vertex 0 the root.
         xi: hard barrier [m]: the guide bundle's diameter (`EnergyConfig.hair_diameter`).
         dhat: soft barrier width [m] (`EnergyConfig.hair_hair_dhat`, 1.5 xi in the paper).
-        bp: join fraction of the barrier in (0, 1) (`EnergyConfig.barrier_join_fraction`).
+        bp: join fraction of the barrier in (0, 1) (`EnergyConfig.barrier_join_fraction`): a
+            float, or a one-element tensor the kernels read at launch (a captured graph follows
+            its value).
         weight: lambda_hh [J per pair at B = 1], >= 0 (`EnergyConfig.hair_hair_weight`).
         variant: barrier extrapolation, "quadratic" (default), "monotone" or "paper" (see `ops.barrier`).
         capacity: pair-buffer size; None = `EnergyConfig.hair_hair_capacity_per_segment` times

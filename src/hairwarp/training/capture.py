@@ -31,7 +31,9 @@ def capture_applies(trainer, batch: HairBatch | None) -> bool:
 
 
 class FixedHairBatch:
-    """A `HairBatch`'s tensors in fixed buffers, its bodies one uncropped `BodyMesh` refit per batch.
+    """The tensors of a `HairBatch` that a loss reads (latents, shapes, poses, rigid placement,
+    rest lengths, scalp normals) in fixed buffers, its bodies one uncropped `BodyMesh` refit per
+    batch.
 
     Args:
         batch: a batch with `body_vertices` (the shapes every later batch shares).
