@@ -115,6 +115,12 @@ class Trainer:
     def compute_loss(self, batch, step: int, model=None):  # pragma: no cover - abstract
         raise NotImplementedError
 
+    def training_batch(self, step: int):
+        """The batch `train_step` draws: `next_batch` (a trainer whose captured step needs less
+        may draw less).
+        """
+        return self.next_batch(step)
+
     def captured_loss(self, batch, step: int):
         """(loss, terms, extras) with the gradients already in `.grad` (a captured step), or None:
         `compute_loss` and a backward instead (the default).
@@ -145,7 +151,7 @@ class Trainer:
         start = time.perf_counter()
         step = self.step
         if batch is None:
-            batch = self.next_batch(step)
+            batch = self.training_batch(step)
         self.model.train()
         self.optimizer.zero_grad(set_to_none=True)
         captured = self.captured_loss(batch, step) if self._ddp is None else None

@@ -21,13 +21,14 @@ from hairwarp.training.data import HairBatch
 CAPTURE_ON_CPU = False
 
 
-def capture_applies(trainer, batch: HairBatch | None) -> bool:
+def capture_applies(trainer, batch: HairBatch | None, bodies_given: bool = False) -> bool:
     """Whether `trainer`'s step replays from a graph: `cuda_graph` on, CUDA (or `CAPTURE_ON_CPU`),
-    one process, and a batch that carries its posed bodies.
+    one process, and a batch that carries its posed bodies (`bodies_given`: take that as so, the
+    batch not drawn yet).
     """
     on = trainer.device.type == "cuda" or CAPTURE_ON_CPU
-    return bool(trainer.config.cuda_graph and on and trainer.world_size == 1 and batch is not None
-                and batch.body_vertices is not None)
+    carried = bodies_given or (batch is not None and batch.body_vertices is not None)
+    return bool(trainer.config.cuda_graph and on and trainer.world_size == 1 and carried)
 
 
 class FixedHairBatch:

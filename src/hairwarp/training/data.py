@@ -563,7 +563,8 @@ class TrainingSampler:
         return radius_fraction * np.asarray(self.config.head_rotation_radii) * u
 
     def static_batch(
-        self, step: int, phase: int, progress: float, batch_size: int, num_hairstyles: int = 1
+        self, step: int, phase: int, progress: float, batch_size: int, num_hairstyles: int = 1,
+        build_body: bool = True,
     ) -> HairBatch:
         """The batch of a static-curriculum step (Section 4.2.1).
 
@@ -576,6 +577,8 @@ class TrainingSampler:
             progress: position in the phase, in [0, 1] (phase 1's radius fraction).
             batch_size: samples of the global batch (phases 1-3); this rank builds its share.
             num_hairstyles: hairstyle pool of phases 2-3 (corpus indices 0 .. n-1).
+            build_body: build the batch's (cropped) body meshes; False leaves `inputs.body`
+                None (a captured training step refits its own body to `body_vertices`).
 
         Returns:
             HairBatch of this rank's samples (all of them in a single process).
@@ -641,7 +644,7 @@ class TrainingSampler:
         info.update(hairstyles=ids, global_batch_size=batch_size, shard=[lo, hi])
         z, strands = self.hairstyles(ids[lo:hi])
         batch = self.place(z, strands, betas[lo:hi], poses[lo:hi], trans[lo:hi], hairstyle_ids=ids[lo:hi],
-                           pose_keys=keys[lo:hi], info=info)
+                           pose_keys=keys[lo:hi], build_body=build_body, info=info)
         batch.share = (hi - lo) / batch_size
         return batch
 

@@ -312,11 +312,15 @@ class StaticTrainer(Trainer):
         clip = cfg.deformation_clip if step < cfg.clip_until else None
         return {"phase": phase, "progress": progress, "bp": bp, "clip": clip}
 
-    def next_batch(self, step: int) -> HairBatch:
+    def next_batch(self, step: int, build_body: bool = True) -> HairBatch:
         cfg = self.config
         s = self.schedule(step)
         pool = {2: cfg.phase2_hairstyles, 3: cfg.phase3_hairstyles}.get(s["phase"], 1)
-        return self.sampler.static_batch(step, s["phase"], s["progress"], cfg.batch_size, pool)
+        return self.sampler.static_batch(step, s["phase"], s["progress"], cfg.batch_size, pool, build_body)
+
+    def training_batch(self, step: int) -> HairBatch:
+        """`next_batch`, without the body meshes when the step is captured (it refits its own)."""
+        return self.next_batch(step, build_body=not capture_applies(self, None, bodies_given=True))
 
     def captured_loss(self, batch: HairBatch, step: int):
         """The step's loss through `_CapturedStaticStep` (gradients left in `.grad`): (loss, terms,
