@@ -21,13 +21,12 @@ from hairwarp.training.data import HairBatch
 CAPTURE_ON_CPU = False
 
 
-def capture_applies(trainer, batch: HairBatch | None, bodies_given: bool = False) -> bool:
+def capture_applies(trainer, batch: HairBatch | None = None) -> bool:
     """Whether `trainer`'s step replays from a graph: `cuda_graph` on, CUDA (or `CAPTURE_ON_CPU`),
-    one process, and a batch that carries its posed bodies (`bodies_given`: take that as so, the
-    batch not drawn yet).
+    one process, and `batch` (when given; None: not drawn yet) carrying its posed bodies.
     """
     on = trainer.device.type == "cuda" or CAPTURE_ON_CPU
-    carried = bodies_given or (batch is not None and batch.body_vertices is not None)
+    carried = batch is None or batch.body_vertices is not None
     return bool(trainer.config.cuda_graph and on and trainer.world_size == 1 and carried)
 
 

@@ -171,9 +171,8 @@ class _CapturedDynamicStep:
                 tuple(batch.rollout.rigid.shape), batch.warmup.inputs.body is not None)
 
     def matches(self, batch: SequenceBatch) -> bool:
-        """Whether `batch` has the shapes this step holds (and carries its posed bodies)."""
-        return (self._shape(batch) == self.shape and batch.rollout.body_vertices is not None
-                and batch.warmup.body_vertices is not None)
+        """Whether `batch` has the shapes this step holds (its bodies carried: `capture_applies`)."""
+        return self._shape(batch) == self.shape
 
     def __call__(self, batch: SequenceBatch):
         """Copy `batch` in, replay: (loss () tensor, terms {name: tensor}); gradients in `.grad`."""

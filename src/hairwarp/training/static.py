@@ -197,8 +197,10 @@ class _CapturedStaticStep:
         self.step = CapturedLossStep(trainer.model, evaluate, b * m * (n - 1), capacity)
 
     def matches(self, batch: HairBatch, clip) -> bool:
-        """Whether `batch` (its shapes) and `clip` are the ones this step holds."""
-        return tuple(batch.rigid.shape) == self.shape and clip == self.clip and batch.body_vertices is not None
+        """Whether `batch` (its shapes) and `clip` are the ones this step holds (its bodies
+        carried: `capture_applies`).
+        """
+        return tuple(batch.rigid.shape) == self.shape and clip == self.clip
 
     def __call__(self, batch: HairBatch, bp: float):
         """Copy `batch` in, replay: (loss () tensor, terms {name: (B,) tensor}); the gradients
@@ -320,7 +322,7 @@ class StaticTrainer(Trainer):
 
     def training_batch(self, step: int) -> HairBatch:
         """`next_batch`, without the body meshes when the step is captured (it refits its own)."""
-        return self.next_batch(step, build_body=not capture_applies(self, None, bodies_given=True))
+        return self.next_batch(step, build_body=not capture_applies(self))
 
     def captured_loss(self, batch: HairBatch, step: int):
         """The step's loss through `_CapturedStaticStep` (gradients left in `.grad`): (loss, terms,
