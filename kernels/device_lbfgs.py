@@ -238,7 +238,7 @@ def lbfgs_direction_kernel(
     # In:
     candidate: wp.array(dtype=Any),
     g_dot_candidate: wp.array(dtype=Any),
-    g: wp.array(dtype=Any),
+    fallback: wp.array(dtype=Any),
     first_scale: wp.array(dtype=Any),
     num_memory: int,
     # Out:
@@ -246,12 +246,14 @@ def lbfgs_direction_kernel(
     rho: wp.array(dtype=Any),
 ):
     """One thread per component: the memory's direction if it descends (g . d < 0), else
-    -min(1, 1 / |g|_1) g, the memory then dropped (thread 0 zeroes rho).
+    -first_scale * fallback, the memory then dropped (thread 0 zeroes rho). The fallback is g
+    with first_scale = min(1, 1 / |g|_1) (torch's first step), or H0 g with first_scale = 1
+    when the solver has a preconditioner H0.
     """
     i = wp.tid()
     if g_dot_candidate[0] < type(g_dot_candidate[0])(0.0):
         d_out[i] = candidate[i]
         return
-    d_out[i] = -first_scale[0] * g[i]
+    d_out[i] = -first_scale[0] * fallback[i]
     if i == 0:
         clear_memory(rho, num_memory)

@@ -153,3 +153,150 @@ def jitter(x: torch.Tensor, reference: torch.Tensor | None = None) -> torch.Tens
         check_tensor("reference", reference, shape=tuple(x.shape))
         acc = acc - (reference[2:] - 2 * reference[1:-1] + reference[:-2]).norm(dim=-1).mean()
     return acc
+
+
+# RMS swings and standard deviations below this are float32 rounding of ~1 m coordinates
+# (ulp 1.2e-7 m), not motion: the amplitude ratio and correlation are undefined against them.
+_SWING_FLOOR = 1e-6  # m
+
+_MM = 1e3  # metres to millimetres
+
+
+def _moving_distance(x: torch.Tensor, reference: torch.Tensor, name: str, ref_name: str) -> torch.Tensor:
+    """(B, M, N - 2) float64 distances [m] of the moving vertices 2..N-1 of two matching batches."""
+    check_tensor(ref_name, reference, shape=tuple(x.shape), device=x.device)
+    if x.shape[-2] <= NUM_FIXED_VERTICES:
+        raise ValueError(f"{name}: expected more than {NUM_FIXED_VERTICES} vertices per strand, got {x.shape[-2]}")
+    d = (x[..., NUM_FIXED_VERTICES:, :] - reference[..., NUM_FIXED_VERTICES:, :]).norm(dim=-1)
+    return d.double()
+
+
+def _quantile(values: torch.Tensor, q: float) -> float:
+    """Linear-interpolation quantile (numpy's default) of a 1-D tensor; `torch.quantile` caps the size."""
+    n = values.numel()
+    pos = q * (n - 1)
+    lo = int(pos)
+    hi = min(lo + 1, n - 1)
+    v_lo = float(torch.kthvalue(values, lo + 1).values)
+    v_hi = float(torch.kthvalue(values, hi + 1).values) if hi != lo else v_lo
+    return v_lo + (pos - lo) * (v_hi - v_lo)
+
+
+def static_fidelity(x: torch.Tensor, optimum: torch.Tensor, energy=None, optimum_energy=None) -> dict:
+    """How far a static drape is from the converged optimum of the same frames, over the batch.
+
+    Args:
+        x: (B, M, N, 3) or (M, N, 3) hair positions of a method [m].
+        optimum: positions of the converged optimum, shaped like `x` [m].
+        energy: total static energy E (Eq. 5) of `x`: a float or a (B,) tensor, summed [J].
+        optimum_energy: E* of `optimum`, like `energy` [J].
+
+    Returns:
+        {"mean_distance_mm", "p95_distance_mm": mean and 95th percentile of the per-vertex
+        distance over the moving vertices 2..N-1 of every batch item [mm];
+        "tip_height_difference_mm": mean over strands of tip y of `x` minus tip y of `optimum`
+        [mm], positive when the method's tips hang higher; "energy_ratio": E / E*, only when
+        both energies are given (None when E* is 0)}, all Python floats. The ratio reads as
+        "times the optimum's energy" only when E* > 0: the gravity term's height origin is
+        arbitrary (see `energy_gap`).
+
+    Raises:
+        ValueError: shapes that differ, or strands of no moving vertex.
+    """
+    xb = _batched(check_tensor("x", x, allow_empty=False))
+    ob = _batched(check_tensor("optimum", optimum, shape=tuple(x.shape)), "optimum")
+    d = _moving_distance(xb, ob, "x", "optimum").flatten()
+    out = {"mean_distance_mm": float(d.mean()) * _MM,
+           "p95_distance_mm": _quantile(d, 0.95) * _MM,
+           "tip_height_difference_mm": float((xb[:, :, -1, 1].double() - ob[:, :, -1, 1].double()).mean()) * _MM}
+    if energy is not None and optimum_energy is not None:
+        e = float(torch.as_tensor(energy, dtype=torch.float64).sum())
+        e_star = float(torch.as_tensor(optimum_energy, dtype=torch.float64).sum())
+        out["energy_ratio"] = e / e_star if e_star != 0 else None
+    return out
+
+
+def _tip_offset(x: torch.Tensor, rigid: torch.Tensor) -> torch.Tensor:
+    check_tensor("x", x, shape=(None, None, None, 3), allow_empty=False)
+    check_tensor("rigid", rigid, shape=tuple(x.shape), device=x.device)
+    return x[:, :, -1] - rigid[:, :, -1]
+
+
+def tip_swing(x: torch.Tensor, rigid: torch.Tensor) -> torch.Tensor:
+    """The tips' offset from the rigid placement minus its mean over the motion.
+
+    What the hair does beyond following the head: zero for the rigid placement itself, and for
+    any drape that keeps a constant offset (a static sag) from it.
+
+    Args:
+        x: (T, M, N, 3) hair positions over T frames [m].
+        rigid: (T, M, N, 3) the rigid placement of the same frames [m].
+
+    Returns:
+        (T, M, 3) tensor [m], differentiable in `x`.
+
+    Raises:
+        ValueError: shapes that differ or an empty `x`.
+    """
+    offset = _tip_offset(x, rigid)
+    return offset - offset.mean(dim=0, keepdim=True)
+
+
+def mean_tip_offset(x: torch.Tensor, rigid: torch.Tensor) -> torch.Tensor:
+    """Mean over strands of the tips' offset from the rigid placement (not mean-subtracted), for plotting.
+
+    Args:
+        x: (T, M, N, 3) hair positions over T frames [m].
+        rigid: (T, M, N, 3) the rigid placement of the same frames [m].
+
+    Returns:
+        (T, 3) tensor [m] (the curves of `hairwarp.evaluation.charts.swing_plot`).
+
+    Raises:
+        ValueError: shapes that differ or an empty `x`.
+    """
+    return _tip_offset(x, rigid).mean(dim=1)
+
+
+def _rms(v: torch.Tensor) -> float:
+    return float(v.double().square().sum(dim=-1).mean().sqrt())
+
+
+def motion_fidelity(x: torch.Tensor, physics: torch.Tensor, rigid: torch.Tensor) -> dict:
+    """How a method's motion compares with the physics simulation of the same motion.
+
+    Args:
+        x: (T, M, N, 3) hair positions of a method over T frames [m].
+        physics: (T, M, N, 3) the implicit-Euler simulation of the same frames [m].
+        rigid: (T, M, N, 3) the rigid placement of the same frames [m].
+
+    Returns:
+        Python floats (or None) under
+        "per_frame_distance_mm": T per-frame mean distances to `physics` over the moving
+        vertices 2..N-1 [mm]; "mean_distance_mm", "max_distance_mm": their mean and maximum;
+        "swing_mm", "physics_swing_mm": RMS over frames and strands of |`tip_swing`| of `x` and
+        of `physics` [mm]; "swing_amplitude_ratio": swing_mm / physics_swing_mm (None when the
+        physics barely swings); "swing_correlation": Pearson correlation of the two swings over
+        all (T, M, 3) components (None when either is ~constant, e.g. for the rigid placement).
+
+    Raises:
+        ValueError: shapes that differ, an empty `x` or strands of no moving vertex.
+    """
+    s_x = tip_swing(x, rigid).double()
+    check_tensor("physics", physics, shape=tuple(x.shape), device=x.device)
+    s_p = tip_swing(physics, rigid).double()
+    per_frame = _moving_distance(x, physics, "x", "physics").mean(dim=(1, 2)) * _MM
+    swing, physics_swing = _rms(s_x), _rms(s_p)
+    a, b = s_x.flatten(), s_p.flatten()
+    a, b = a - a.mean(), b - b.mean()
+    sa, sb = float(a.square().mean().sqrt()), float(b.square().mean().sqrt())
+    corr = None
+    if sa > _SWING_FLOOR and sb > _SWING_FLOOR:
+        corr = max(-1.0, min(1.0, float((a * b).mean()) / (sa * sb)))
+    return {"mean_distance_mm": float(per_frame.mean()),
+            "max_distance_mm": float(per_frame.max()),
+            "per_frame_distance_mm": per_frame.tolist(),
+            "swing_mm": swing * _MM,
+            "physics_swing_mm": physics_swing * _MM,
+            "swing_amplitude_ratio": swing / physics_swing if physics_swing > _SWING_FLOOR else None,
+            "swing_correlation": corr}

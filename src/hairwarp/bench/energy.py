@@ -1,10 +1,16 @@
 """Energy benchmark: forward + backward of each loss term and of the total, the Warp path
 (`hairwarp.ops`, `hairwarp.energy`) against the plain-torch path (`hairwarp.torch_reference`),
-at the paper's sizes: 1024 strands x 100 vertices on the default body (13 348 vertices, cropped
-to the hair's reach), batch 1 and 32 (B different frames of a head-turn motion).
+on the default body (13 348 vertices, cropped to the hair's reach), B different frames of a
+head-turn motion. Sizes (`default_sizes`): the paper's (`FULL_SIZES`: 1024 strands x 100
+vertices, batch 1 and 32, the torch.compile column on) on CUDA or when asked for; on the CPU by
+default `CPU_SIZES` (128 strands x 100 vertices, batch 1 and 4, no torch.compile column, a
+plain-torch peer slower than 1 s a call timed once): 35-43 s on a 2-core CPU (73 s with Warp's
+kernel cache empty) where the paper's sizes take about half an hour (docs/energy_cpu.md).
 
-Writes {"device", "machine", "sizes", "results": [{"name", "warp_ms", "torch_ms", ...}]},
-a result named "total" included (Eq. 6 without L_func_reg: every term, inertia too).
+Writes {"device", "machine", "sizes", "torch_compile", "skip_torch_above_ms", "results": [{"name",
+"warp_ms", "torch_ms", ...}]} (the command adds "preset": the `BenchSizes` name, "full" or "cpu",
+or "custom" where a size flag changed it), a result named "total" included (Eq. 6 without
+L_func_reg: every term, inertia too).
 
 Each row: `warp_ms` and `torch_ms` (forward + backward, after untimed warm-up calls; the rivals of
 a row timed in alternating rounds, `hairwarp.runtime.time_ms_interleaved`), `speedup`
@@ -27,7 +33,7 @@ batch 32 in one call it needs ~35 GB on the CPU.
 from __future__ import annotations
 
 import json
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import torch
 
@@ -35,6 +41,47 @@ from hairwarp.runtime import machine_name, synchronize, time_ms_interleaved
 from hairwarp.config import EnergyConfig
 
 STRAND_TERM_NAMES = ("stretch", "bending", "auxiliary", "smoothness", "gravity", "root_alignment", "inertia")
+
+
+@dataclass(frozen=True)
+class BenchSizes:
+    """What one benchmark run times: its sizes and how hard it times.
+
+    Attributes:
+        name: "full" (the paper's sizes), "cpu" (the CPU's quick default), or "custom" (the command's
+            flags changed one of them).
+        batches: batch sizes, one set of rows each.
+        strand_stride, num_vertices: every k-th strand of the 1024, N vertices per strand.
+        torch_compile: whether the torch.compile column is timed (compiling costs seconds a term on a CPU).
+        skip_torch_above_ms: a plain-torch peer whose first call is slower than this is timed once.
+    """
+
+    name: str
+    batches: tuple[int, ...]
+    strand_stride: int
+    num_vertices: int
+    torch_compile: bool
+    skip_torch_above_ms: float
+
+
+# The paper's sizes. A complete run on the 2-core CPU took 26 min 28 s (docs/energy_cpu.md).
+FULL_SIZES = BenchSizes("full", (1, 32), 1, 100, True, 60_000.0)
+# The CPU's default: 1/8 of the strands (128 x 100 vertices), batch 1 and 4, eager peers only, and
+# the plain-torch contact peers (1-6 s a call here) timed once: 35-43 s on a 2-core CPU (measured).
+CPU_SIZES = BenchSizes("cpu", (1, 4), 8, 100, False, 1_000.0)
+
+
+def default_sizes(device: torch.device | str, *, full: bool = False) -> BenchSizes:
+    """The benchmark's sizes on `device`: the paper's on CUDA or with `full`, else the CPU's quick ones.
+
+    Args:
+        device: where the benchmark runs.
+        full: the paper's sizes whatever the device.
+
+    Returns:
+        `FULL_SIZES` or `CPU_SIZES`.
+    """
+    return FULL_SIZES if full or torch.device(device).type != "cpu" else CPU_SIZES
 
 
 def build_energy_inputs(batch: int, device: torch.device, *, hairstyle: str = "long_straight",
@@ -251,8 +298,9 @@ def run_energy_benchmark(device: torch.device, batches=(1, 32), *, config: Energ
                 if progress:
                     compiled = row.get("torch_compile_ms")
                     extra = f"   compile {compiled:10.3f} ms" if compiled is not None else ""
+                    once = " (timed once)" if torch_note else ""
                     print(f"  B={batch:<3d} {name:<18s} warp {warp_ms:10.3f} ms   torch {torch_ms:10.3f} ms   "
-                          f"x{row['speedup']:.1f}{extra}", flush=True)
+                          f"x{row['speedup']:.1f}{extra}{once}", flush=True)
                     note = row.get("compile_note")
                     if note and note not in compile_notes_printed:  # no C++ compiler: one line, not one per row
                         print(f"  torch.compile unusable for {name} (column n/a): {note}", flush=True)
@@ -260,6 +308,7 @@ def run_energy_benchmark(device: torch.device, batches=(1, 32), *, config: Energ
     finally:
         set_finite_checks(previous_checks)
     return {"device": str(device), "machine": machine_name(device), "sizes": sizes,
+            "torch_compile": torch_compile, "skip_torch_above_ms": skip_torch_above_ms,
             "config": {k: v for k, v in vars(config).items()}, "results": results}
 
 
@@ -309,7 +358,8 @@ def _first_call_compiled(torch_fn, x, eager_value: torch.Tensor):
 
 def markdown_table(record: dict) -> str:
     """The benchmark as a markdown table (one row per term and batch)."""
-    lines = [f"Device: {record['machine']}; sizes: {record['sizes']}", "",
+    preset = f" ({record['preset']})" if record.get("preset") else ""
+    lines = [f"Device: {record['machine']}; sizes{preset}: {record['sizes']}", "",
              "| term | batch | Warp fwd+bwd (ms) | plain torch fwd+bwd (ms) | speed-up | torch.compile fwd+bwd (ms) "
              "| vs compile |",
              "|---|---:|---:|---:|---:|---:|---:|"]
@@ -317,10 +367,17 @@ def markdown_table(record: dict) -> str:
     def cell(value, fmt):
         return "n/a" if value is None else format(value, fmt)
 
+    once = False
     for r in record["results"]:
-        lines.append(f"| {r['name']} | {r['batch']} | {r['warp_ms']:.3f} | {r['torch_ms']:.3f} | "
+        mark = " *" if r.get("note") == "timed once" else ""
+        once = once or bool(mark)
+        lines.append(f"| {r['name']} | {r['batch']} | {r['warp_ms']:.3f} | {r['torch_ms']:.3f}{mark} | "
                      f"{r['speedup']:.1f}x | {cell(r.get('torch_compile_ms'), '.3f')} | "
                      f"{cell(r.get('speedup_vs_compile'), '.1f')}{'' if r.get('speedup_vs_compile') is None else 'x'} |")
+    if once:
+        limit = record.get("skip_torch_above_ms")
+        over = f" than {limit / 1e3:g} s" if limit is not None else ""
+        lines += ["", f"\\* timed once (its first call), not repeated: that call was slower{over}"]
     return "\n".join(lines)
 
 

@@ -1,4 +1,4 @@
-"""The speed-versus-accuracy chart (PNG) from a harness results record.
+"""The speed-versus-accuracy chart (PNG) from a harness results record, and the swing plot.
 
 One row of panels per static scene: time per drape [ms] on a log x axis against penetration %
 (left) and against the energy gap (E - E*) / (E0 - E*) on a log y axis (right). Optimizers
@@ -8,11 +8,19 @@ every iteration); one-shot methods (the networks) are points; the rigid placemen
 costs nothing, is a dashed horizontal line; a network finished by L-BFGS ("static+refine")
 is a curve in its network's colour that starts at the network's time. The device is named in
 the title.
+
+The swing plot (`swing_plot`) draws each method's mean tip offset from the rigid placement over
+a motion against the physics simulation's (DESIGN.md, "What good means").
 """
 
 from __future__ import annotations
 
 import os
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import numpy as np
+    import torch
 
 # Energy gaps below this are drawn on it (log axis; the optimum itself has gap 0).
 GAP_FLOOR = 1e-6
@@ -108,6 +116,68 @@ def speed_accuracy_chart(record: dict, path: str, *, scenes: list[str] | None = 
                         transform=ax_gap.transAxes, ha="center", va="center", fontsize=10, color="0.4")
     machine = record["machine"]
     fig.suptitle(f"Speed versus accuracy on {machine['device_name']} (scenes v{record['scenes_version']})", fontsize=12)
+    fig.tight_layout()
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    fig.savefig(path, dpi=110)
+    return path
+
+
+def swing_plot(curves: dict[str, torch.Tensor | np.ndarray], path: str, *, fps: float, physics: str = "physics",
+               title: str | None = None) -> str:
+    """Draw the methods' mean tip offsets over a motion: x, y and z stacked, in mm against time.
+
+    Args:
+        curves: method name -> (T, 3) mean tip offset from the rigid placement [m] (torch tensor
+            or numpy array, from `hairwarp.metrics.mean_tip_offset`), all of the same T.
+        path: output file (.png).
+        fps: frames per second of the motion [1/s] (frame t is drawn at t / fps seconds).
+        physics: the name of the physics curve, drawn black and thicker (when present).
+        title: figure title (default: a description of the plot).
+
+    Returns:
+        The path written.
+
+    Raises:
+        ValueError: `curves` empty, a curve not (T, 3), curves of different lengths or not
+            finite; `fps` not positive; `path` not ending in .png.
+    """
+    import numpy as np
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from hairwarp._validate import check_positive
+
+    if not str(path).lower().endswith(".png"):
+        raise ValueError(f"path: expected a .png file, got {path!r}")
+    fps = check_positive("fps", fps)
+    if not curves:
+        raise ValueError("curves: expected at least one curve, got none")
+    arrays, length = {}, None
+    for name, c in curves.items():
+        a = c.detach().cpu().double().numpy() if hasattr(c, "detach") else np.asarray(c, dtype=np.float64)
+        if a.ndim != 2 or a.shape[1] != 3 or a.shape[0] == 0:
+            raise ValueError(f"curves[{name!r}]: expected shape (T, 3) with T > 0, got {a.shape}")
+        if length is not None and a.shape[0] != length:
+            raise ValueError(f"curves[{name!r}]: expected {length} frames like the curves before it, got {a.shape[0]}")
+        if not np.isfinite(a).all():
+            raise ValueError(f"curves[{name!r}]: contains NaN or Inf")
+        arrays[name], length = a * 1e3, a.shape[0]
+    t = np.arange(length) / fps
+    fig = Figure(figsize=(10, 7.5))
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(3, 1, sharex=True)
+    for i, (name, a) in enumerate(arrays.items()):
+        is_physics = name == physics
+        for k, ax in enumerate(axes):
+            ax.plot(t, a[:, k], color="black" if is_physics else _color(name, i), lw=2.5 if is_physics else 1.3,
+                    ls=_STYLE.get(name, (None, None))[1] or "-", zorder=3 if is_physics else 2,
+                    label=name if k == 0 else None)
+    for ax, axis in zip(axes, "xyz"):
+        ax.set_ylabel(f"{axis} offset [mm]")
+        ax.grid(True, alpha=0.3)
+    axes[-1].set_xlabel("time [s]")
+    axes[0].legend(fontsize=8, loc="best")
+    fig.suptitle(title or "Mean tip offset from the rigid placement", fontsize=12)
     fig.tight_layout()
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     fig.savefig(path, dpi=110)

@@ -14,12 +14,20 @@ Static scenes (a batch of B independent drapes):
       energy (both summed over the batch). 1 = no progress, 0 = the optimum.
     Optimizers also return their history, which becomes curves on the chart: loss (hence the
     energy gap) every iteration, penetration every `record_every` iterations.
+    - shape against the optimum (`hairwarp.metrics.static_fidelity`): energy ratio E / E*,
+      mean and p95 vertex distance and mean tip height difference to the reference's drape
+      [mm] (penetration and length change cannot see a splayed or lifted drape).
 
 Motion scenes (T frames in time order):
     - ms per frame; penetration % and length change %, mean over frames (and the worst frame);
     - per frame, the mean and the max vertex distance to the physics reference (the
       "reference" method's implicit-Euler simulation) [m];
-    - jitter: mean norm of the second time difference of positions beyond the reference's [m].
+    - jitter: mean norm of the second time difference of positions beyond the reference's [m];
+    - motion against the physics (`hairwarp.metrics.motion_fidelity`; the "reference" method's
+      simulation, else "physics"): mean / worst-frame distance [mm], the tips' swing beyond
+      the rigid placement (RMS [mm]) of the method and of the physics, their amplitude ratio
+      and correlation; with `plots_dir`, a PNG per motion of each method's mean tip offset
+      beside the physics (`hairwarp.evaluation.charts.swing_plot`).
 
 `run_comparison` returns a JSON-ready dict (schema `RESULTS_SCHEMA`); `write_results` stores
 it, `markdown_tables` renders the Table-1-style tables.
@@ -79,7 +87,7 @@ def _run_static(scene, frames, methods: dict, config, record_every: int, progres
     def pen_metric(x):
         return {"penetration": float(M.penetration_percent(x, body).mean())}
 
-    rows = []
+    rows, drapes = [], {}
     before = _fingerprint(frames)
     for name, method in methods.items():
         progress(f"{scene.name}: {name}")
@@ -88,6 +96,7 @@ def _run_static(scene, frames, methods: dict, config, record_every: int, progres
             raise RuntimeError(f"method {name!r} modified the scene's inputs; every method must see the same inputs")
         positions = result.positions.detach()
         _check_positions(name, positions, tuple(rigid.shape))
+        drapes[name] = positions
         finite = bool(torch.isfinite(positions).all())
         row = {
             "method": name,
@@ -106,7 +115,13 @@ def _run_static(scene, frames, methods: dict, config, record_every: int, progres
     # The optimum E*: the reference method's energy (or the lowest energy anyone reached, if
     # that is lower: then the "reference" was not converged, and the gap says so by being < 0).
     optimum = next((r["energy"] for r in rows if r["method"] == "reference"), None)
+    optimum_positions = drapes.get("reference")
     for row in rows:
+        for key in _STATIC_FIDELITY:
+            row[key] = None
+        if optimum_positions is not None and row["finite"]:
+            fidelity = M.static_fidelity(drapes[row["method"]], optimum_positions, row["energy"], optimum)
+            row.update({key: fidelity.get(key) for key in _STATIC_FIDELITY})
         row["energy_initial"] = e_initial
         row["energy_optimum"] = optimum
         row["energy_gap"] = _gap(row["energy"], optimum, e_initial) if row["energy"] is not None else None
@@ -115,7 +130,22 @@ def _run_static(scene, frames, methods: dict, config, record_every: int, progres
     return rows
 
 
-def _run_motion(scene, frames, methods: dict, progress) -> list[dict]:
+# Fields of `metrics.static_fidelity` and `metrics.motion_fidelity` in the harness's rows.
+_STATIC_FIDELITY = ("energy_ratio", "mean_distance_mm", "p95_distance_mm", "tip_height_difference_mm")
+_MOTION_FIDELITY = ("mean_distance_mm", "max_distance_mm", "per_frame_distance_mm", "swing_mm", "physics_swing_mm",
+                    "swing_amplitude_ratio", "swing_correlation")
+
+
+def _physics_of(sims: dict) -> tuple[str | None, torch.Tensor | None]:
+    """The physics simulation the motion metrics compare against: "reference", else "physics"."""
+    for name in ("reference", "physics"):
+        x = sims.get(name)
+        if x is not None and bool(torch.isfinite(x).all()):
+            return name, x
+    return None, None
+
+
+def _run_motion(scene, frames, methods: dict, progress, plots_dir: str | None = None) -> tuple[list[dict], str | None]:
     body = frames.body_mesh
     rest = frames.inputs.rest_lengths
     shape = tuple(frames.rigid.positions.shape)
@@ -156,7 +186,24 @@ def _run_motion(scene, frames, methods: dict, progress) -> list[dict]:
         row["distance_max_m"] = float(max_d.max())
         if x.shape[0] >= 3:
             row["jitter_m"] = float(M.jitter(x, reference))
-    return rows
+    physics_name, physics = _physics_of(sims)
+    rigid = frames.rigid.positions
+    for row in rows:
+        row["physics"] = physics_name
+        for key in _MOTION_FIDELITY:
+            row[key] = None
+        if physics is not None and row["finite"]:
+            fidelity = M.motion_fidelity(sims[row["method"]], physics, rigid)
+            row.update({key: fidelity.get(key) for key in _MOTION_FIDELITY})
+    plot = None
+    if plots_dir is not None and physics is not None:
+        from hairwarp.evaluation.charts import swing_plot
+
+        curves = {name: M.mean_tip_offset(x, rigid) for name, x in sims.items() if bool(torch.isfinite(x).all())}
+        os.makedirs(plots_dir, exist_ok=True)
+        plot = swing_plot(curves, os.path.join(plots_dir, f"swing_{scene.name}.png"), fps=float(scene.fps),
+                          physics=physics_name, title=f"{scene.name}: mean tip offset from the rigid placement")
+    return rows, plot
 
 
 def parse_names(text: str | Sequence[str], known: Sequence[str], flag: str) -> list[str]:
@@ -185,6 +232,7 @@ def run_comparison(
     seed: int = 0,
     command_line: str | None = None,
     progress: bool = False,
+    plots_dir: str | None = None,
 ) -> dict:
     """Run `methods` on `scenes` (every method on the same frames) and score them.
 
@@ -200,6 +248,8 @@ def run_comparison(
         seed: torch's seed, set before each method runs.
         command_line: recorded in the results.
         progress: print a line per (scene, method) and show the methods' progress bars.
+        plots_dir: write a swing plot (PNG) per motion scene here (needs "physics" or
+            "reference" among the methods); its path goes into the scene's "swing_plot".
 
     Returns:
         dict with schema `RESULTS_SCHEMA`: "machine", "sizes", "scenes_version", "options",
@@ -246,11 +296,12 @@ def run_comparison(
         torch.manual_seed(seed)
         if scene.is_motion:
             # The motion's frame spacing is the implicit-Euler time step of the reference.
-            rows = _run_motion(scene, frames, instances, say)
+            rows, plot = _run_motion(scene, frames, instances, say, plots_dir)
         else:
-            rows = _run_static(scene, frames, instances, config, options.record_every, say)
+            rows, plot = _run_static(scene, frames, instances, config, options.record_every, say), None
         entry = scene.describe()
         entry["results"] = rows
+        entry["swing_plot"] = plot
         record["scenes"].append(entry)
     return record
 
@@ -283,22 +334,31 @@ def markdown_tables(record: dict) -> str:
         lines.append(f"{size['strands']} strands x {size['vertices']} vertices, {size['frames']} frame(s).")
         lines.append("")
         if entry["kind"] == "static":
-            lines.append("| method | ms/drape | penetration % | length change % | energy gap | iterations (stop) |")
-            lines.append("|---|---:|---:|---:|---:|---|")
+            lines.append("| method | ms/drape | penetration % | length change % | E / E* | distance to E*'s drape "
+                         "mean / p95 [mm] | tip height vs E* [mm] | iterations (stop) |")
+            lines.append("|---|---:|---:|---:|---:|---:|---:|---|")
             for r in entry["results"]:
                 it = r["info"].get("iterations")
                 stop = r["info"].get("stop_reason")
                 its = "-" if it is None else f"{it} ({stop})"
+                dist = f"{_fmt(r.get('mean_distance_mm'), '.1f')} / {_fmt(r.get('p95_distance_mm'), '.1f')}"
                 lines.append(f"| {r['method']} | {_fmt(r['time_ms'], '.1f')} | {_fmt(r['penetration_percent'], '.2f')} | "
-                             f"{_fmt(r['length_change_percent'], '.3f')} | {_fmt(r['energy_gap'], '.2e')} | {its} |")
+                             f"{_fmt(r['length_change_percent'], '.3f')} | {_fmt(r.get('energy_ratio'), '.3f')} | {dist} | "
+                             f"{_fmt(r.get('tip_height_difference_mm'), '+.1f')} | {its} |")
         else:
             lines.append("| method | ms/frame | penetration % (mean / worst frame) | length change % | "
-                         "distance to reference mean / max [mm] | jitter beyond reference [mm] |")
-            lines.append("|---|---:|---:|---:|---:|---:|")
+                         "distance to physics mean / worst frame [mm] | tip swing [mm] (physics) | swing ratio | "
+                         "swing correlation |")
+            lines.append("|---|---:|---:|---:|---:|---:|---:|---:|")
             for r in entry["results"]:
                 pen = f"{_fmt(r['penetration_percent'], '.2f')} / {_fmt(r['penetration_percent_max_frame'], '.2f')}"
-                dist = f"{_fmt(r['distance_mean_m'], '.2f', 1e3)} / {_fmt(r['distance_max_m'], '.1f', 1e3)}"
+                dist = f"{_fmt(r.get('mean_distance_mm'), '.1f')} / {_fmt(r.get('max_distance_mm'), '.1f')}"
+                swing = f"{_fmt(r.get('swing_mm'), '.1f')} ({_fmt(r.get('physics_swing_mm'), '.1f')})"
                 lines.append(f"| {r['method']} | {_fmt(r['time_ms'], '.1f')} | {pen} | "
-                             f"{_fmt(r['length_change_percent'], '.3f')} | {dist} | {_fmt(r['jitter_m'], '.3f', 1e3)} |")
+                             f"{_fmt(r['length_change_percent'], '.3f')} | {dist} | {swing} | "
+                             f"{_fmt(r.get('swing_amplitude_ratio'), '.2f')} | {_fmt(r.get('swing_correlation'), '+.2f')} |")
+            if entry.get("swing_plot"):
+                lines.append("")
+                lines.append(f"Swing plot: `{entry['swing_plot']}`")
         lines.append("")
     return "\n".join(lines)

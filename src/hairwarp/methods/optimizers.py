@@ -4,9 +4,11 @@
 - "adam", "lbfgs": direct optimization of the static energy (Section 4.3.2,
   `hairwarp.solvers.direct`), started at the rigid placement; on a motion every frame is
   draped on its own (the paper's static baselines have no dynamics).
+- "physics": the physics simulation (`hairwarp.solvers.physics`): implicit-Euler steps on a
+  motion, the static optimum on a single frame, each solve stopped at a tolerance [m].
 - "reference": L-BFGS run to convergence (patience 200, up to `reference_max_iterations`): the
-  optimum E* of the energy gap; on a motion, the implicit-Euler physics reference
-  (`hairwarp.solvers.reference.simulate_reference`), its time step the frame spacing.
+  optimum E* of the energy gap; on a motion, the physics simulation at a tolerance 100x
+  tighter, its time step the frame spacing.
 
 They run on any body (they need no pose parameters), and take any start: `start` positions
 (the composed methods start them from a network's output).
@@ -77,31 +79,72 @@ class OptimizerMethod(Method):
                             history=result.history, info=info)
 
 
-class ReferenceMethod(OptimizerMethod):
-    """The converged optimum (static) and the implicit-Euler physics reference (motions)."""
+class PhysicsMethod(Method):
+    """The physics simulation (`hairwarp.solvers.physics`): a motion by implicit-Euler steps on
+    the preconditioned device L-BFGS, a single frame draped as the static optimum, each solve
+    stopped at `PhysicsConfig.tolerance`.
+    """
 
+    name = "physics"
     kind = "reference"
 
+    def __init__(self, options: MethodOptions | None = None, config=None):
+        from hairwarp.solvers.physics import PhysicsConfig
+
+        super().__init__(options)
+        self.config = config or PhysicsConfig()
+
+    def drape(self, frames, *, metrics: Callable | None = None, start: torch.Tensor | None = None) -> MethodResult:
+        """The static optimum of each frame, from `start` (default: the rigid placement)."""
+        from hairwarp.runtime import synchronize
+        from hairwarp.solvers.physics import PhysicsSolver
+
+        x0 = (frames.rigid.positions if start is None else start).detach()
+        config = scene_energy_config(self.options, frames)
+        inputs = frames.inputs
+        solver = PhysicsSolver(inputs.rest_lengths, frames.rigid.positions, inputs.scalp_normals, inputs.body, config,
+                               self.config, dynamic=False)
+        synchronize(x0.device)
+        t0 = time.perf_counter()
+        report = solver.solve(x0, self.config.static_max_iterations)
+        positions = solver.positions()
+        synchronize(x0.device)
+        elapsed = time.perf_counter() - t0
+        info = {"iterations": report.iterations, "stop_reason": report.stop_reason, "loss": report.energy,
+                "tolerance_m": self.config.tolerance}
+        return MethodResult(positions=positions, time_ms=elapsed * 1e3 / x0.shape[0], info=info)
+
+    def simulate(self, frames) -> MethodResult:
+        from hairwarp.solvers.physics import simulate_physics
+
+        if frames.scene is None:
+            raise ValueError("frames: a simulation needs frames made by Scene.frames (they carry their scene)")
+        device = frames.rigid.positions.device
+        result = simulate_physics(frames.scene, frames.frame_indices.tolist(), device=device,
+                                  energy_config=self.options.config(), config=self.config,
+                                  progress=self.options.progress)
+        steps = result.frame_ms[1:] or result.frame_ms
+        info = {"iterations": result.iterations, "stop_reasons": result.stop_reasons,
+                "frame_ms": result.frame_ms, "static_drape_ms": result.frame_ms[0],
+                "tolerance_m": self.config.tolerance}
+        # Time per frame: the implicit-Euler steps (frame 0's static drape is the set-up's).
+        return MethodResult(positions=result.positions[:, 0], time_ms=sum(steps) / len(steps), info=info)
+
+
+class ReferenceMethod(PhysicsMethod):
+    """The ground truth: the converged static optimum E* (L-BFGS to `reference_max_iterations`,
+    patience 200) and, on motions, the physics simulation at a tolerance 100x tighter."""
+
+    name = "reference"
+
     def __init__(self, options: MethodOptions | None = None):
+        from hairwarp.solvers.physics import PhysicsConfig
+
         options = options or MethodOptions()
-        Method.__init__(self, options)
-        self.name = "reference"
+        super().__init__(options, PhysicsConfig().tight())
         self.solver = DirectOptimizationConfig(method="lbfgs", max_iterations=options.reference_max_iterations,
                                                patience=200, min_decrease=1e-9, lbfgs_history=30,
                                                record_every=options.record_every)
 
-    def simulate(self, frames) -> MethodResult:
-        from hairwarp.solvers.reference import simulate_reference
-
-        scene = frames.scene
-        device, dtype = frames.rigid.positions.device, frames.rigid.positions.dtype
-        indices = [int(i) for i in frames.frame_indices]
-        # One frame at a time (posing one frame costs ~50 ms on the CPU, little beside a solve).
-        per_frame = [scene.frames([i], device=device, dtype=dtype) for i in indices]
-        config = scene_energy_config(self.options, frames)
-        start = time.perf_counter()
-        result = simulate_reference(lambda t: per_frame[t].inputs, len(per_frame), config,
-                                    progress=self.options.progress)
-        elapsed = time.perf_counter() - start
-        info = {"iterations": result.iterations, "stop_reasons": result.stop_reasons}
-        return MethodResult(positions=result.positions[:, 0], time_ms=elapsed * 1e3 / len(per_frame), info=info)
+    def drape(self, frames, *, metrics: Callable | None = None, start: torch.Tensor | None = None) -> MethodResult:
+        return OptimizerMethod.drape(self, frames, metrics=metrics, start=start)

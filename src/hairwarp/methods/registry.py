@@ -12,7 +12,7 @@ from collections.abc import Callable
 from hairwarp.methods.base import Method, MethodOptions
 from hairwarp.methods.composed import AutoMethod, RefinedMethod
 from hairwarp.methods.networks import NetworkMethod
-from hairwarp.methods.optimizers import OptimizerMethod, ReferenceMethod, RigidMethod
+from hairwarp.methods.optimizers import OptimizerMethod, PhysicsMethod, ReferenceMethod, RigidMethod
 
 REFINE_SUFFIX = "+refine"
 
@@ -21,6 +21,7 @@ _BUILT_IN: dict[str, Callable[[MethodOptions], Method]] = {
     "rigid": RigidMethod,
     "adam": lambda options: OptimizerMethod("adam", options),
     "lbfgs": lambda options: OptimizerMethod("lbfgs", options),
+    "physics": PhysicsMethod,
     "reference": ReferenceMethod,
     "static": lambda options: NetworkMethod("static", options),
     "dynamic": lambda options: NetworkMethod("dynamic", options),

@@ -98,7 +98,7 @@ class Scene:
         return self._cache[key]
 
     def frames(self, indices=None, *, device="cpu", dtype=torch.float32, crop: bool = True,
-               split_self_intersections: bool = True) -> SceneFrames:
+               split_self_intersections: bool = True, build_body: bool = True) -> SceneFrames:
         """Pose the body and place the hair rigidly (Eq. 1) for a batch of frames.
 
         Args:
@@ -112,6 +112,9 @@ class Scene:
                 armpits, and the uncut surface calls points up to 9 cm inside the chest outside).
                 The search costs ~55 ms per pose on a 2-core CPU (the head turn's 241 frames:
                 20-23 s against 6-7 s uncut; docs/contact.md 16); False keeps the uncut surface.
+            build_body: build the posed bodies' `BodyMesh`; False leaves `body_mesh` and
+                `inputs.body` None (a caller that moves one body of its own, as the physics
+                solver does, needs only `posed.vertices`).
 
         Returns:
             SceneFrames.
@@ -144,6 +147,10 @@ class Scene:
             cache["search"] = root_search(self.body, cache["strands"][:, 0])
         rigid = rigid_placement(cache["strands"], posed, self.body, scalp=self.scalp,
                                 root_uv=cache["root_uv"], search=cache["search"])
+        if not build_body:
+            inputs = EnergyInputs(rest_lengths=cache["rest_lengths"], rigid=rigid.positions,
+                                  scalp_normals=rigid.normals, body=None)
+            return SceneFrames(indices, posed, rigid, None, inputs, betas, poses, scene=self)
         faces = self.body.faces.to(device=device, dtype=torch.int32)
         # The full body is only cropped (its tree, built at a first query, is never built), the
         # crop is queried (the better tree).

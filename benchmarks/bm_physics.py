@@ -1,0 +1,117 @@
+"""The physics simulation's speed and accuracy against its tight setting, side by side.
+
+    python3 benchmarks/bm_physics.py --device cuda --out OUT                 # full size (1024 x 100)
+    python3 benchmarks/bm_physics.py --device cpu --strand-stride 4 --frames 12 --out OUT   # 256 x 100
+
+For each motion (`--motions`, comparison scenes): the hair starts at the converged static drape
+of the first frame (the `reference` drape: tight tolerance); then
+- `physics` (`PhysicsConfig()`) simulates `--frames` frames: ms per frame (each step's wall
+  time, synchronised: posing, body update, solve), iterations per step;
+- the tight setting (`PhysicsConfig().tight()`: tolerance / 100) simulates the same frames:
+  the trajectory distance of `physics` to it per frame (mean vertex distance [mm]);
+- per step: from the tight trajectory's states, one `physics` step against the tight step
+  (mean vertex distance [mm]): every step's own error, without the drift.
+Writes OUT/physics.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import time
+
+import torch
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--device", default="cuda")
+    parser.add_argument("--motions", default="whiplash,torso_bend")
+    parser.add_argument("--strand-stride", type=int, default=1, help="every k-th strand of the full groom")
+    parser.add_argument("--frames", type=int, default=0, help="frames per motion (0: all)")
+    parser.add_argument("--per-step", type=int, default=10, help="steps checked one by one from the tight states")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", default="hairwarp-out")
+    return parser
+
+
+def _mean_distance_mm(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float((a - b).norm(dim=-1)[..., 2:].mean()) * 1e3
+
+
+def main(argv=None) -> dict:
+    args = _parser().parse_args(argv)
+    from hairwarp.evaluation.scenes import comparison_scene
+    from hairwarp.runtime import machine_description, synchronize
+    from hairwarp.solvers.physics import PhysicsConfig, PhysicsSolver, simulate_physics
+
+    torch.manual_seed(args.seed)
+    device = torch.device(args.device)
+    fast_config = PhysicsConfig()
+    tight_config = fast_config.tight()
+    record = {"machine": machine_description(device), "physics": fast_config.__dict__,
+              "tight": tight_config.__dict__, "motions": {}}
+    for name in args.motions.split(","):
+        scene = comparison_scene(name, reduced=False, strand_stride=args.strand_stride).scene
+        frames = list(range(scene.num_frames if args.frames <= 0 else min(args.frames, scene.num_frames)))
+        strands, vertices = scene.hairstyle.strands.shape[:2]
+        print(f"{name}: {strands} x {vertices}, {len(frames)} frames on {device}", flush=True)
+        start = simulate_physics(scene, frames[:1], device=device, config=tight_config)
+        x0 = start.positions[0]
+        fast = simulate_physics(scene, frames, device=device, config=fast_config, initial=x0)
+        fast_again = simulate_physics(scene, frames, device=device, config=fast_config, initial=x0)  # warm
+        tight = simulate_physics(scene, frames, device=device, config=tight_config, initial=x0)
+        trajectory = [_mean_distance_mm(a, b) for a, b in zip(fast_again.positions, tight.positions)]
+        # Each step on its own: from the tight states, one fast step against the tight step.
+        from hairwarp.config import EnergyConfig
+        from hairwarp.ops import BodyMesh
+
+        energy_config = EnergyConfig().replace(time_step=1.0 / float(scene.motion.fps))
+        posed = scene.frames(frames, device=device, build_body=False)
+        body = BodyMesh(posed.posed.vertices[:1], scene.body.faces.to(device=device, dtype=torch.int32), bvh="lbvh")
+        rest = scene.rest_lengths.to(device)
+        solver = PhysicsSolver(rest, posed.rigid.positions[:1], posed.rigid.normals[:1], body, energy_config, fast_config)
+        per_step, per_step_iterations = [], []
+        steps = range(2, min(len(frames), 2 + args.per_step))
+        for t in steps:
+            solver.set_frame(posed.rigid.positions[t:t + 1], posed.rigid.normals[t:t + 1], posed.posed.vertices[t:t + 1])
+            solver.set_state(tight.positions[t - 1], tight.positions[t - 2])
+            report = solver.step()
+            per_step.append(_mean_distance_mm(solver.prev, tight.positions[t]))
+            per_step_iterations.append(report.iterations)
+        synchronize(device)
+        motion = [_mean_distance_mm(tight.positions[t], tight.positions[0]) for t in range(len(frames))]
+        entry = {
+            "strands": strands, "vertices": vertices, "frames": len(frames),
+            "physics_ms_per_frame": fast_again.frame_ms[1:], "physics_iterations": fast_again.iterations[1:],
+            "physics_stop_reasons": fast_again.stop_reasons[1:],
+            "physics_first_run_ms_per_frame": fast.frame_ms[1:],
+            "tight_ms_per_frame": tight.frame_ms[1:], "tight_iterations": tight.iterations[1:],
+            "tight_stop_reasons": tight.stop_reasons[1:],
+            "static_drape_ms": start.frame_ms[0], "static_drape_iterations": start.iterations[0],
+            "trajectory_distance_mm": trajectory, "per_step_distance_mm": per_step,
+            "per_step_iterations": per_step_iterations, "tight_motion_mm": motion,
+        }
+        steady = fast_again.frame_ms[1:]
+        entry["physics_ms_median"] = statistics.median(steady) if steady else None
+        entry["tight_ms_median"] = statistics.median(tight.frame_ms[1:]) if len(frames) > 1 else None
+        record["motions"][name] = entry
+        print(f"  physics {entry['physics_ms_median']:.1f} ms/frame (median; max {max(steady):.1f}), "
+              f"iterations {statistics.mean(fast_again.iterations[1:]):.1f}; tight {entry['tight_ms_median']:.1f} ms/frame", flush=True)
+        print(f"  trajectory distance to tight: first 10 frames max {max(trajectory[:10]):.3f} mm, "
+              f"all frames max {max(trajectory):.3f} mm; per step max {max(per_step):.3f} mm "
+              f"(tight motion up to {max(motion):.1f} mm)", flush=True)
+    os.makedirs(args.out, exist_ok=True)
+    path = os.path.join(args.out, "physics.json")
+    with open(path, "w") as f:
+        json.dump(record, f, indent=1, default=str)
+    print(path)
+    return record
+
+
+if __name__ == "__main__":
+    t0 = time.perf_counter()
+    main()
+    print(f"{time.perf_counter() - t0:.0f} s")

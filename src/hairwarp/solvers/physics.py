@@ -1,0 +1,447 @@
+"""The physics simulation: implicit Euler on the device L-BFGS, preconditioned by the strands.
+
+Each frame t solves one implicit-Euler step, the incremental potential
+    x_t = argmin_x  L_inertia(x; x_{t-1}, x_{t-2}) + L_static(x; frame t),
+the dynamic objective of Eq. 6 (inertia, Eq. 16, plus the static energy, Eq. 5) without the
+network's functional regularization; a single frame is draped as the static optimum (Eq. 5).
+It is the ground truth that every method is measured against, a teacher for training, and a
+method of its own (`physics`; `reference` is the same solver with a tolerance 100x tighter).
+
+What makes it fast:
+- warm start: the moving vertices start from the inertial prediction 2 x_{t-1} - x_{t-2}, the
+  fixed vertices 0 and 1 from the frame's rigid placement (Eq. 1);
+- a preconditioner: the strands' banded Hessian (stretch, smoothness, inertia, auxiliary;
+  `hairwarp.solvers.strand_preconditioner`) factored at every iterate, in place of L-BFGS's scaled
+  identity: the stiff stretch term (six orders of magnitude above mass / dt^2) no longer costs
+  hundreds of iterations;
+- fixed buffers: the rigid placement, scalp normals, previous states and one body
+  (`BodyMesh.update` moves it in place) are written before each step, so on CUDA a step's start
+  (factor, energy, first direction) and one iteration are two CUDA graphs captured once and
+  replayed for every frame (`hairwarp.solvers.device_lbfgs.DeviceLBFGS`); on the CPU the same
+  calls run eagerly with the hair-hair pair cache;
+- a stopping rule stated as a tolerance [m], read once per `chunk` iterations: a step ends when
+  the strand model's Newton step from the current gradient (P^-1 g: the move still to come)
+  moves no vertex farther than `tolerance`; a static drape (not preconditioned) when its last
+  chunk moved none farther. A step-length rule alone stops a step whose first trials the line
+  search rejects at the inertial prediction, a free flight: a released strand then gained
+  energy, swinging above its root.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field, replace
+
+import torch
+
+from hairwarp.config import NUM_FIXED_VERTICES, EnergyConfig
+from hairwarp.energy import EnergyInputs, total_energy
+from hairwarp.runtime import synchronize
+
+
+@dataclass
+class PhysicsConfig:
+    """Settings of the physics solver.
+
+    Attributes:
+        tolerance: a step ends when its next preconditioned direction moves no vertex farther
+            than this [m]; a static drape when its last chunk moved none farther.
+        max_iterations: cap of L-BFGS iterations (energy evaluations) per time step.
+        static_max_iterations: cap for a static drape (the optimum of one frame, from far).
+        static_chunk: `chunk` of a static drape (from a rigid placement the hair travels far
+            at a few tenths of a millimetre per iteration: a short chunk would stop it early).
+        history: L-BFGS memory (curvature pairs).
+        chunk: iterations between two reads of the stopping rule (one device sync each).
+        keep_memory: carry the L-BFGS memory from one step into the next. Off: as a strand
+            turns, the old pairs call its new soft directions stiff (a released strand's steps
+            stopped after four iterations, at the free flight).
+        max_step: the farthest one trial step moves a vertex [m].
+        cuda_graph: on CUDA, replay the step's start and its iterations from CUDA graphs.
+        inextensible: solve on the strands' rest lengths: the solver's variables are targets
+            that the follow-the-leader projection (`hairwarp.ops.follow_the_leader`) turns into
+            positions, so Eq. 7 is zero by construction. Its k_s = 1e8 makes a strand a chain
+            whose length errors cost eight orders of magnitude more than its inertia: a step
+            that turns a segment stretches it to second order, and an unconstrained solver
+            creeps along the curved valley (a released strand fell in ~2 s instead of ~0.3 s).
+        precondition: the implicit-Euler steps use the strands' banded Hessian
+            (`hairwarp.solvers.strand_preconditioner`) in place of L-BFGS's scaled identity.
+            Off by default: on the rest lengths (`inextensible`) the stiff term it was built for
+            is gone, and on whiplash (64 x 100, 8 steps from the tight states) its steps were
+            1.2-3.4 mm from the tight solve at 32 iterations against 0.06-2.5 mm without.
+            Static drapes never use it: from a rigid placement the root alignment (Eq. 15)
+            rotates the first segments far, where that model's directions are metres long.
+    """
+
+    tolerance: float = 1.0e-5
+    max_iterations: int = 32
+    static_max_iterations: int = 2000
+    static_chunk: int = 25
+    history: int = 8
+    chunk: int = 4
+    keep_memory: bool = False
+    max_step: float = 0.02
+    cuda_graph: bool = True
+    precondition: bool = False
+    inextensible: bool = True
+
+    def __post_init__(self):
+        for name in ("tolerance", "max_step"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name}: expected a finite positive length [m], got {value}")
+        for name in ("max_iterations", "static_max_iterations", "static_chunk", "history", "chunk"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name}: expected >= 1, got {getattr(self, name)}")
+
+    def tight(self, factor: float = 100.0) -> "PhysicsConfig":
+        """The `reference` setting: tolerance / factor and iteration caps to match."""
+        return replace(self, tolerance=self.tolerance / factor, max_iterations=self.max_iterations * 20,
+                       static_max_iterations=self.static_max_iterations * 5)
+
+
+@dataclass
+class StepReport:
+    """What one solve did: iterations (energy evaluations), why it stopped, the stopping rule's
+    last measure [m] (`PhysicsConfig.tolerance`) and the final energy [J]."""
+
+    iterations: int
+    stop_reason: str
+    residual: float
+    energy: float
+
+
+class PhysicsSolver:
+    """Implicit-Euler steps (or static drapes) of hair of one shape against one moving body.
+
+    Args:
+        rest_lengths: (M, N-1) rest segment lengths [m].
+        rigid: (B, M, N, 3) a rigid placement (shape, dtype float32 and device of every step).
+        scalp_normals: (B, M, 3) posed scalp normals at the roots, or None (no Eq. 15).
+        body: a `hairwarp.ops.BodyMesh` (one mesh or B), moved in place by `step`'s
+            `body_vertices`; None: no hair-body contact.
+        energy_config: weights and constants; `time_step` is the frame spacing [s].
+        config: `PhysicsConfig`.
+        dynamic: implicit-Euler steps (Eq. 6); False: static drapes (Eq. 5).
+    """
+
+    def __init__(self, rest_lengths: torch.Tensor, rigid: torch.Tensor, scalp_normals: torch.Tensor | None,
+                 body, energy_config: EnergyConfig, config: PhysicsConfig, *, dynamic: bool = True):
+        from hairwarp._validate import check_tensor
+        from hairwarp.solvers.direct import DirectOptimizationConfig
+        from hairwarp.solvers.strand_preconditioner import StrandPreconditioner, strand_hessian_coefficients
+
+        check_tensor("rigid", rigid, shape=(None, None, None, 3), allow_empty=False)
+        if rigid.dtype not in (torch.float32, torch.float64):
+            raise ValueError(f"rigid: expected float32 or float64, got {rigid.dtype}")
+        if rigid.shape[2] < NUM_FIXED_VERTICES + 1:
+            raise ValueError(f"rigid: expected N >= 3 vertices per strand, got {rigid.shape[2]}")
+        self.config, self.energy_config, self.dynamic = config, energy_config, dynamic
+        self.device = rigid.device
+        self.on_cuda = self.device.type == "cuda"
+        self.use_graphs = self.on_cuda and config.cuda_graph
+        batch, strands, vertices, _ = rigid.shape
+        self.shape = tuple(rigid.shape)
+        # Fixed buffers: the energy (and the graphs) read these; `step` writes them.
+        self.rigid = rigid.detach().clone()
+        self.normals = None if scalp_normals is None else scalp_normals.detach().clone()
+        self.prev = self.rigid.clone()
+        self.prev2 = self.rigid.clone()
+        self.body = body
+        self.inputs = EnergyInputs(rest_lengths=rest_lengths, rigid=self.rigid, scalp_normals=self.normals, body=body,
+                                   prev=self.prev if dynamic else None, prev2=self.prev2 if dynamic else None)
+        self.start = self.rigid.clone()  # the step's starting point (all vertices)
+        self.free_shape = (batch, strands, vertices - NUM_FIXED_VERTICES, 3)
+        segments = batch * strands * (vertices - 1)
+        self.capacity = 2 * segments  # hair-hair pair buffer of the graph-safe energy (regrown on overflow)
+        self.pair_cache = None
+        if not self.on_cuda and energy_config.hair_hair_weight != 0.0:
+            from hairwarp.ops.hair_hair_contact import HairHairPairCache
+
+            self.pair_cache = HairHairPairCache()
+        self.chunk = config.chunk if dynamic else config.static_chunk
+        self.preconditioner = None
+        if config.precondition and dynamic:
+            coefficients = strand_hessian_coefficients(energy_config, strands, vertices, dynamic=True)
+            if config.inextensible:
+                coefficients["stretch"] = 0.0  # no stretch left to model
+            self.preconditioner = StrandPreconditioner(self.shape, rest_lengths, coefficients, self.device)
+        self.solver = DirectOptimizationConfig(method="lbfgs", lbfgs_history=config.history,
+                                               lbfgs_max_step=config.max_step, lbfgs_chunk=self.chunk,
+                                               lbfgs_restart=5)
+        self.lbfgs = None
+        self.graphs: dict = {}
+        self.residual = torch.zeros((), device=self.device, dtype=rigid.dtype)
+        self.captures = 0
+
+    # -- the energy and the solver's calls over the fixed buffers --------------------------------
+    def _assemble(self, free: torch.Tensor) -> torch.Tensor:
+        x = torch.cat([self.rigid[:, :, :NUM_FIXED_VERTICES], free.reshape(self.free_shape)], dim=2)
+        if self.config.inextensible:
+            from hairwarp.ops.strand_projection import follow_the_leader
+
+            x = follow_the_leader(self.rigid, x)
+        return x
+
+    def _energy(self, x: torch.Tensor, graph_safe: bool):
+        free = x.detach().reshape(self.free_shape).requires_grad_(True)
+        with torch.enable_grad():
+            xg = self._assemble(free)
+            result = total_energy(xg, self.inputs, self.energy_config, dynamic=self.dynamic, graph_safe=graph_safe,
+                                  hair_hair_capacity=self.capacity if graph_safe else None,
+                                  hair_hair_cache=None if graph_safe else self.pair_cache)
+            f = result.total.sum()
+            (grad,) = torch.autograd.grad(f, free)
+        info = result.hair_hair_info
+        count = 0 if info is None else info.device_count
+        return f.detach(), grad.reshape(-1), count
+
+    def _make_solver(self) -> None:
+        from hairwarp.solvers.device_lbfgs import DeviceLBFGS
+
+        apply = None if self.preconditioner is None else self.preconditioner.apply
+        free = self.start[:, :, NUM_FIXED_VERTICES:]
+        if self.preconditioner is not None:
+            self.preconditioner.factor(self.start)
+        self.lbfgs = DeviceLBFGS(self._energy, free, self.solver, chunk=self.chunk,
+                                 graph_safe=self.use_graphs, preconditioner=apply)
+        self.chunk_start = self.lbfgs.x.clone()
+
+    def _begin(self) -> None:
+        """A step's start: factor at the start point, evaluate there, first direction."""
+        if self.preconditioner is not None:
+            self.preconditioner.factor(self.start)
+        self.lbfgs.restart_at(self.start[:, :, NUM_FIXED_VERTICES:], keep_memory=self.config.keep_memory)
+        if self.preconditioner is not None:
+            self._residual()
+        else:
+            self.residual.fill_(math.inf)
+
+    def _iterate(self, k: int) -> None:
+        self.lbfgs.start_chunk()
+        self.chunk_start.copy_(self.lbfgs.x)
+        for _ in range(k):
+            self.lbfgs.iterate()
+            if self.preconditioner is not None:
+                # Refactored where the iterate is: a step turns the strands, and the stiff
+                # along-segment directions turn with them (a factor from the step's start
+                # calls them soft).
+                self.preconditioner.factor(self._assemble(self.lbfgs.x))
+        self._residual()
+
+    def _residual(self) -> None:
+        """The stopping rule's measure into `self.residual` [m] (graph-safe): with the
+        preconditioner, the largest vertex move of the strand model's Newton step P^-1 g at the
+        current iterate (the move still to come; not the L-BFGS direction, whose memory can
+        call a soft direction stiff and stop a step early); without it, the largest move over
+        the last chunk (a plain L-BFGS's scaled-gradient steps say nothing of the distance
+        left)."""
+        if self.preconditioner is not None:
+            moves = self.preconditioner.apply(self.lbfgs.g)
+        else:
+            moves = self.lbfgs.x - self.chunk_start
+        self.residual.copy_(torch.linalg.vector_norm(moves.view(-1, 3), dim=1).max())
+
+    def _run(self, name: str, fn) -> None:
+        """`fn()` eagerly, or replayed from its CUDA graph (captured at the first call)."""
+        if not self.use_graphs:
+            fn()
+            return
+        graph = self.graphs.get(name)
+        if graph is None:
+            from hairwarp.runtime import CapturedCall
+
+            with torch.cuda.device(self.device):
+                # The warm-up runs `fn` once for real; the capture itself runs nothing.
+                self.graphs[name] = CapturedCall(fn, warmup=1)
+            self.captures += 1
+            return
+        graph()
+
+    # -- one solve ---------------------------------------------------------------------------
+    def solve(self, start: torch.Tensor, max_iterations: int) -> StepReport:
+        """Minimise from `start` (B, M, N, 3) (its fixed vertices replaced by the rigid placement's);
+        the result is `self.positions()`."""
+        self.start.copy_(start)
+        self.start[:, :, :NUM_FIXED_VERTICES] = self.rigid[:, :, :NUM_FIXED_VERTICES]
+        while True:
+            if self.lbfgs is None:
+                self._make_solver()
+            self.lbfgs.pairs.zero_()
+            self._run("begin", self._begin)
+            done, reason = 0, "max_iterations"
+            chunk = self.chunk
+            residual = math.inf
+            overflow = False
+            while True:
+                values = torch.stack([self.residual.double(), self.lbfgs.pairs.double(), self.lbfgs.f.double()]).tolist()
+                residual, pairs = values[0], int(values[1])
+                if self.use_graphs and pairs > self.capacity:
+                    overflow = True
+                    break
+                if not math.isfinite(values[2]):
+                    reason = "diverged: non-finite energy"
+                    break
+                # Two chunks at least: a line search that rejects a step's first trials moves
+                # nothing for a chunk while the hair still has far to go.
+                if residual <= self.config.tolerance and done >= 2 * chunk:
+                    reason = "tolerance"
+                    break
+                if done >= max_iterations:
+                    break
+                k = min(chunk, max_iterations - done)
+                if self.use_graphs and k != chunk:
+                    k = chunk  # one graph holds `chunk` iterations; the cap is met to a chunk
+                self._run(f"iterate{k}", lambda k=k: self._iterate(k))
+                done += k
+            if not overflow:
+                break
+            # More hair-hair pairs than the buffer holds: a larger buffer, new graphs, the step again.
+            self.capacity = 2 * pairs
+            self.graphs.clear()
+            self.lbfgs = None
+        return StepReport(iterations=done, stop_reason=reason, residual=residual, energy=values[2])
+
+    def positions(self) -> torch.Tensor:
+        """(B, M, N, 3) the last solve's result [m] (a new tensor)."""
+        return self._assemble(self.lbfgs.x).detach().clone()
+
+    def set_frame(self, rigid: torch.Tensor, scalp_normals: torch.Tensor | None = None,
+                  body_vertices: torch.Tensor | None = None) -> None:
+        """Write a frame's rigid placement, scalp normals and posed body into the buffers."""
+        self.rigid.copy_(rigid)
+        if self.normals is not None and scalp_normals is not None:
+            self.normals.copy_(scalp_normals.reshape(self.normals.shape))
+        if self.body is not None and body_vertices is not None:
+            self.body.update(body_vertices)
+
+    def set_state(self, x: torch.Tensor, x_prev: torch.Tensor | None = None) -> None:
+        """The hair's state: x_{t-1} = x and x_{t-2} = x_prev (default x: at rest)."""
+        self.prev.copy_(x)
+        self.prev2.copy_(x if x_prev is None else x_prev)
+
+    def step(self) -> StepReport:
+        """One implicit-Euler step from the inertial prediction; the state moves on."""
+        if not self.dynamic:
+            raise RuntimeError("step: this solver drapes statically (dynamic=False)")
+        report = self.solve(2 * self.prev - self.prev2, self.config.max_iterations)
+        x = self.positions()
+        self.prev2.copy_(self.prev)
+        self.prev.copy_(x)
+        return report
+
+
+@dataclass
+class PhysicsResult:
+    """A simulated motion (or one static drape).
+
+    Attributes:
+        positions: (T, B, M, N, 3) hair positions per frame [m].
+        reports: one `StepReport` per frame (frame 0: the static drape, or "initial" when given).
+        time_s: wall time of the solves [s] (device synchronised), posing and the body's build
+            excluded (`setup_s`).
+        setup_s: posing the frames and building the body [s].
+        frame_ms: wall time of each frame's solve [ms] (frame 0 the static drape's).
+    """
+
+    positions: torch.Tensor
+    reports: list[StepReport]
+    time_s: float
+    setup_s: float
+    frame_ms: list[float] = field(default_factory=list)
+
+    @property
+    def iterations(self) -> list[int]:
+        return [r.iterations for r in self.reports]
+
+    @property
+    def stop_reasons(self) -> list[str]:
+        return [r.stop_reason for r in self.reports]
+
+
+# Frames posed at once (the body and rigid placement of a motion's frames, without body meshes).
+_POSE_CHUNK = 32
+
+
+def simulate_physics(scene, frame_indices=None, *, device="cpu", energy_config: EnergyConfig | None = None,
+                     config: PhysicsConfig | None = None, initial: torch.Tensor | None = None,
+                     split_self_intersections: bool = True, progress: bool = False) -> PhysicsResult:
+    """Implicit-Euler simulation of a scene's hair over consecutive frames.
+
+    Frame 0 (the first index) is the static drape of that frame unless `initial` is given; the
+    hair rests there before the motion starts (x_{-1} = x_{-2} = x_0). Frames are posed in
+    chunks of 32 as they are needed (memory flat in the motion's length); the body is built
+    once, at the first frame (its self-intersections cut there), and moved in place.
+
+    Args:
+        scene: a `hairwarp.scene.Scene`.
+        frame_indices: consecutive frame indices (default: all).
+        device: torch device.
+        energy_config: weights and constants (default `EnergyConfig()`; the time step is set to
+            the scene's frame spacing).
+        config: `PhysicsConfig` (default `PhysicsConfig()`).
+        initial: (1, M, N, 3) or (M, N, 3) state at the first frame [m].
+        split_self_intersections: cut the body where it passes through itself (at frame 0).
+        progress: show a progress bar over frames.
+
+    Returns:
+        PhysicsResult with positions (T, 1, M, N, 3).
+    """
+    from tqdm.auto import tqdm
+
+    from hairwarp.ops import BodyMesh
+
+    device = torch.device(device)
+    config = config or PhysicsConfig()
+    energy_config = (energy_config or EnergyConfig()).replace(time_step=1.0 / float(scene.motion.fps))
+    indices = list(range(scene.num_frames)) if frame_indices is None else [int(i) for i in frame_indices]
+    if not indices:
+        raise ValueError("frame_indices: expected at least one frame")
+    setup_start = time.perf_counter()
+    posed_chunks: dict[int, object] = {}
+
+    def frame(position: int):
+        chunk = position // _POSE_CHUNK
+        if chunk not in posed_chunks:
+            posed_chunks.clear()  # one chunk held at a time
+            part = indices[chunk * _POSE_CHUNK:(chunk + 1) * _POSE_CHUNK]
+            posed_chunks[chunk] = scene.frames(part, device=device, build_body=False)
+        f = posed_chunks[chunk]
+        i = position % _POSE_CHUNK
+        return f.rigid.positions[i:i + 1], f.rigid.normals[i:i + 1], f.posed.vertices[i:i + 1]
+
+    rigid0, normals0, body0 = frame(0)
+    faces = scene.body.faces.to(device=device, dtype=torch.int32)
+    body = BodyMesh(body0, faces, bvh="lbvh", split_self_intersections=split_self_intersections)
+    rest = scene.rest_lengths.to(device=device, dtype=torch.float32)
+    synchronize(device)
+    setup = time.perf_counter() - setup_start
+    reports, states, frame_ms = [], [], []
+    start = time.perf_counter()
+    if initial is None:
+        static = PhysicsSolver(rest, rigid0, normals0, body, energy_config, config, dynamic=False)
+        reports.append(static.solve(rigid0, config.static_max_iterations))
+        x0 = static.positions()
+        del static
+    else:
+        x0 = (initial if initial.dim() == 4 else initial.unsqueeze(0)).to(device=device, dtype=torch.float32)
+        reports.append(StepReport(0, "initial", 0.0, float("nan")))
+    synchronize(device)
+    frame_ms.append((time.perf_counter() - start) * 1e3)
+    states.append(x0.detach().clone())
+    solver = PhysicsSolver(rest, rigid0, normals0, body, energy_config, config, dynamic=True)
+    solver.set_state(x0)
+    for position in tqdm(range(1, len(indices)), desc="physics", disable=not progress, leave=False):
+        t0 = time.perf_counter()
+        setup_t0 = t0
+        rigid, normals, vertices = frame(position)
+        solver.set_frame(rigid, normals, vertices)
+        report = solver.step()
+        states.append(solver.prev.clone())
+        reports.append(report)
+        synchronize(device)
+        frame_ms.append((time.perf_counter() - setup_t0) * 1e3)
+    synchronize(device)
+    elapsed = time.perf_counter() - start
+    return PhysicsResult(positions=torch.stack(states), reports=reports, time_s=elapsed, setup_s=setup,
+                         frame_ms=frame_ms)

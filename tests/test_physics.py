@@ -1,0 +1,113 @@
+"""The physics simulation (implicit Euler on the preconditioned device L-BFGS) and the `physics` method."""
+
+import math
+
+import pytest
+import torch
+
+from hairwarp.config import EnergyConfig
+from hairwarp.evaluation.scenes import comparison_scene
+from hairwarp.solvers.physics import PhysicsConfig, PhysicsSolver, simulate_physics
+
+
+def _horizontal_strands(strands=2, vertices=10, length=0.2):
+    """Strands sticking out horizontally (+x) from roots at the origin, 4 cm apart in z."""
+    t = torch.linspace(0, length, vertices)
+    x = torch.zeros(1, strands, vertices, 3)
+    x[..., 0] = t
+    x[..., 2] = 0.04 * torch.arange(strands, dtype=torch.float32)[:, None]
+    return x
+
+
+@pytest.mark.parametrize("precondition", [True, False])
+def test_a_released_strand_swings_and_comes_to_rest_below_its_root(precondition):
+    x = _horizontal_strands()
+    m, n = x.shape[1], x.shape[2]
+    rest = (x[0, :, 1:] - x[0, :, :-1]).norm(dim=-1)
+    # Physical inertia (lambda = M N_mov, DESIGN's note on Eq. 16), no pull toward the rigid
+    # placement and no bending stiffness (fixed vertices 0 and 1 clamp the strand: with Eq. 10's
+    # weight it is a cantilever): a chain of bundles hinged at vertex 1, under gravity.
+    config = EnergyConfig(inertia_weight=float(m * (n - 2)), auxiliary_weight=0.0, hair_hair_weight=0.0,
+                          smoothness_weight=0.0, bending_weight=0.0)
+    solver = PhysicsSolver(rest, x, None, None, config, PhysicsConfig(precondition=precondition, max_iterations=200,
+                                                                     tolerance=1e-6))
+    solver.set_state(x)
+    tips = []
+    for _ in range(150):  # 2.5 s at 60 fps
+        report = solver.step()
+        assert not report.stop_reason.startswith("diverged")
+        tips.append(solver.prev[0, 0, -1].clone())
+    tips = torch.stack(tips)
+    # It falls: the tip ends below the root, near the vertical (length 0.2 m).
+    assert float(tips[-1, 1]) < -0.17
+    assert abs(float(tips[-1, 0])) < 0.05
+    # It swings: past the vertical (x < 0) on the way, then back.
+    assert float(tips[:, 0].min()) < -0.02
+    # It comes to rest: the last half second moves the tip less than the first.
+    assert float((tips[-30:] - tips[-31:-1]).norm(dim=-1).max()) < float((tips[1:31] - tips[:30]).norm(dim=-1).max())
+    # Lengths kept (stiff stretch, Eq. 7).
+    final = solver.prev[0]
+    lengths = (final[:, 1:] - final[:, :-1]).norm(dim=-1)
+    assert float(((lengths - rest) / rest).abs().max()) < 0.01
+
+
+def test_the_rigid_placement_does_not_swing():
+    """The rigid placement of the same strands stays horizontal: the test above can fail."""
+    x = _horizontal_strands()
+    assert float(x[0, 0, -1, 1]) == pytest.approx(0.0)
+
+
+@pytest.fixture(scope="module")
+def whiplash():
+    return comparison_scene("whiplash", strand_stride=32, num_vertices=24).scene
+
+
+def test_fast_physics_stays_near_the_tight_solve(whiplash):
+    frames = range(0, 6)
+    fast = simulate_physics(whiplash, frames)
+    tight = simulate_physics(whiplash, frames, config=PhysicsConfig().tight(), initial=fast.positions[0])
+    assert fast.positions.shape == tight.positions.shape == (6, 1, whiplash.hairstyle.strands.shape[0], 24, 3)
+    assert torch.isfinite(fast.positions).all()
+    assert fast.stop_reasons[1:] and all(not r.startswith("diverged") for r in fast.stop_reasons)
+    distance = (fast.positions - tight.positions).norm(dim=-1)[..., 2:].mean(dim=(1, 2, 3))
+    assert float(distance.max()) < 2e-3  # metres
+    # The tight setting works harder.
+    assert sum(tight.iterations[1:]) > sum(fast.iterations[1:])
+    # The fixed vertices ride with the head.
+    rigid = whiplash.frames(list(frames), build_body=False).rigid.positions
+    assert torch.allclose(fast.positions[:, 0, :, :2], rigid[:, :, :2], atol=1e-6)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device; this machine has none")
+def test_cuda_graph_steps_match_eager_steps(whiplash):
+    from dataclasses import replace
+
+    config = PhysicsConfig()
+    graph = simulate_physics(whiplash, range(5), device="cuda", config=config)
+    eager = simulate_physics(whiplash, range(5), device="cuda", config=replace(config, cuda_graph=False),
+                             initial=graph.positions[0])
+    assert graph.iterations[1:] == eager.iterations[1:]
+    assert float((graph.positions - eager.positions).abs().max()) < 1e-4
+
+
+def test_physics_method_drapes_and_simulates():
+    import hairwarp as hw
+
+    scene = hw.default_scene("bob", "head_turn", duration=0.1, strand_stride=32, num_vertices=16)
+    r = hw.drape(scene, method="physics")
+    assert r.positions.shape == scene.hairstyle.strands.shape
+    assert r.info["stop_reason"] in ("tolerance", "max_iterations")
+    sim = hw.simulate(scene, method="physics")
+    assert sim.positions.shape == (scene.num_frames, *scene.hairstyle.strands.shape)
+    assert torch.allclose(sim.positions[0], r.positions, atol=1e-6)  # frame 0 is the static drape
+    assert len(sim.info["iterations"]) == scene.num_frames
+
+
+def test_bad_config():
+    with pytest.raises(ValueError, match="tolerance"):
+        PhysicsConfig(tolerance=0.0)
+    with pytest.raises(ValueError, match="max_iterations"):
+        PhysicsConfig(max_iterations=0)
+    with pytest.raises(ValueError, match="frame_indices"):
+        simulate_physics(comparison_scene("whiplash", strand_stride=64, num_vertices=8).scene, [])
+    assert math.isclose(PhysicsConfig().tight().tolerance, PhysicsConfig().tolerance / 100)
