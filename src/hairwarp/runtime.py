@@ -233,6 +233,12 @@ class CapturedCall:
                 fn(*self.inputs)
         torch.cuda.current_stream(device).wait_stream(stream)
         self.graph = torch.cuda.CUDAGraph()
+        # Collect garbage first: a Warp array freed by the collector inside the capture (one left
+        # by an earlier solver, say) releases its memory there, which invalidates the capture
+        # ("operation not permitted when stream is capturing", seen on an H200).
+        import gc
+
+        gc.collect()
         # The NaN/Inf scan of inputs reads a value back to the host, which a capture forbids;
         # the inputs were checked by the eager warm-up calls above.
         from hairwarp._validate import set_finite_checks

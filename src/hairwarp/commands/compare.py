@@ -99,7 +99,7 @@ def run(args) -> int:
     try:
         record = run_comparison(args.methods, args.scenes, reduced=args.reduced, strand_stride=args.strand_stride,
                                 num_vertices=args.num_vertices, device=device, options=options, seed=args.seed,
-                                command_line=command_line, progress=not args.quiet)
+                                command_line=command_line, progress=not args.quiet, plots_dir=args.out)
     except ValueError as exc:
         message = str(exc)
         for name in ("methods", "scenes"):  # name the flag, not the function argument
@@ -114,6 +114,7 @@ def run(args) -> int:
     if any(e["kind"] == "static" for e in record["scenes"]):
         speed_accuracy_chart(record, os.path.join(args.out, "speed_accuracy.png"))
         written.append("speed_accuracy.png")
+    written += [os.path.basename(e["swing_plot"]) for e in record["scenes"] if e.get("swing_plot")]
     print(table)
     print(f"wrote {', '.join(written)} into {args.out}")
     return 0

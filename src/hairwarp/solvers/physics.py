@@ -1,4 +1,4 @@
-"""The physics simulation: implicit Euler on the device L-BFGS, preconditioned by the strands.
+"""The physics simulation: implicit Euler on the device L-BFGS.
 
 Each frame t solves one implicit-Euler step, the incremental potential
     x_t = argmin_x  L_inertia(x; x_{t-1}, x_{t-2}) + L_static(x; frame t),
@@ -10,19 +10,18 @@ method of its own (`physics`; `reference` is the same solver with a tolerance 10
 What makes it fast:
 - warm start: the moving vertices start from the inertial prediction 2 x_{t-1} - x_{t-2}, the
   fixed vertices 0 and 1 from the frame's rigid placement (Eq. 1);
-- a preconditioner: the strands' banded Hessian (stretch, smoothness, inertia, auxiliary;
-  `hairwarp.solvers.strand_preconditioner`) factored at every iterate, in place of L-BFGS's scaled
-  identity: the stiff stretch term (six orders of magnitude above mass / dt^2) no longer costs
-  hundreds of iterations;
+- steps on the rest lengths (`PhysicsConfig.inextensible`): the stretch term's k_s = 1e8 is
+  eight orders of magnitude above the inertia's mass / dt^2; solved as a penalty, a step that
+  turns a segment creeps along a curved valley;
 - fixed buffers: the rigid placement, scalp normals, previous states and one body
   (`BodyMesh.update` moves it in place) are written before each step, so on CUDA a step's start
-  (factor, energy, first direction) and one iteration are two CUDA graphs captured once and
+  (energy, first direction) and one iteration are two CUDA graphs captured once and
   replayed for every frame (`hairwarp.solvers.device_lbfgs.DeviceLBFGS`); on the CPU the same
   calls run eagerly with the hair-hair pair cache;
 - a stopping rule stated as a tolerance [m], read once per `chunk` iterations: a step ends when
-  the strand model's Newton step from the current gradient (P^-1 g: the move still to come)
-  moves no vertex farther than `tolerance`; a static drape (not preconditioned) when its last
-  chunk moved none farther. A step-length rule alone stops a step whose first trials the line
+  the diagonal model's Newton step from the current gradient (g / k: the move still to come)
+  moves no vertex farther than `tolerance` (with `precondition`); otherwise, and for a static
+  drape, when its last chunk moved none farther (after two chunks at least). A step-length rule alone stops a step whose first trials the line
   search rejects at the inertial prediction, a free flight: a released strand then gained
   energy, swinging above its root.
 """
@@ -64,13 +63,11 @@ class PhysicsConfig:
             whose length errors cost eight orders of magnitude more than its inertia: a step
             that turns a segment stretches it to second order, and an unconstrained solver
             creeps along the curved valley (a released strand fell in ~2 s instead of ~0.3 s).
-        precondition: the implicit-Euler steps use the strands' banded Hessian
-            (`hairwarp.solvers.strand_preconditioner`) in place of L-BFGS's scaled identity.
-            Off by default: on the rest lengths (`inextensible`) the stiff term it was built for
-            is gone, and on whiplash (64 x 100, 8 steps from the tight states) its steps were
-            1.2-3.4 mm from the tight solve at 32 iterations against 0.06-2.5 mm without.
-            Static drapes never use it: from a rigid placement the root alignment (Eq. 15)
-            rotates the first segments far, where that model's directions are metres long.
+        head_follow_length: the warm start adds the head's unpredicted move, fading along the
+            strand over this arc length [m] (0: the inertial prediction alone).
+        precondition: the implicit-Euler steps scale L-BFGS by the diagonal of the step's
+            Hessian per vertex (`vertex_stiffness`) in place of its scaled identity. Static
+            drapes never do (no inertia to scale by).
     """
 
     tolerance: float = 1.0e-5
@@ -84,6 +81,7 @@ class PhysicsConfig:
     cuda_graph: bool = True
     precondition: bool = False
     inextensible: bool = True
+    head_follow_length: float = 0.05
 
     def __post_init__(self):
         for name in ("tolerance", "max_step"):
@@ -98,6 +96,38 @@ class PhysicsConfig:
         """The `reference` setting: tolerance / factor and iteration caps to match."""
         return replace(self, tolerance=self.tolerance / factor, max_iterations=self.max_iterations * 20,
                        static_max_iterations=self.static_max_iterations * 5)
+
+
+def vertex_stiffness(config: EnergyConfig, rest_lengths: torch.Tensor, batch: int = 1, *,
+                     inextensible: bool = True) -> torch.Tensor:
+    """The diagonal of the step's Hessian per moving vertex [J/m^2], (M, N-2), float64.
+
+    Inertia (Eq. 16, lambda_inertia m / (M (N-2) dt^2)), smoothness (Eq. 10, 2 s_smooth times the
+    squared weights (1, -2, 1) of the joints at the vertex), the auxiliary term (Eq. 9), root
+    alignment's transverse stiffness on the first k' moving edges (Eq. 15, s_root / l0^2: a unit
+    direction over millimetre edges, four orders of magnitude above the inertia), and stretch's
+    2 s_stretch per segment end unless the steps are `inextensible`. The scales are the energy's
+    (`hairwarp.ops.strand_energies`).
+    """
+    m, n = rest_lengths.shape[0], rest_lengths.shape[1] + 1
+    rest = rest_lengths.detach().to(torch.float64)
+    diagonal = torch.zeros(m, n, dtype=torch.float64, device=rest.device)
+    diagonal += config.inertia_weight * config.vertex_mass / (m * (n - 2) * config.time_step ** 2)
+    diagonal += 2.0 * config.auxiliary_weight / (3 * m * n)
+    smooth = 2.0 * config.smoothness_weight / (m * (n - 2))
+    for offset, weight in ((-1, 1.0), (0, 4.0), (1, 1.0)):  # joints v-1, v, v+1 (joints lie at 1..N-2)
+        joints = torch.arange(n, device=rest.device) + offset
+        diagonal += smooth * weight * ((joints >= 1) & (joints <= n - 2)).to(torch.float64)
+    k_align = min(config.root_alignment_segments, n - 2)
+    if k_align and config.root_alignment_weight:
+        root = config.root_alignment_weight / (m * k_align) / rest[:, 1:k_align + 1] ** 2  # edges 1..k'
+        diagonal[:, 1:k_align + 1] += root
+        diagonal[:, 2:k_align + 2] += root
+    if not inextensible:
+        stretch = 2.0 * config.stretch_weight / (m * (n - 1))
+        diagonal[:, :-1] += stretch
+        diagonal[:, 1:] += stretch
+    return diagonal[:, NUM_FIXED_VERTICES:]
 
 
 @dataclass
@@ -129,7 +159,6 @@ class PhysicsSolver:
                  body, energy_config: EnergyConfig, config: PhysicsConfig, *, dynamic: bool = True):
         from hairwarp._validate import check_tensor
         from hairwarp.solvers.direct import DirectOptimizationConfig
-        from hairwarp.solvers.strand_preconditioner import StrandPreconditioner, strand_hessian_coefficients
 
         check_tensor("rigid", rigid, shape=(None, None, None, 3), allow_empty=False)
         if rigid.dtype not in (torch.float32, torch.float64):
@@ -147,6 +176,10 @@ class PhysicsSolver:
         self.normals = None if scalp_normals is None else scalp_normals.detach().clone()
         self.prev = self.rigid.clone()
         self.prev2 = self.rigid.clone()
+        self.rigid_prev = self.rigid.clone()
+        self.rigid_prev2 = self.rigid.clone()
+        rest = rest_lengths.to(device=self.device, dtype=rigid.dtype)
+        self.arc_length = torch.cat([torch.zeros_like(rest[:, :1]), rest.cumsum(dim=1)], dim=1)  # (M, N) [m]
         self.body = body
         self.inputs = EnergyInputs(rest_lengths=rest_lengths, rigid=self.rigid, scalp_normals=self.normals, body=body,
                                    prev=self.prev if dynamic else None, prev2=self.prev2 if dynamic else None)
@@ -160,12 +193,11 @@ class PhysicsSolver:
 
             self.pair_cache = HairHairPairCache()
         self.chunk = config.chunk if dynamic else config.static_chunk
-        self.preconditioner = None
+        self.inverse_stiffness = None
         if config.precondition and dynamic:
-            coefficients = strand_hessian_coefficients(energy_config, strands, vertices, dynamic=True)
-            if config.inextensible:
-                coefficients["stretch"] = 0.0  # no stretch left to model
-            self.preconditioner = StrandPreconditioner(self.shape, rest_lengths, coefficients, self.device)
+            stiffness = vertex_stiffness(energy_config, rest_lengths, batch, inextensible=config.inextensible)
+            self.inverse_stiffness = (1.0 / stiffness).to(rigid.dtype)[None, :, :, None].expand(self.free_shape)
+            self.inverse_stiffness = self.inverse_stiffness.contiguous()
         self.solver = DirectOptimizationConfig(method="lbfgs", lbfgs_history=config.history,
                                                lbfgs_max_step=config.max_step, lbfgs_chunk=self.chunk,
                                                lbfgs_restart=5)
@@ -199,20 +231,16 @@ class PhysicsSolver:
     def _make_solver(self) -> None:
         from hairwarp.solvers.device_lbfgs import DeviceLBFGS
 
-        apply = None if self.preconditioner is None else self.preconditioner.apply
+        apply = None if self.inverse_stiffness is None else self._precondition
         free = self.start[:, :, NUM_FIXED_VERTICES:]
-        if self.preconditioner is not None:
-            self.preconditioner.factor(self.start)
         self.lbfgs = DeviceLBFGS(self._energy, free, self.solver, chunk=self.chunk,
                                  graph_safe=self.use_graphs, preconditioner=apply)
         self.chunk_start = self.lbfgs.x.clone()
 
     def _begin(self) -> None:
-        """A step's start: factor at the start point, evaluate there, first direction."""
-        if self.preconditioner is not None:
-            self.preconditioner.factor(self.start)
+        """A step's start: evaluate at the start point, first direction."""
         self.lbfgs.restart_at(self.start[:, :, NUM_FIXED_VERTICES:], keep_memory=self.config.keep_memory)
-        if self.preconditioner is not None:
+        if self.inverse_stiffness is not None:
             self._residual()
         else:
             self.residual.fill_(math.inf)
@@ -222,22 +250,21 @@ class PhysicsSolver:
         self.chunk_start.copy_(self.lbfgs.x)
         for _ in range(k):
             self.lbfgs.iterate()
-            if self.preconditioner is not None:
-                # Refactored where the iterate is: a step turns the strands, and the stiff
-                # along-segment directions turn with them (a factor from the step's start
-                # calls them soft).
-                self.preconditioner.factor(self._assemble(self.lbfgs.x))
         self._residual()
+
+    def _precondition(self, v: torch.Tensor) -> torch.Tensor:
+        """H0 v: each moving vertex's value divided by its diagonal stiffness (`vertex_stiffness`)."""
+        return v.reshape(-1) * self.inverse_stiffness.reshape(-1)
 
     def _residual(self) -> None:
         """The stopping rule's measure into `self.residual` [m] (graph-safe): with the
-        preconditioner, the largest vertex move of the strand model's Newton step P^-1 g at the
+        preconditioner, the largest vertex move of the diagonal model's Newton step g / k at the
         current iterate (the move still to come; not the L-BFGS direction, whose memory can
         call a soft direction stiff and stop a step early); without it, the largest move over
         the last chunk (a plain L-BFGS's scaled-gradient steps say nothing of the distance
         left)."""
-        if self.preconditioner is not None:
-            moves = self.preconditioner.apply(self.lbfgs.g)
+        if self.inverse_stiffness is not None:
+            moves = self._precondition(self.lbfgs.g)
         else:
             moves = self.lbfgs.x - self.chunk_start
         self.residual.copy_(torch.linalg.vector_norm(moves.view(-1, 3), dim=1).max())
@@ -308,7 +335,10 @@ class PhysicsSolver:
 
     def set_frame(self, rigid: torch.Tensor, scalp_normals: torch.Tensor | None = None,
                   body_vertices: torch.Tensor | None = None) -> None:
-        """Write a frame's rigid placement, scalp normals and posed body into the buffers."""
+        """Write a frame's rigid placement, scalp normals and posed body into the buffers (the
+        rigid placements of the two frames before are kept for the warm start)."""
+        self.rigid_prev2.copy_(self.rigid_prev)
+        self.rigid_prev.copy_(self.rigid)
         self.rigid.copy_(rigid)
         if self.normals is not None and scalp_normals is not None:
             self.normals.copy_(scalp_normals.reshape(self.normals.shape))
@@ -320,11 +350,23 @@ class PhysicsSolver:
         self.prev.copy_(x)
         self.prev2.copy_(x if x_prev is None else x_prev)
 
+    def prediction(self) -> torch.Tensor:
+        """The step's start (B, M, N, 3): the inertial prediction 2 x_{t-1} - x_{t-2}, plus the
+        head's own unpredicted move (the rigid placement against its inertial prediction)
+        weighted by exp(-s / `PhysicsConfig.head_follow_length`), s the arc length from the root:
+        hair near the root goes where the head went."""
+        x = 2 * self.prev - self.prev2
+        length = self.config.head_follow_length
+        if length > 0:
+            surprise = self.rigid - (2 * self.rigid_prev - self.rigid_prev2)
+            x = x + torch.exp(-self.arc_length / length)[None, :, :, None] * surprise
+        return x
+
     def step(self) -> StepReport:
         """One implicit-Euler step from the inertial prediction; the state moves on."""
         if not self.dynamic:
             raise RuntimeError("step: this solver drapes statically (dynamic=False)")
-        report = self.solve(2 * self.prev - self.prev2, self.config.max_iterations)
+        report = self.solve(self.prediction(), self.config.max_iterations)
         x = self.positions()
         self.prev2.copy_(self.prev)
         self.prev.copy_(x)
