@@ -38,11 +38,17 @@ def test_results_schema(record):
     assert rows["reference"]["energy_gap"] == pytest.approx(0.0, abs=1e-9)
     assert 0.0 < rows["lbfgs"]["energy_gap"] < 1.0
     assert rows["lbfgs"]["penetration_percent"] < rows["rigid"]["penetration_percent"]
-    for name in ("adam", "lbfgs", "reference"):
+    for name in ("adam", "lbfgs"):
         r = rows[name]
         assert r["time_ms"] > 0 and r["finite"]
         assert [h["iteration"] for h in r["history"] if "penetration" in h][:3] == [0, 5, 10]
         assert r["history"][0]["energy_gap"] == pytest.approx(1.0, rel=1e-4)
+    assert rows["reference"]["time_ms"] > 0 and rows["reference"]["finite"]
+    # Shape against the optimum: the optimum against itself is ratio 1 at distance 0.
+    assert rows["reference"]["energy_ratio"] == pytest.approx(1.0)
+    assert rows["reference"]["mean_distance_mm"] == pytest.approx(0.0, abs=1e-9)
+    assert rows["rigid"]["energy_ratio"] > 1.0 and rows["rigid"]["mean_distance_mm"] > 0.0
+    assert rows["lbfgs"]["p95_distance_mm"] >= rows["lbfgs"]["mean_distance_mm"]
     json.dumps(record, allow_nan=False)
 
 
@@ -50,7 +56,7 @@ def test_json_markdown_and_chart(record, tmp_path):
     path = harness.write_results(record, str(tmp_path / "r.json"))
     assert json.load(open(path))["scenes"][0]["name"] == "table1"
     table = harness.markdown_tables(record)
-    assert "| method | ms/drape | penetration % | length change % | energy gap |" in table
+    assert "| method | ms/drape | penetration % | length change % | E / E* |" in table
     assert all(f"| {m} |" in table for m in ("rigid", "adam", "lbfgs", "reference"))
     png = speed_accuracy_chart(record, str(tmp_path / "chart.png"))
     data = open(png, "rb").read()
@@ -128,9 +134,15 @@ class _Offset(Method):
 def test_motion_metrics_against_the_reference():
     scene = comparison_scene("whiplash", **_SIZE)
     frames = scene.frames([0, 1, 2, 3])
-    rows = harness._run_motion(scene, frames, {"reference": _Offset(), "shifted": _Offset(offset=1e-3)},
-                               lambda *_: None)
+    rows, plot = harness._run_motion(scene, frames, {"reference": _Offset(), "shifted": _Offset(offset=1e-3)},
+                                     lambda *_: None)
     ref, shifted = rows
+    assert plot is None  # no plots_dir
+    # Against the physics: 1 mm everywhere, and a constant offset is no swing.
+    assert ref["physics"] == "reference" and ref["mean_distance_mm"] == pytest.approx(0.0, abs=1e-9)
+    assert shifted["mean_distance_mm"] == pytest.approx(1.0, rel=1e-3)
+    assert shifted["max_distance_mm"] == pytest.approx(1.0, rel=1e-3)
+    assert shifted["swing_mm"] == pytest.approx(0.0, abs=1e-3) and shifted["swing_correlation"] is None
     assert ref["distance_mean_m"] == pytest.approx(0.0) and ref["jitter_m"] == pytest.approx(0.0, abs=1e-9)
     assert shifted["distance_mean_m"] == pytest.approx(1e-3, rel=1e-4)
     assert shifted["distance_max_m"] == pytest.approx(1e-3, rel=1e-4)
@@ -156,3 +168,21 @@ def test_compare_command(tmp_path, capsys):
     assert "--methods: unknown" in capsys.readouterr().err
     assert main(["compare", "--strand-stride", "0", "--out", str(out), "--quiet"]) == 1
     assert "--strand-stride" in capsys.readouterr().err
+
+
+def test_motion_rows_against_the_physics_and_the_swing_plot(tmp_path):
+    from hairwarp.methods import MethodOptions
+    from hairwarp.methods.optimizers import PhysicsMethod, RigidMethod
+    from hairwarp.solvers.physics import PhysicsConfig
+
+    scene = comparison_scene("whiplash", **_SIZE)
+    frames = scene.frames(list(range(12, 20)))
+    methods = {"rigid": RigidMethod(), "physics": PhysicsMethod(MethodOptions(), PhysicsConfig(max_iterations=12))}
+    rows, plot = harness._run_motion(scene, frames, methods, lambda *_: None, str(tmp_path))
+    rigid, physics = rows
+    assert physics["physics"] == "physics" and physics["mean_distance_mm"] == pytest.approx(0.0, abs=1e-9)
+    assert physics["swing_correlation"] == pytest.approx(1.0) and physics["swing_amplitude_ratio"] == pytest.approx(1.0)
+    assert physics["physics_swing_mm"] > 0.0  # the head whips: the hair swings beyond it
+    assert rigid["swing_mm"] == pytest.approx(0.0, abs=1e-6) and rigid["swing_correlation"] is None
+    assert rigid["mean_distance_mm"] > 0.0
+    assert open(plot, "rb").read()[:4] == b"\x89PNG" and plot.endswith("swing_whiplash.png")

@@ -177,17 +177,69 @@ def picture_distances(sd):
     return sd
 
 
-def markdown_table(rows: list[tuple[str, str, dict]]) -> str:
-    """| method | ms/frame | penetration % | length change % | from (label, ms text, per-frame metrics)."""
+def markdown_table(rows: list[tuple[str, str, dict]], fidelity: dict | None = None) -> str:
+    """| method | ms/frame | penetration % | length change % | from (label, ms text, per-frame metrics);
+    with `fidelity` (label -> `hairwarp.metrics.motion_fidelity`), the columns against the physics."""
     def mean(values) -> float:
         return float(sum(values) / len(values))
 
-    lines = ["| method | ms/frame | penetration % (mean over frames) | length change % (mean) |",
-             "|---|---:|---:|---:|"]
+    def fmt(value, spec):
+        return "-" if value is None else format(value, spec)
+
+    head = "| method | ms/frame | penetration % (mean over frames) | length change % (mean) |"
+    rule = "|---|---:|---:|---:|"
+    if fidelity is not None:
+        head += " distance to physics mean / worst frame [mm] | tip swing [mm] | swing ratio | swing correlation |"
+        rule += "---:|---:|---:|---:|"
+    lines = [head, rule]
     for label, ms, m in rows:
-        lines.append(f"| {label} | {ms} | {mean(m['penetration_percent']):.3f} | "
-                     f"{mean(m['length_change_percent']):.3f} |")
+        line = f"| {label} | {ms} | {mean(m['penetration_percent']):.3f} | {mean(m['length_change_percent']):.3f} |"
+        if fidelity is not None:
+            f = fidelity.get(label, {})
+            line += (f" {fmt(f.get('mean_distance_mm'), '.1f')} / {fmt(f.get('max_distance_mm'), '.1f')} |"
+                     f" {fmt(f.get('swing_mm'), '.1f')} | {fmt(f.get('swing_amplitude_ratio'), '.2f')} |"
+                     f" {fmt(f.get('swing_correlation'), '+.2f')} |")
+        lines.append(line)
     return "\n".join(lines)
+
+
+def beside_the_physics(out: str, stem: str, frames, motions: dict, signed_distances: dict, physics: str,
+                       gif_frames: int = 20) -> tuple[dict, list[str]]:
+    """Each motion against the physics: fidelity metrics, a swing plot and side-by-side pictures.
+
+    Args:
+        out: output folder.
+        stem: file-name stem (OUT/<stem>_swing.png, <stem>_side_by_side.png and .gif).
+        frames: the scene's frames (all, in order).
+        motions: label -> (T, M, N, 3) positions [m], `physics` among them.
+        signed_distances: label -> (T, M, N) signed distances [m] (red where negative).
+        physics: the label of the physics simulation.
+        gif_frames: most frames the GIF shows.
+
+    Returns:
+        (label -> `hairwarp.metrics.motion_fidelity` dict (rigid placement included), paths written).
+    """
+    from hairwarp.evaluation.charts import swing_plot
+    from hairwarp.metrics import mean_tip_offset, motion_fidelity
+    from hairwarp.render.preview import render_side_by_side
+
+    rigid = frames.rigid.positions.detach().cpu()
+    cpu = {label: x.detach().cpu() for label, x in motions.items()}
+    fidelity = {label: motion_fidelity(x, cpu[physics], rigid) for label, x in {"rigid": rigid, **cpu}.items()}
+    fps = float(frames.scene.motion.fps)
+    curves = {label: mean_tip_offset(x, rigid) for label, x in {"rigid": rigid, **cpu}.items()}
+    paths = [swing_plot(curves, os.path.join(out, f"{stem}_swing.png"), fps=fps, physics=physics,
+                        title=f"{frames.scene.name}: mean tip offset from the rigid placement")]
+    body_v = frames.posed.vertices.detach().cpu()
+    faces = frames.scene.body.faces.cpu()
+    sds = {label: picture_distances(sd).cpu() for label, sd in signed_distances.items()}
+    title = "side by side: " + " | ".join(cpu) + "  (red = inside the body)"
+    paths.append(render_side_by_side(os.path.join(out, f"{stem}_side_by_side.png"), cpu, body_v, faces, sds,
+                                     fps=fps, title=title))
+    stride = max(1, -(-rigid.shape[0] // gif_frames))
+    paths.append(render_side_by_side(os.path.join(out, f"{stem}_side_by_side.gif"), cpu, body_v, faces, sds,
+                                     fps=fps, stride=stride, title=title))
+    return fidelity, paths
 
 
 def write_metrics(out: str, stem: str, record: dict, table: str) -> list[str]:

@@ -5,7 +5,10 @@ and back), a one-second head turn, simulated by one method of the registry (defa
 shipped dynamic network, finished by a few L-BFGS iterations a frame and never leaving more
 vertices inside the body than the rigid placement); writes the animation as USD (binary .usdc;
 --usda for text), preview
-pictures, a GIF, and prints the metrics table. About 100 s on a 2-core CPU. The demo's energy
+pictures, a GIF, and prints the metrics table; then the physics simulation of the same frames
+(`physics`; on the CPU capped at --physics-iterations a frame), shown beside the method (side-by-side
+pictures and GIF, the tips' swing plotted over time) with the distance to it and the swing's
+amplitude ratio and correlation in the table. About 100 s on a 2-core CPU. The demo's energy
 leaves hair-hair contact out unless --hair-hair is given (on the CPU its broad phase makes
 each L-BFGS iteration over the 61 frames about 10x slower).
 """
@@ -20,6 +23,9 @@ from hairwarp.commands.common import add_common_arguments, add_threads_argument,
 # L-BFGS iterations after the network over the whole motion (each costs about 3 s for 61 frames
 # of 512 x 100 hair on the 2-core CPU without hair-hair).
 DEMO_REFINE = 5
+# The physics beside the method on the CPU: iterations a frame (the method `physics` runs up to 200
+# at its tolerance, ~10 s a frame of 512 x 100 on the 2-core CPU; this keeps the demo near two minutes).
+DEMO_CPU_PHYSICS = 24
 
 
 def add_parser(subparsers) -> None:
@@ -37,6 +43,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--refine", type=int, default=DEMO_REFINE, metavar="K",
                    help=f"L-BFGS iterations after a network (default: {DEMO_REFINE}; the API's auto: {AUTO_REFINE})")
     p.add_argument("--hair-hair", action="store_true", help="keep hair-hair contact in the energy (slow on a CPU)")
+    p.add_argument("--physics-iterations", type=int, default=None, metavar="K",
+                   help=f"L-BFGS iterations a frame of the physics beside the method (default: {DEMO_CPU_PHYSICS} "
+                        "on the CPU, the physics method's own on CUDA; 0: no physics)")
     p.add_argument("--usda", action="store_true", help="write text USD (demo.usda) instead of binary demo.usdc")
     p.add_argument("--max-iterations", type=int, default=40, help="adam/lbfgs iteration cap (default: 40)")
     p.add_argument("--strand-stride", type=int, default=2,
@@ -50,7 +59,10 @@ def run(args) -> int:
     import torch
 
     from hairwarp.builder import positive_int
-    from hairwarp.commands.common import markdown_table, picture_distances, run_and_score, set_threads, write_metrics
+    from hairwarp.commands.common import (beside_the_physics, markdown_table, picture_distances, run_and_score,
+                                          set_threads, write_metrics)
+    from hairwarp.methods.optimizers import PhysicsMethod
+    from hairwarp.solvers.physics import PhysicsConfig
     from hairwarp.config import EnergyConfig
     from hairwarp.io.usd import write_usd
     from hairwarp.methods import MethodOptions, make
@@ -98,9 +110,29 @@ def run(args) -> int:
     phase("scene", f"simulating {scene.hairstyle.num_strands} strands x {num_vertices} vertices over "
                    f"{scene.num_frames} frames with {method.name}")
     result, metrics, sd, sd_rigid = run_and_score(method, frames, options.config(), simulate=True)
-    phase("method", "writing USD and drawing the pictures")
-    ms_text = "-" if result.time_ms is None else f"{result.time_ms:.1f}"
-    table = markdown_table([("rigid placement (Eq. 1)", "-", metrics["rigid"]), (method.name, ms_text, metrics["method"])])
+    physics_iterations = args.physics_iterations
+    if physics_iterations is None:
+        physics_iterations = DEMO_CPU_PHYSICS if device.type == "cpu" else PhysicsConfig().max_iterations
+    physics_iterations = positive_int("--physics-iterations", physics_iterations, minimum=0)
+    physics = physics_metrics = physics_sd = None
+    if physics_iterations:
+        phase("method", f"the physics beside it: {physics_iterations} iterations a frame at most")
+        physics_method = PhysicsMethod(options, PhysicsConfig(max_iterations=physics_iterations))
+        physics, physics_metrics, physics_sd, _ = run_and_score(physics_method, frames, options.config(),
+                                                               simulate=True)
+    phase("physics" if physics_iterations else "method", "writing USD and drawing the pictures")
+
+    def ms(r):
+        return "-" if r.time_ms is None else f"{r.time_ms:.1f}"
+
+    rows = [("rigid", "-", metrics["rigid"]), (method.name, ms(result), metrics["method"])]
+    fidelity, compared = None, []
+    if physics is not None:
+        rows.append(("physics", ms(physics), physics_metrics["method"]))
+        fidelity, compared = beside_the_physics(args.out, "demo", frames, {method.name: result.positions,
+                                                                           "physics": physics.positions},
+                                                {method.name: sd, "physics": physics_sd}, "physics")
+    table = markdown_table(rows, fidelity)
     body_v = frames.posed.vertices.detach().cpu()
     faces = scene.body.faces.cpu()
     hair = result.positions.detach().cpu()
@@ -118,10 +150,15 @@ def run(args) -> int:
     record = {"scene": scene.name, "method": method.name, "method_info": result.info, "ms_per_frame": result.time_ms,
               "strands": scene.hairstyle.num_strands, "vertices": num_vertices, "frames": scene.num_frames,
               "fps": scene.motion.fps, "device": str(device), "rigid": metrics["rigid"], "result": metrics["method"],
+              "physics": None if physics is None else {"iterations_cap": physics_iterations,
+                                                       "ms_per_frame": physics.time_ms, "info": physics.info,
+                                                       "metrics": physics_metrics["method"]},
+              "against_physics": fidelity,
               "wall_s": {k: round(v, 2) for k, v in clock.items() if k != "start"}}
     write_metrics(args.out, "demo", record, table)
     print(table)
     phases = ", ".join(f"{k} {v:.0f} s" for k, v in clock.items() if k != "start")
-    print(f"wrote {os.path.basename(usd_path)}, demo_rigid.png, demo_drape.png, demo.gif, demo_metrics.json/.md "
+    extra = "".join(f", {os.path.basename(p)}" for p in compared)
+    print(f"wrote {os.path.basename(usd_path)}, demo_rigid.png, demo_drape.png, demo.gif{extra}, demo_metrics.json/.md "
           f"into {args.out} ({time.perf_counter() - t0:.0f} s: {phases})")
     return 0

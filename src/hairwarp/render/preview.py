@@ -503,7 +503,6 @@ def render_animation(
     Raises:
         ValueError: naming the malformed argument.
     """
-    from PIL import Image
 
     path = check_path("path", path, (".gif",))
     hair_t, body_v, faces, inside, views, color_by, dpi = _prepare(
@@ -526,12 +525,109 @@ def render_animation(
                 None if inside is None else inside[t], view, color_by, limits[view], max_triangles,
             )
             ax.set_title(_panel_label(view, color_by, k, f"frame {t}, t = {t / fps:.2f} s\n"), fontsize=8)
-        fig.canvas.draw()
-        rgb = np.asarray(fig.canvas.buffer_rgba())[..., :3]
-        # One adaptive palette per image; without dithering flat body shading stays flat.
-        images.append(Image.fromarray(rgb).quantize(colors=255, method=Image.Quantize.MEDIANCUT,
-                                                    dither=Image.Dither.NONE))
-    duration_ms = max(20, int(round(1000.0 * stride / fps / 10.0)) * 10)
+        images.append(_gif_image(fig))
+    return _write_gif(path, images, 1000.0 * stride / fps)
+
+
+def render_side_by_side(
+    path: str | os.PathLike,
+    hairs: dict,
+    body_vertices=None,
+    body_faces=None,
+    signed_distances: dict | None = None,
+    view: str = "front",
+    frames: int = 6,
+    fps: float = 60,
+    stride: int = 1,
+    title: str | None = None,
+    dpi: float = 80,
+    max_triangles: int = 20000,
+) -> str:
+    """Draw several methods' motions of the same scene side by side, in one framing.
+
+    A `.png` is a strip: one row per method, one column per evenly spaced frame. A `.gif` shows
+    every `stride`-th frame, one panel per method side by side, so a method and the physics move
+    together.
+
+    Args:
+        path: output file, `.png` or `.gif`.
+        hairs: label -> (T, M, N, 3) strand vertices per frame [m], the same T for all.
+        body_vertices: (T, V, 3) (or (1, V, 3)) [m], or None.
+        body_faces: (F, 3) int triangles, with `body_vertices`.
+        signed_distances: label -> (T, M, N) signed distances [m] (negative inside: red), or None.
+        view: one view name (see the module docstring).
+        frames: `.png`: frames shown (first and last included), at most T.
+        fps: frame rate [1/s] (labels; the GIF's speed).
+        stride: `.gif`: show every `stride`-th frame.
+        title: text above the panels.
+        dpi: pixels per inch; each panel is 4 x 5 inches.
+        max_triangles: as in `render_drape`.
+
+    Returns:
+        The path written.
+
+    Raises:
+        ValueError: naming the malformed argument (an empty `hairs`, motions of different
+            lengths, and every check of `render_sequence`).
+    """
+    if not isinstance(hairs, dict) or not hairs:
+        raise ValueError("hairs: expected a non-empty dict of label -> (T, M, N, 3) hair")
+    path = check_path("path", path, (".png", ".gif"))
+    prepared = {}
+    for label, hair in hairs.items():
+        sd = None if signed_distances is None else signed_distances.get(label)
+        prepared[label] = _prepare(hair, body_vertices, body_faces, sd, (view,), None, dpi, frames_axis=True)
+    lengths = {label: p[0].shape[0] for label, p in prepared.items()}
+    if len(set(lengths.values())) != 1:
+        raise ValueError(f"hairs: expected motions of one length, got {lengths}")
+    fps = check_positive_number("fps", fps)
+    max_triangles = _check_positive_int("max_triangles", max_triangles)
+    labels = list(prepared)
+    _, body_v, faces, _, (view,), color_by, dpi = prepared[labels[0]]
+    num_frames = lengths[labels[0]]
+    gif = str(path).endswith(".gif")
+    idx = np.arange(0, num_frames, _check_positive_int("stride", stride)) if gif else \
+        _frame_indices(num_frames, _check_positive_int("frames", frames))
+    everything = np.concatenate([prepared[label][0][idx] for label in labels], axis=1)
+    rows, cols = (1, len(labels)) if gif else (len(labels), len(idx))
+    fig, axes, aspect = _make_figure(rows, cols, dpi, title)
+    limits = _frame_limits(everything, (view,), aspect)[view]
+
+    def draw(ax, label, t):
+        hair_t, _, _, inside, _, mode, _ = prepared[label]
+        for artist in list(ax.collections):
+            artist.remove()
+        k = _draw_panel(ax, hair_t[t], None if body_v is None else body_v[min(t, len(body_v) - 1)], faces,
+                        None if inside is None else inside[t], view, mode, limits, max_triangles)
+        ax.set_title(_panel_label(view, mode, k, f"{label}: frame {t}, t = {t / fps:.2f} s\n"), fontsize=8)
+
+    if not gif:
+        for r, label in enumerate(labels):
+            for c, t in enumerate(idx):
+                draw(axes[r, c], label, t)
+        _save(fig, path)
+        return path
+    images = []
+    for t in idx:
+        for c, label in enumerate(labels):
+            draw(axes[0, c], label, t)
+        images.append(_gif_image(fig))
+    return _write_gif(path, images, 1000.0 * stride / fps)
+
+
+def _gif_image(fig):
+    """The figure as a palette image: one adaptive palette per image; without dithering flat
+    body shading stays flat."""
+    from PIL import Image
+
+    fig.canvas.draw()
+    rgb = np.asarray(fig.canvas.buffer_rgba())[..., :3]
+    return Image.fromarray(rgb).quantize(colors=255, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE)
+
+
+def _write_gif(path: str, images: list, frame_ms: float) -> str:
+    """A looping GIF of `images`, `frame_ms` apart (GIF delays are whole centiseconds)."""
+    duration_ms = max(20, int(round(frame_ms / 10.0)) * 10)
     ensure_parent(path)
     with io.BytesIO() as buf:
         images[0].save(buf, format="GIF", save_all=True, append_images=images[1:], duration=duration_ms,

@@ -71,9 +71,9 @@ class PhysicsConfig:
     """
 
     tolerance: float = 1.0e-5
-    max_iterations: int = 32
+    max_iterations: int = 200
     static_max_iterations: int = 2000
-    static_chunk: int = 25
+    static_chunk: int = 50
     history: int = 8
     chunk: int = 4
     keep_memory: bool = False
@@ -94,7 +94,7 @@ class PhysicsConfig:
 
     def tight(self, factor: float = 100.0) -> "PhysicsConfig":
         """The `reference` setting: tolerance / factor and iteration caps to match."""
-        return replace(self, tolerance=self.tolerance / factor, max_iterations=self.max_iterations * 20,
+        return replace(self, tolerance=self.tolerance / factor, max_iterations=self.max_iterations * 10,
                        static_max_iterations=self.static_max_iterations * 5)
 
 
