@@ -98,8 +98,9 @@ def main(argv=None) -> dict:
         entry["physics_ms_median"] = statistics.median(steady) if steady else None
         entry["tight_ms_median"] = statistics.median(tight.frame_ms[1:]) if len(frames) > 1 else None
         record["motions"][name] = entry
+        iterations = statistics.mean(fast_again.iterations[1:])
         print(f"  physics {entry['physics_ms_median']:.1f} ms/frame (median; max {max(steady):.1f}), "
-              f"iterations {statistics.mean(fast_again.iterations[1:]):.1f}; tight {entry['tight_ms_median']:.1f} ms/frame", flush=True)
+              f"iterations {iterations:.1f}; tight {entry['tight_ms_median']:.1f} ms/frame", flush=True)
         print(f"  trajectory distance to tight: first 10 frames max {max(trajectory[:10]):.3f} mm, "
               f"all frames max {max(trajectory):.3f} mm; per step max {max(per_step):.3f} mm "
               f"(tight motion up to {max(motion):.1f} mm)", flush=True)

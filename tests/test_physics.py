@@ -101,6 +101,17 @@ def test_physics_method_drapes_and_simulates():
     assert sim.positions.shape == (scene.num_frames, *scene.hairstyle.strands.shape)
     assert torch.allclose(sim.positions[0], r.positions, atol=1e-6)  # frame 0 is the static drape
     assert len(sim.info["iterations"]) == scene.num_frames
+    # Measured against a reference: the rigid placement does not swing; the physics against
+    # itself is distance 0, correlation 1; the static optimum against itself is ratio 1.
+    rigid = hw.simulate(scene, method="rigid", reference="physics").metrics["against_reference"]
+    assert rigid["reference"] == "physics" and rigid["swing_mm"] == pytest.approx(0.0, abs=1e-6)
+    assert rigid["swing_correlation"] is None and rigid["mean_distance_mm"] > 0.0
+    itself = hw.simulate(scene, method="physics", reference="physics").metrics["against_reference"]
+    assert itself["mean_distance_mm"] == pytest.approx(0.0, abs=1e-6)
+    if itself["swing_correlation"] is not None:
+        assert itself["swing_correlation"] == pytest.approx(1.0)
+    optimum = hw.drape(scene, method="physics", reference="physics").metrics["against_reference"]
+    assert optimum["energy_ratio"] == pytest.approx(1.0) and optimum["mean_distance_mm"] == pytest.approx(0.0)
 
 
 def test_bad_config():
@@ -111,3 +122,31 @@ def test_bad_config():
     with pytest.raises(ValueError, match="frame_indices"):
         simulate_physics(comparison_scene("whiplash", strand_stride=64, num_vertices=8).scene, [])
     assert math.isclose(PhysicsConfig().tight().tolerance, PhysicsConfig().tolerance / 100)
+
+
+def test_each_step_lowers_its_incremental_potential(whiplash):
+    """A step's solution has no more incremental potential (Eq. 6) than its start, the warm start
+    projected onto the rest lengths; the fixed vertices ride with the head."""
+    from hairwarp.energy import total_energy
+    from hairwarp.ops.strand_projection import follow_the_leader
+
+    frames = whiplash.frames(list(range(12, 16)), build_body=False)
+    config = EnergyConfig().replace(time_step=1.0 / whiplash.motion.fps)
+    from hairwarp.ops import BodyMesh
+
+    body = BodyMesh(frames.posed.vertices[:1], whiplash.body.faces.int(), bvh="lbvh")
+    solver = PhysicsSolver(whiplash.rest_lengths, frames.rigid.positions[:1], frames.rigid.normals[:1], body, config,
+                           PhysicsConfig())
+    solver.set_state(frames.rigid.positions[:1])
+    for t in range(1, 4):
+        solver.set_frame(frames.rigid.positions[t:t + 1], frames.rigid.normals[t:t + 1], frames.posed.vertices[t:t + 1])
+        guess = solver.prediction()
+        guess[:, :, :2] = solver.rigid[:, :, :2]
+        start = follow_the_leader(solver.rigid, guess)
+        with torch.no_grad():
+            e_start = float(total_energy(start, solver.inputs, config, dynamic=True).total.sum())
+        report = solver.step()
+        assert report.energy <= e_start
+        assert torch.allclose(solver.prev[:, :, :2], frames.rigid.positions[t:t + 1, :, :2])
+        lengths = (solver.prev[0, :, 1:] - solver.prev[0, :, :-1]).norm(dim=-1)
+        assert torch.allclose(lengths, whiplash.rest_lengths, rtol=1e-4, atol=1e-6)  # inextensible steps

@@ -73,7 +73,25 @@ def _summary(per_frame: dict, rigid: dict) -> dict:
                       "length_change_percent": mean(rigid["length_change_percent"]), "per_frame": rigid}}
 
 
-def _run(scene, frames, method: str, options: MethodOptions, *, simulate: bool) -> Result:
+def _against(frames, out, reference: str, options: MethodOptions, *, simulate: bool) -> dict:
+    """The fidelity metrics of `out` against `reference` run on the same frames."""
+    from hairwarp import metrics as M
+    from hairwarp.energy import total_energy
+
+    ref = make(reference, options)
+    truth = ref.simulate(frames) if simulate else ref.drape(frames)
+    if simulate:
+        found = M.motion_fidelity(out.positions, truth.positions, frames.rigid.positions)
+    else:
+        config = options.config()
+        with torch.no_grad():
+            energy = total_energy(out.positions, frames.inputs, config).total.sum()
+            optimum = total_energy(truth.positions, frames.inputs, config).total.sum()
+        found = M.static_fidelity(out.positions, truth.positions, float(energy), float(optimum))
+    return {"reference": ref.name, "reference_time_ms": truth.time_ms, **found}
+
+
+def _run(scene, frames, method: str, options: MethodOptions, *, simulate: bool, reference: str | None = None) -> Result:
     from hairwarp.metrics import frame_metrics
 
     m = make(method, options)
@@ -81,12 +99,15 @@ def _run(scene, frames, method: str, options: MethodOptions, *, simulate: bool) 
     per_frame, _ = frame_metrics(out.positions, frames)
     rigid, _ = frame_metrics(frames.rigid.positions, frames)
     positions = out.positions if simulate else out.positions[0]
-    return Result(positions=positions, metrics=_summary(per_frame, rigid), time_ms=out.time_ms, method=m.name,
+    metrics = _summary(per_frame, rigid)
+    if reference is not None:
+        metrics["against_reference"] = _against(frames, out, reference, options, simulate=simulate)
+    return Result(positions=positions, metrics=metrics, time_ms=out.time_ms, method=m.name,
                   info=dict(out.info), frames=frames)
 
 
 def drape(scene, method: str = "auto", *, frame: int = 0, device: str | torch.device = "cpu",
-          options: MethodOptions | None = None, **option_changes) -> Result:
+          options: MethodOptions | None = None, reference: str | None = None, **option_changes) -> Result:
     """Drape one frame of a scene with a method from `hairwarp.methods.available()`.
 
     Args:
@@ -96,6 +117,9 @@ def drape(scene, method: str = "auto", *, frame: int = 0, device: str | torch.de
         frame: which frame of the scene's motion to drape.
         device: "cpu" or "cuda[:N]".
         options: a `MethodOptions` to start from.
+        reference: a method to measure against ("reference": the converged optimum; "physics"):
+            `metrics["against_reference"]` then holds `hairwarp.metrics.static_fidelity`
+            (energy ratio E / E*, mean / p95 vertex distance and tip height difference [mm]).
         **option_changes: fields of `MethodOptions` (max_iterations, patience, refine,
             checkpoint, energy_config, progress, ...).
 
@@ -104,16 +128,21 @@ def drape(scene, method: str = "auto", *, frame: int = 0, device: str | torch.de
     """
     device = resolve_device(device)
     frames = scene.frames([frame], device=device)
-    return _run(scene, frames, method, _options(options, **option_changes), simulate=False)
+    return _run(scene, frames, method, _options(options, **option_changes), simulate=False, reference=reference)
 
 
 def simulate(scene, method: str = "auto", *, device: str | torch.device = "cpu",
-             options: MethodOptions | None = None, **option_changes) -> Result:
+             options: MethodOptions | None = None, reference: str | None = None, **option_changes) -> Result:
     """Simulate every frame of a scene's motion, in order (see `drape` for the arguments).
+
+    `reference` ("physics" or "reference": the physics simulation) puts
+    `hairwarp.metrics.motion_fidelity` into `metrics["against_reference"]`: the distance to the
+    physics per frame [mm] and the tips' swing beyond the rigid placement, its amplitude ratio
+    and correlation with the physics's.
 
     Returns:
         Result with positions (T, M, N, 3) [m] and metrics (means over frames).
     """
     device = resolve_device(device)
     frames = scene.frames(device=device)
-    return _run(scene, frames, method, _options(options, **option_changes), simulate=True)
+    return _run(scene, frames, method, _options(options, **option_changes), simulate=True, reference=reference)

@@ -179,7 +179,8 @@ def picture_distances(sd):
 
 def markdown_table(rows: list[tuple[str, str, dict]], fidelity: dict | None = None) -> str:
     """| method | ms/frame | penetration % | length change % | from (label, ms text, per-frame metrics);
-    with `fidelity` (label -> `hairwarp.metrics.motion_fidelity`), the columns against the physics."""
+    with `fidelity` (label -> `hairwarp.metrics.motion_fidelity`), the columns against the physics.
+    """
     def mean(values) -> float:
         return float(sum(values) / len(values))
 
@@ -200,6 +201,59 @@ def markdown_table(rows: list[tuple[str, str, dict]], fidelity: dict | None = No
                      f" {fmt(f.get('swing_mm'), '.1f')} | {fmt(f.get('swing_amplitude_ratio'), '.2f')} |"
                      f" {fmt(f.get('swing_correlation'), '+.2f')} |")
         lines.append(line)
+    return "\n".join(lines)
+
+
+def add_against_argument(p, stem: str) -> None:
+    """`--against physics|reference`: run that method on the same frames and measure against it."""
+    p.add_argument("--against", default=None, choices=("physics", "reference"),
+                   help="also run the physics (or its tight setting) on the same frames and measure the method "
+                        f"against it (columns in the table; {stem}_side_by_side.png beside it)")
+
+
+def static_beside(out: str, stem: str, frames, drapes: dict, signed_distances: dict, optimum: str,
+                  config) -> tuple[dict, str]:
+    """Drapes against the optimum: `hairwarp.metrics.static_fidelity` per label and OUT/<stem>_side_by_side.png.
+
+    Args:
+        drapes: label -> (B, M, N, 3) positions [m], `optimum` among them.
+        signed_distances: label -> (B, M, N) [m].
+        config: the energy's config (the ratio E / E*).
+    """
+    import torch
+
+    from hairwarp.energy import total_energy
+    from hairwarp.metrics import static_fidelity
+    from hairwarp.render.preview import render_side_by_side
+
+    def energy(x):
+        with torch.no_grad():
+            return float(total_energy(x, frames.inputs, config).total.sum())
+
+    e_opt = energy(drapes[optimum])
+    everything = {"rigid": frames.rigid.positions, **drapes}
+    fidelity = {label: static_fidelity(x, drapes[optimum], energy(x), e_opt) for label, x in everything.items()}
+    cpu = {label: x.detach().cpu()[:1] for label, x in drapes.items()}
+    sds = {label: picture_distances(sd[:1]).cpu() for label, sd in signed_distances.items()}
+    path = render_side_by_side(os.path.join(out, f"{stem}_side_by_side.png"), cpu,
+                               frames.posed.vertices.detach().cpu()[:1], frames.scene.body.faces.cpu(), sds,
+                               fps=float(frames.scene.motion.fps),
+                               title="side by side: " + " | ".join(cpu) + "  (red = inside the body)")
+    return fidelity, path
+
+
+def static_table(rows: list[tuple[str, str, dict]], fidelity: dict) -> str:
+    """`markdown_table` of drapes with the columns against the optimum (label -> static_fidelity)."""
+    def fmt(value, spec):
+        return "-" if value is None else format(value, spec)
+
+    lines = markdown_table(rows).split("\n")
+    lines[0] += " E / E* | distance to the optimum mean / p95 [mm] | tip height vs the optimum [mm] |"
+    lines[1] += "---:|---:|---:|"
+    for i, (label, _, _) in enumerate(rows):
+        f = fidelity.get(label, {})
+        lines[i + 2] += (f" {fmt(f.get('energy_ratio'), '.3f')} | {fmt(f.get('mean_distance_mm'), '.1f')} / "
+                         f"{fmt(f.get('p95_distance_mm'), '.1f')} | {fmt(f.get('tip_height_difference_mm'), '+.1f')} |")
     return "\n".join(lines)
 
 

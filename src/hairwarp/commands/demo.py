@@ -8,7 +8,7 @@ vertices inside the body than the rigid placement); writes the animation as USD 
 pictures, a GIF, and prints the metrics table; then the physics simulation of the same frames
 (`physics`; on the CPU capped at --physics-iterations a frame), shown beside the method (side-by-side
 pictures and GIF, the tips' swing plotted over time) with the distance to it and the swing's
-amplitude ratio and correlation in the table. About 100 s on a 2-core CPU. The demo's energy
+amplitude ratio and correlation in the table. About 170 s on a 2-core CPU. The demo's energy
 leaves hair-hair contact out unless --hair-hair is given (on the CPU its broad phase makes
 each L-BFGS iteration over the 61 frames about 10x slower).
 """
@@ -24,8 +24,9 @@ from hairwarp.commands.common import add_common_arguments, add_threads_argument,
 # of 512 x 100 hair on the 2-core CPU without hair-hair).
 DEMO_REFINE = 5
 # The physics beside the method on the CPU: iterations a frame (the method `physics` runs up to 200
-# at its tolerance, ~10 s a frame of 512 x 100 on the 2-core CPU; this keeps the demo near two minutes).
-DEMO_CPU_PHYSICS = 24
+# at its tolerance, ~2.5 s a frame of 256 x 100 on the 2-core CPU; this keeps the demo near three
+# minutes). 24 left flyaway strands in the picture (under-converged steps keep too much momentum).
+DEMO_CPU_PHYSICS = 64
 
 
 def add_parser(subparsers) -> None:
@@ -48,8 +49,8 @@ def add_parser(subparsers) -> None:
                         "on the CPU, the physics method's own on CUDA; 0: no physics)")
     p.add_argument("--usda", action="store_true", help="write text USD (demo.usda) instead of binary demo.usdc")
     p.add_argument("--max-iterations", type=int, default=40, help="adam/lbfgs iteration cap (default: 40)")
-    p.add_argument("--strand-stride", type=int, default=2,
-                   help="grow on every K-th root of the 32 x 32 scalp only (default: 2, 512 strands; 1: all 1024)")
+    p.add_argument("--strand-stride", type=int, default=4,
+                   help="grow on every K-th root of the 32 x 32 scalp only (default: 4, 256 strands; 1: all 1024)")
     p.add_argument("--num-vertices", type=int, default=100, help="vertices per strand (default: 100)")
     add_threads_argument(p)
     p.set_defaults(run=run)
@@ -117,7 +118,8 @@ def run(args) -> int:
     physics = physics_metrics = physics_sd = None
     if physics_iterations:
         phase("method", f"the physics beside it: {physics_iterations} iterations a frame at most")
-        physics_method = PhysicsMethod(options, PhysicsConfig(max_iterations=physics_iterations))
+        physics_method = PhysicsMethod(options, PhysicsConfig(max_iterations=physics_iterations,
+                                                              static_max_iterations=10 * physics_iterations))
         physics, physics_metrics, physics_sd, _ = run_and_score(physics_method, frames, options.config(),
                                                                simulate=True)
     phase("physics" if physics_iterations else "method", "writing USD and drawing the pictures")

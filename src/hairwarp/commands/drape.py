@@ -2,6 +2,7 @@
 
     hairwarp drape                                     # long straight hair, rest pose, method auto
     hairwarp drape --hairstyle bob --pose head_turn --time 0.5 --method lbfgs
+    hairwarp drape --hairstyle long_straight --method static --against reference   # shape against the optimum
     hairwarp drape --hairstyle my_hair.data --data-units cm --body my_smpl.npz --pose walk.npz --frame 40
     hairwarp drape --hairstyle z.npy --method static --refine 20 --checkpoint run/checkpoint.pt
 
@@ -13,7 +14,8 @@ more vertices inside the body than the rigid placement), a network, an optimizer
 reference, the rigid placement, or NAME+refine. Writes into --out: drape.usda (hair + body),
 drape.data (strands in metres), drape.png and drape_rigid.png (front and side; red = inside
 the body), drape_metrics.json and drape_metrics.md (penetration, length change, energy, time,
-against the rigid placement of Eq. 1).
+against the rigid placement of Eq. 1); with --against physics (or reference) also the energy ratio
+E / E*, the distance and tip height against that drape, and drape_side_by_side.png.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ import os
 import time
 
 from hairwarp.commands.common import (
+    add_against_argument,
     add_common_arguments,
     add_method_arguments,
     add_scene_arguments,
@@ -39,6 +42,7 @@ def add_parser(subparsers) -> None:
     )
     add_scene_arguments(p, simulate=False)
     add_method_arguments(p, max_iterations=500)
+    add_against_argument(p, "drape")
     add_threads_argument(p)
     add_common_arguments(p)
     p.set_defaults(run=run)
@@ -55,6 +59,8 @@ def run(args) -> int:
         picture_distances,
         run_and_score,
         set_threads,
+        static_beside,
+        static_table,
         write_metrics,
     )
     from hairwarp.io.hair_data import write_hair_data
@@ -74,7 +80,19 @@ def run(args) -> int:
     result, metrics, sd, rigid_sd = run_and_score(method, frames, config, simulate=False)
     label = method.name
     ms_text = "-" if result.time_ms is None else f"{result.time_ms:.1f}"
-    table = markdown_table([("rigid placement (Eq. 1)", "-", metrics["rigid"]), (label, ms_text, metrics["method"])])
+    rows = [("rigid", "-", metrics["rigid"]), (label, ms_text, metrics["method"])]
+    fidelity, compared = None, []
+    if args.against is not None and args.against != label:
+        from hairwarp.methods import make
+
+        optimum, optimum_metrics, optimum_sd, _ = run_and_score(make(args.against, method.options), frames, config,
+                                                                simulate=False)
+        rows.append((args.against, f"{optimum.time_ms:.1f}", optimum_metrics["method"]))
+        fidelity, side = static_beside(args.out, "drape", frames, {label: result.positions, args.against:
+                                                                   optimum.positions},
+                                       {label: sd, args.against: optimum_sd}, args.against, config)
+        compared = [side]
+    table = static_table(rows, fidelity) if fidelity is not None else markdown_table(rows)
     print(table)
 
     hair = result.positions.detach().cpu()
@@ -91,8 +109,9 @@ def run(args) -> int:
                                 title="rigid placement (Eq. 1): red = inside the body"))
     record = {"command": "drape", "scene": scene.name, "method": label, "method_info": result.info,
               "ms_per_frame": result.time_ms, "device": str(device), "strands": scene.hairstyle.num_strands,
-              "vertices": int(scene.hairstyle.strands.shape[1]), "rigid": metrics["rigid"], "result": metrics["method"]}
-    written += write_metrics(args.out, "drape", record, table)
+              "vertices": int(scene.hairstyle.strands.shape[1]), "rigid": metrics["rigid"], "result": metrics["method"],
+              "against": args.against, "fidelity": fidelity}
+    written += compared + write_metrics(args.out, "drape", record, table)
     print(f"wrote {', '.join(os.path.basename(p) for p in written)} into {args.out} "
           f"({time.perf_counter() - t0:.0f} s)")
     return 0

@@ -8,8 +8,9 @@
 Methods: auto (the shipped dynamic network finished by a few L-BFGS iterations per frame,
 never more vertices inside than the rigid placement), the networks (dynamic: frame by frame
 with its recurrent state; static: every frame on its own; quaffure), NAME+refine, adam/lbfgs
-(every frame draped on its own: static baselines, no dynamics), reference (implicit-Euler
-physics, the time step the motion's frame spacing), rigid (Eq. 1). Writes into --out:
+(every frame draped on its own: static baselines, no dynamics), physics (implicit-Euler steps on
+the device L-BFGS, the time step the motion's frame spacing), reference (the physics at a
+tolerance 100x tighter), rigid (Eq. 1). --against physics runs the physics beside the method. Writes into --out:
 simulate.usdc (binary USD, hair + body, one time sample a frame, at the motion's fps; --usda
 for text), simulate.data (the
 last frame's strands, metres), simulate.png (a strip of 6 frames, front and side; red = inside
@@ -25,6 +26,7 @@ import time
 
 from hairwarp.commands.common import (
     DEFAULT_GIF_FRAMES,
+    add_against_argument,
     add_common_arguments,
     add_method_arguments,
     add_scene_arguments,
@@ -46,6 +48,7 @@ def add_parser(subparsers) -> None:
                         f"(default: {DEFAULT_GIF_FRAMES})")
     p.add_argument("--usda", action="store_true",
                    help="write the animation as text USD (.usda, about 6x larger) instead of binary .usdc")
+    add_against_argument(p, "simulate")
     add_threads_argument(p)
     add_common_arguments(p)
     p.set_defaults(run=run)
@@ -56,6 +59,7 @@ def run(args) -> int:
 
     from hairwarp.builder import positive_int
     from hairwarp.commands.common import (
+        beside_the_physics,
         build_scene_from_args,
         describe,
         markdown_table,
@@ -65,6 +69,7 @@ def run(args) -> int:
         write_animation,
         write_metrics,
     )
+    from hairwarp.methods import make
     from hairwarp.runtime import resolve_device
 
     device = resolve_device(args.device, argument="--device")
@@ -82,15 +87,25 @@ def run(args) -> int:
     print(describe(scene, frames))
     result, metrics, sd, _ = run_and_score(method, frames, config, simulate=True)
     label = method.name
-    table = markdown_table([("rigid placement (Eq. 1)", "-", metrics["rigid"]),
-                            (label, "-" if result.time_ms is None else f"{result.time_ms:.1f}", metrics["method"])])
+    rows = [("rigid", "-", metrics["rigid"]), (label, "-" if result.time_ms is None else f"{result.time_ms:.1f}",
+                                               metrics["method"])]
+    fidelity, compared = None, []
+    if args.against is not None and args.against != label:
+        truth_method = make(args.against, method.options)
+        truth, truth_metrics, truth_sd, _ = run_and_score(truth_method, frames, config, simulate=True)
+        rows.append((args.against, f"{truth.time_ms:.1f}", truth_metrics["method"]))
+        fidelity, compared = beside_the_physics(args.out, "simulate", frames,
+                                                {label: result.positions, args.against: truth.positions},
+                                                {label: sd, args.against: truth_sd}, args.against, gif_frames)
+    table = markdown_table(rows, fidelity)
     print(table)
     written = write_animation(args.out, "simulate", frames, result.positions, sd, label, gif_frames,
-                              usd_format="usda" if args.usda else "usdc")
+                              usd_format="usda" if args.usda else "usdc") + compared
     record = {"command": "simulate", "scene": scene.name, "method": label, "method_info": result.info,
               "ms_per_frame": result.time_ms, "device": str(device), "fps": scene.motion.fps,
               "frames": scene.num_frames, "strands": scene.hairstyle.num_strands,
-              "vertices": int(scene.hairstyle.strands.shape[1]), "rigid": metrics["rigid"], "result": metrics["method"]}
+              "vertices": int(scene.hairstyle.strands.shape[1]), "rigid": metrics["rigid"], "result": metrics["method"],
+              "against": args.against, "fidelity": fidelity}
     written += write_metrics(args.out, "simulate", record, table)
     print(f"wrote {', '.join(os.path.basename(p) for p in written)} into {args.out} "
           f"({time.perf_counter() - t0:.0f} s)")

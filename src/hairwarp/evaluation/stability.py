@@ -364,16 +364,16 @@ def long_hair_study(factors=(1.0, 2.0, 4.0), iterations: int = STUDY_ITERATIONS)
 
 # ------------------------------------------------------------------------------- time step
 def time_step_study(num_frames: int = 8, factors=(1.0, 10.0), stride: int = 32, nv: int = 12) -> list[dict]:
-    """The implicit-Euler reference on the whiplash's first frames at dt and 10 dt."""
-    from hairwarp.solvers.reference import reference_solver_config, simulate_reference
+    """The implicit-Euler physics (tight setting) on the whiplash's first frames at dt and 10 dt."""
+    from hairwarp.solvers.physics import PhysicsConfig, simulate_physics
 
     scene = comparison_scene("whiplash", strand_stride=stride, num_vertices=nv)
     per_frame = [scene.frames([i]) for i in range(num_frames)]
     rows, runs = [], {}
-    solver = replace(reference_solver_config(), max_iterations=300)
+    solver = replace(PhysicsConfig().tight(), max_iterations=300)
     for f in factors:
         config = scene.energy_config().replace(time_step=f / scene.fps)
-        r = simulate_reference(lambda t: per_frame[t].inputs, num_frames, config, solver)
+        r = simulate_physics(scene.scene, range(num_frames), energy_config=config, config=solver)
         x = r.positions[:, 0]
         runs[f] = x
         finite = bool(torch.isfinite(x).all())

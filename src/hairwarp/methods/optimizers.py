@@ -121,7 +121,7 @@ class PhysicsMethod(Method):
             raise ValueError("frames: a simulation needs frames made by Scene.frames (they carry their scene)")
         device = frames.rigid.positions.device
         result = simulate_physics(frames.scene, frames.frame_indices.tolist(), device=device,
-                                  energy_config=self.options.config(), config=self.config,
+                                  energy_config=scene_energy_config(self.options, frames), config=self.config,
                                   progress=self.options.progress)
         steps = result.frame_ms[1:] or result.frame_ms
         info = {"iterations": result.iterations, "stop_reasons": result.stop_reasons,

@@ -503,7 +503,6 @@ def render_animation(
     Raises:
         ValueError: naming the malformed argument.
     """
-
     path = check_path("path", path, (".gif",))
     hair_t, body_v, faces, inside, views, color_by, dpi = _prepare(
         hair, body_vertices, body_faces, signed_distance, views, color_by, dpi, frames_axis=True
@@ -545,7 +544,8 @@ def render_side_by_side(
 ) -> str:
     """Draw several methods' motions of the same scene side by side, in one framing.
 
-    A `.png` is a strip: one row per method, one column per evenly spaced frame. A `.gif` shows
+    A `.png` is a strip: one row per method, one column per evenly spaced frame (one frame: the
+    methods side by side in one row). A `.gif` shows
     every `stride`-th frame, one panel per method side by side, so a method and the physics move
     together.
 
@@ -589,7 +589,8 @@ def render_side_by_side(
     idx = np.arange(0, num_frames, _check_positive_int("stride", stride)) if gif else \
         _frame_indices(num_frames, _check_positive_int("frames", frames))
     everything = np.concatenate([prepared[label][0][idx] for label in labels], axis=1)
-    rows, cols = (1, len(labels)) if gif else (len(labels), len(idx))
+    across = gif or len(idx) == 1  # one panel per method, side by side (a GIF's image, one drape)
+    rows, cols = (1, len(labels)) if across else (len(labels), len(idx))
     fig, axes, aspect = _make_figure(rows, cols, dpi, title)
     limits = _frame_limits(everything, (view,), aspect)[view]
 
@@ -604,7 +605,7 @@ def render_side_by_side(
     if not gif:
         for r, label in enumerate(labels):
             for c, t in enumerate(idx):
-                draw(axes[r, c], label, t)
+                draw(axes[0, r] if across else axes[r, c], label, t)
         _save(fig, path)
         return path
     images = []
@@ -617,7 +618,8 @@ def render_side_by_side(
 
 def _gif_image(fig):
     """The figure as a palette image: one adaptive palette per image; without dithering flat
-    body shading stays flat."""
+    body shading stays flat.
+    """
     from PIL import Image
 
     fig.canvas.draw()

@@ -2,7 +2,7 @@
 
 Parameters are every hair vertex except the first two of each strand, initialised at the rigid
 placement; the loss is the static total energy (Eq. 5), or Eq. 6 when previous states are given
-(that is one implicit-Euler step: see `hairwarp.solvers.reference`). Optimization stops when the
+(that is one implicit-Euler step: see `hairwarp.solvers.physics`). Optimization stops when the
 loss has not decreased for `patience` iterations (200 in the paper), at `max_iterations`, or
 when it diverges; a non-finite loss never comes back as a drape: the best finite iterate does,
 with the reason recorded.
@@ -196,8 +196,6 @@ def optimize_drape(
     if x0.shape[2] < 3:
         raise ValueError(f"x0: expected N >= 3 vertices per strand (0 and 1 are fixed), got {x0.shape[2]}")
     if solver.method == "lbfgs" and line_search(solver, x0.device) == "backtracking":
-        from hairwarp.solvers.device_lbfgs import optimize_drape_on_device
-
         return optimize_drape_on_device(x0, inputs, energy_config, solver, dynamic=dynamic, progress=progress,
                                         metrics=metrics)
     fixed = x0[:, :, :NUM_FIXED_VERTICES].detach()
@@ -369,3 +367,138 @@ def optimize_drape(
         history=history,
         evaluations=evaluations,
     )
+
+
+def optimize_drape_on_device(x0: torch.Tensor, inputs: EnergyInputs, energy_config: EnergyConfig, solver, *,
+                             dynamic: bool = False, progress: bool = False, metrics=None):
+    """`optimize_drape` with method "lbfgs" and the backtracking line search
+    (`hairwarp.solvers.device_lbfgs`).
+
+    Args and returns as `hairwarp.solvers.direct.optimize_drape`; `iterations` and
+    `evaluations` both count energy evaluations, and the history holds the iterate at the end of
+    every chunk (`solver.lbfgs_chunk` iterations, or `record_every` when recording).
+    """
+    from tqdm.auto import tqdm
+
+    from hairwarp.solvers.device_lbfgs import DeviceLBFGS
+
+    chunk = solver.record_every or solver.lbfgs_chunk
+    synchronize(x0.device)
+    start = time.perf_counter()
+    recording = 0.0
+
+    def clock() -> float:
+        return time.perf_counter() - start - recording
+
+    on_cuda = x0.device.type == "cuda"
+    fixed = x0[:, :, :NUM_FIXED_VERTICES].detach().clone()
+    free_shape = x0[:, :, NUM_FIXED_VERTICES:].shape
+    capacity = [None]  # the hair-hair pair buffer of the graph-safe evaluations (CUDA)
+    pair_cache = None
+    if not on_cuda and solver.pair_cache and energy_config.hair_hair_weight != 0.0:
+        from hairwarp.ops.hair_hair_contact import HairHairPairCache
+
+        pair_cache = HairHairPairCache()
+
+    def assemble(x: torch.Tensor) -> torch.Tensor:
+        return torch.cat([fixed, x.reshape(free_shape)], dim=2)
+
+    def energy(x: torch.Tensor, graph_safe: bool):
+        xg = assemble(x.detach()).requires_grad_(True)
+        with torch.enable_grad():
+            result = total_energy(xg, inputs, energy_config, dynamic=dynamic, graph_safe=graph_safe,
+                                  hair_hair_capacity=capacity[0] if graph_safe else None,
+                                  hair_hair_cache=pair_cache)
+            f = result.total.sum()
+            (grad,) = torch.autograd.grad(f, xg)
+        info = result.hair_hair_info
+        return f.detach(), grad[:, :, NUM_FIXED_VERTICES:].reshape(-1), 0 if info is None else info.device_count
+
+    lbfgs = DeviceLBFGS(energy, x0[:, :, NUM_FIXED_VERTICES:], solver, chunk=chunk, graph_safe=on_cuda)
+    if on_cuda:
+        first = lbfgs.first_count
+        segments = x0.shape[0] * x0.shape[1] * (x0.shape[2] - 1)
+        # Four times the start's pairs (at least two per segment): the first steps crumple the hair
+        # and an overflow costs a chunk and a capture.
+        capacity[0] = max(4 * (int(first) if isinstance(first, torch.Tensor) else first), 2 * segments, 1)
+    initial = float(lbfgs.f)
+    history: list[dict] = []
+    captures = [0]  # graphs captured so far (a pair overflow captures again)
+
+    def record(iteration: int, loss: float) -> None:
+        nonlocal recording
+        entry = {"iteration": iteration, "loss": loss, "time_s": clock(), "captures": captures[0]}
+        if metrics is not None and solver.record_every:
+            t0 = time.perf_counter()
+            entry.update(metrics(assemble(lbfgs.x)))
+            synchronize(x0.device)
+            recording += time.perf_counter() - t0
+        history.append(entry)
+
+    record(0, initial)
+    if not math.isfinite(initial):
+        return OptimizationResult(positions=x0.detach().clone(), loss=initial, iterations=0,
+                                  stop_reason=f"diverged: non-finite loss ({initial}) at the start",
+                                  time_s=clock(), history=history, evaluations=1)
+
+    graphs: dict = {}  # "one": the captured iteration
+
+    def run(k: int) -> int:
+        """K iterations, eager or replayed from a one-iteration graph on CUDA; returns how many ran
+        (1 when this call captured the graph: a real first iteration warms it up).
+        """
+        lbfgs.start_chunk()
+        if not on_cuda or not solver.cuda_graph:
+            for _ in range(k):
+                lbfgs.iterate()
+            return k
+        if "one" in graphs:
+            for _ in range(k):  # queued at once: the host does not wait between replays
+                graphs["one"]()
+            return k
+        from hairwarp.runtime import CapturedCall
+
+        # One real iteration warms the allocator, cuBLAS and the kernels (it counts); the
+        # capture itself runs nothing.
+        with torch.cuda.device(lbfgs.device):  # CapturedCall without inputs captures on the current device
+            graphs["one"] = CapturedCall(lbfgs.iterate, warmup=1)
+        captures[0] += 1
+        return 1
+
+    best = initial
+    since_best = 0
+    done = 0
+    stop_reason = "max_iterations"
+    bar = tqdm(total=solver.max_iterations, desc="drape (lbfgs)", disable=not progress, leave=False)
+    while done < solver.max_iterations:
+        saved = [t.clone() for t in lbfgs.state()] if on_cuda else None
+        k = run(min(chunk, solver.max_iterations - done))
+        if on_cuda and int(lbfgs.pairs) > capacity[0]:
+            # Pairs were dropped: back to the chunk's start, a larger buffer, a new capture.
+            for tensor, value in zip(lbfgs.state(), saved):
+                tensor.copy_(value)
+            capacity[0] = 2 * int(lbfgs.pairs)
+            graphs.clear()
+            continue
+        losses = lbfgs.trace[:k].tolist()
+        for value in losses:
+            if value < best - solver.min_decrease * abs(best):
+                best, since_best = value, 0
+            else:
+                since_best += 1
+        done += k
+        bar.update(k)
+        bar.set_postfix(loss=f"{losses[-1]:.4e}")
+        record(done, losses[-1])
+        if since_best >= solver.patience:
+            stop_reason = "patience"
+            break
+        if float(lbfgs.gmax) <= solver.tolerance_grad:
+            stop_reason = "tolerance"
+            break
+    bar.close()
+    synchronize(x0.device)
+    elapsed = clock()
+    return OptimizationResult(positions=assemble(lbfgs.x).detach().clone(), loss=float(lbfgs.f),
+                              iterations=done, stop_reason=stop_reason, time_s=elapsed, history=history,
+                              evaluations=done + 1)

@@ -21,9 +21,9 @@ What makes it fast:
 - a stopping rule stated as a tolerance [m], read once per `chunk` iterations: a step ends when
   the diagonal model's Newton step from the current gradient (g / k: the move still to come)
   moves no vertex farther than `tolerance` (with `precondition`); otherwise, and for a static
-  drape, when its last chunk moved none farther (after two chunks at least). A step-length rule alone stops a step whose first trials the line
-  search rejects at the inertial prediction, a free flight: a released strand then gained
-  energy, swinging above its root.
+  drape, when its last chunk moved none farther (after two chunks at least: a step whose first
+  trials the line search rejects would otherwise stop at the inertial prediction, a free
+  flight, and a released strand then gained energy, swinging above its root).
 """
 
 from __future__ import annotations
@@ -133,7 +133,8 @@ def vertex_stiffness(config: EnergyConfig, rest_lengths: torch.Tensor, batch: in
 @dataclass
 class StepReport:
     """What one solve did: iterations (energy evaluations), why it stopped, the stopping rule's
-    last measure [m] (`PhysicsConfig.tolerance`) and the final energy [J]."""
+    last measure [m] (`PhysicsConfig.tolerance`) and the final energy [J].
+    """
 
     iterations: int
     stop_reason: str
@@ -262,7 +263,8 @@ class PhysicsSolver:
         current iterate (the move still to come; not the L-BFGS direction, whose memory can
         call a soft direction stiff and stop a step early); without it, the largest move over
         the last chunk (a plain L-BFGS's scaled-gradient steps say nothing of the distance
-        left)."""
+        left).
+        """
         if self.inverse_stiffness is not None:
             moves = self._precondition(self.lbfgs.g)
         else:
@@ -288,7 +290,8 @@ class PhysicsSolver:
     # -- one solve ---------------------------------------------------------------------------
     def solve(self, start: torch.Tensor, max_iterations: int) -> StepReport:
         """Minimise from `start` (B, M, N, 3) (its fixed vertices replaced by the rigid placement's);
-        the result is `self.positions()`."""
+        the result is `self.positions()`.
+        """
         self.start.copy_(start)
         self.start[:, :, :NUM_FIXED_VERTICES] = self.rigid[:, :, :NUM_FIXED_VERTICES]
         while True:
@@ -336,7 +339,8 @@ class PhysicsSolver:
     def set_frame(self, rigid: torch.Tensor, scalp_normals: torch.Tensor | None = None,
                   body_vertices: torch.Tensor | None = None) -> None:
         """Write a frame's rigid placement, scalp normals and posed body into the buffers (the
-        rigid placements of the two frames before are kept for the warm start)."""
+        rigid placements of the two frames before are kept for the warm start).
+        """
         self.rigid_prev2.copy_(self.rigid_prev)
         self.rigid_prev.copy_(self.rigid)
         self.rigid.copy_(rigid)
@@ -354,7 +358,8 @@ class PhysicsSolver:
         """The step's start (B, M, N, 3): the inertial prediction 2 x_{t-1} - x_{t-2}, plus the
         head's own unpredicted move (the rigid placement against its inertial prediction)
         weighted by exp(-s / `PhysicsConfig.head_follow_length`), s the arc length from the root:
-        hair near the root goes where the head went."""
+        hair near the root goes where the head went.
+        """
         x = 2 * self.prev - self.prev2
         length = self.config.head_follow_length
         if length > 0:
@@ -419,8 +424,8 @@ def simulate_physics(scene, frame_indices=None, *, device="cpu", energy_config: 
         scene: a `hairwarp.scene.Scene`.
         frame_indices: consecutive frame indices (default: all).
         device: torch device.
-        energy_config: weights and constants (default `EnergyConfig()`; the time step is set to
-            the scene's frame spacing).
+        energy_config: weights and constants, its `time_step` the step [s] (default
+            `EnergyConfig()` at the scene's frame spacing).
         config: `PhysicsConfig` (default `PhysicsConfig()`).
         initial: (1, M, N, 3) or (M, N, 3) state at the first frame [m].
         split_self_intersections: cut the body where it passes through itself (at frame 0).
@@ -435,7 +440,8 @@ def simulate_physics(scene, frame_indices=None, *, device="cpu", energy_config: 
 
     device = torch.device(device)
     config = config or PhysicsConfig()
-    energy_config = (energy_config or EnergyConfig()).replace(time_step=1.0 / float(scene.motion.fps))
+    if energy_config is None:
+        energy_config = EnergyConfig().replace(time_step=1.0 / float(scene.motion.fps))
     indices = list(range(scene.num_frames)) if frame_indices is None else [int(i) for i in frame_indices]
     if not indices:
         raise ValueError("frame_indices: expected at least one frame")
