@@ -130,6 +130,27 @@ def test_simulate_rigid_three_frames(tmp_path, capsys):
         assert gif.n_frames == 3
 
 
+def test_simulate_and_drape_against_the_physics(tmp_path, capsys):
+    out = tmp_path / "sim"
+    code, stdout, _ = _run(["simulate", *TINY, "--method", "rigid", "--pose", "nod", "--frames", "4", "--gif-frames",
+                            "4", "--against", "physics", "--out", str(out)], capsys)
+    assert code == 0
+    for name in ("simulate_swing.png", "simulate_side_by_side.png", "simulate_side_by_side.gif"):
+        assert (out / name).read_bytes()[:3] in (b"\x89PN", b"GIF"), name
+    record = json.loads((out / "simulate_metrics.json").read_text())
+    assert record["against"] == "physics"
+    assert record["fidelity"]["physics"]["mean_distance_mm"] == pytest.approx(0.0, abs=1e-6)
+    assert record["fidelity"]["rigid"]["swing_mm"] == pytest.approx(0.0, abs=1e-6)
+    assert "swing correlation" in stdout
+    out = tmp_path / "drape"
+    code, stdout, _ = _run(["drape", *TINY, "--method", "rigid", "--against", "physics", "--out", str(out)], capsys)
+    assert code == 0 and (out / "drape_side_by_side.png").read_bytes()[:4] == b"\x89PNG"
+    record = json.loads((out / "drape_metrics.json").read_text())
+    assert record["fidelity"]["physics"]["energy_ratio"] == pytest.approx(1.0)
+    assert record["fidelity"]["rigid"]["energy_ratio"] >= 1.0 - 1e-6
+    assert "E / E*" in stdout
+
+
 @pytest.fixture(scope="module")
 def small_data(tmp_path_factory):
     """A .data file of 8 strands x 6 vertices in metres (what `hairwarp drape` writes)."""
