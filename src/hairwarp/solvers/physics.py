@@ -98,8 +98,7 @@ class PhysicsConfig:
                        static_max_iterations=self.static_max_iterations * 5)
 
 
-def vertex_stiffness(config: EnergyConfig, rest_lengths: torch.Tensor, batch: int = 1, *,
-                     inextensible: bool = True) -> torch.Tensor:
+def vertex_stiffness(config: EnergyConfig, rest_lengths: torch.Tensor, *, inextensible: bool = True) -> torch.Tensor:
     """The diagonal of the step's Hessian per moving vertex [J/m^2], (M, N-2), float64.
 
     Inertia (Eq. 16, lambda_inertia m / (M (N-2) dt^2)), smoothness (Eq. 10, 2 s_smooth times the
@@ -147,7 +146,7 @@ class PhysicsSolver:
 
     Args:
         rest_lengths: (M, N-1) rest segment lengths [m].
-        rigid: (B, M, N, 3) a rigid placement (shape, dtype float32 and device of every step).
+        rigid: (B, M, N, 3) a rigid placement (shape, dtype (float32 or float64) and device of every step).
         scalp_normals: (B, M, 3) posed scalp normals at the roots, or None (no Eq. 15).
         body: a `hairwarp.ops.BodyMesh` (one mesh or B), moved in place by `step`'s
             `body_vertices`; None: no hair-body contact.
@@ -196,7 +195,7 @@ class PhysicsSolver:
         self.chunk = config.chunk if dynamic else config.static_chunk
         self.inverse_stiffness = None
         if config.precondition and dynamic:
-            stiffness = vertex_stiffness(energy_config, rest_lengths, batch, inextensible=config.inextensible)
+            stiffness = vertex_stiffness(energy_config, rest_lengths, inextensible=config.inextensible)
             self.inverse_stiffness = (1.0 / stiffness).to(rigid.dtype)[None, :, :, None].expand(self.free_shape)
             self.inverse_stiffness = self.inverse_stiffness.contiguous()
         self.solver = DirectOptimizationConfig(method="lbfgs", lbfgs_history=config.history,
