@@ -21,6 +21,7 @@ import json
 import os
 import statistics
 import time
+from dataclasses import replace
 
 import torch
 
@@ -32,6 +33,9 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--strand-stride", type=int, default=1, help="every k-th strand of the full groom")
     parser.add_argument("--frames", type=int, default=0, help="frames per motion (0: all)")
     parser.add_argument("--per-step", type=int, default=10, help="steps checked one by one from the tight states")
+    parser.add_argument("--tolerance", type=float, default=None,
+                        help="the fast setting's tolerance [m] (default: PhysicsConfig's)")
+    parser.add_argument("--max-iterations", type=int, default=None, help="the fast setting's iteration cap per step")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default="hairwarp-out")
     return parser
@@ -49,8 +53,9 @@ def main(argv=None) -> dict:
 
     torch.manual_seed(args.seed)
     device = torch.device(args.device)
-    fast_config = PhysicsConfig()
-    tight_config = fast_config.tight()
+    tight_config = PhysicsConfig().tight()  # the default's tight setting, whatever the fast one
+    changes = {"tolerance": args.tolerance, "max_iterations": args.max_iterations}
+    fast_config = replace(PhysicsConfig(), **{k: v for k, v in changes.items() if v is not None})
     record = {"machine": machine_description(device), "physics": fast_config.__dict__,
               "tight": tight_config.__dict__, "motions": {}}
     for name in args.motions.split(","):
@@ -105,7 +110,8 @@ def main(argv=None) -> dict:
               f"all frames max {max(trajectory):.3f} mm; per step max {max(per_step):.3f} mm "
               f"(tight motion up to {max(motion):.1f} mm)", flush=True)
     os.makedirs(args.out, exist_ok=True)
-    path = os.path.join(args.out, "physics.json")
+    tag = "".join(f"_{k}{v:g}" for k, v in changes.items() if v is not None)
+    path = os.path.join(args.out, f"physics{tag}.json")
     with open(path, "w") as f:
         json.dump(record, f, indent=1, default=str)
     print(path)
