@@ -8,7 +8,7 @@ vertices inside the body than the rigid placement); writes the animation as USD 
 pictures, a GIF, and prints the metrics table; then the physics simulation of the same frames
 (`physics`; on the CPU capped at --physics-iterations a frame), shown beside the method (side-by-side
 pictures and GIF, the tips' swing plotted over time) with the distance to it and the swing's
-amplitude ratio and correlation in the table. About 170 s on a 2-core CPU. The demo's energy
+amplitude ratio and correlation in the table. About 170-200 s on a 2-core CPU. The demo's energy
 leaves hair-hair contact out unless --hair-hair is given (on the CPU its broad phase makes
 each L-BFGS iteration over the 61 frames about 10x slower).
 """
