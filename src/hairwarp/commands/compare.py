@@ -1,9 +1,11 @@
 """`hairwarp compare`: methods against each other on the fixed comparison scenes.
 
-Runs the chosen methods (rigid, adam, lbfgs, reference, and the networks once registered) on
-the chosen scenes, every method on the same inputs, and writes OUT/compare.json (results,
-machine, sizes, scenes version, command line), OUT/compare.md (Table-1-style tables) and
-OUT/speed_accuracy.png (time against penetration and energy gap). `--stability` runs the
+Runs the chosen methods (rigid, adam, lbfgs, physics, reference, the networks) on the chosen
+scenes, every method on the same inputs, and writes OUT/compare.json (results, machine, sizes,
+scenes version, command line), OUT/compare.md (Table-1-style tables, with the energy ratio E / E*
+and the distance to the optimum's drape, or on a motion the distance to the physics and the tips'
+swing ratio and correlation), OUT/speed_accuracy.png (time against penetration and energy gap)
+and, per motion, OUT/swing_<scene>.png (each method's mean tip offset beside the physics). `--stability` runs the
 stability study instead and writes OUT/stability.json and OUT/stability.md.
 """
 
