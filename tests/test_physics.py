@@ -121,6 +121,12 @@ def test_bad_config():
         PhysicsConfig(max_iterations=0)
     with pytest.raises(ValueError, match="frame_indices"):
         simulate_physics(comparison_scene("whiplash", strand_stride=64, num_vertices=8).scene, [])
+    with pytest.raises(ValueError, match="consecutive"):
+        simulate_physics(comparison_scene("whiplash", strand_stride=64, num_vertices=8).scene, [0, 2, 4])
+    with pytest.raises(ValueError, match="rigid"):
+        x = _horizontal_strands()
+        x[0, 0, 3, 1] = float("nan")
+        PhysicsSolver((x[0, :, 1:] - x[0, :, :-1]).norm(dim=-1), x, None, None, EnergyConfig(), PhysicsConfig())
     assert math.isclose(PhysicsConfig().tight().tolerance, PhysicsConfig().tolerance / 100)
 
 

@@ -444,6 +444,8 @@ def simulate_physics(scene, frame_indices=None, *, device="cpu", energy_config: 
     indices = list(range(scene.num_frames)) if frame_indices is None else [int(i) for i in frame_indices]
     if not indices:
         raise ValueError("frame_indices: expected at least one frame")
+    if any(b != a + 1 for a, b in zip(indices, indices[1:])):
+        raise ValueError(f"frame_indices: expected consecutive frames (one time step apart), got {indices[:8]}...")
     setup_start = time.perf_counter()
     posed_chunks: dict[int, object] = {}
 
