@@ -449,3 +449,16 @@ def test_scene_frames_cut_whole_motions():
         assert bool((d_plain[b, disagree[b]] >= 0)[inside & off].all())  # the lie is "outside"
         wrong += int(((d[b, disagree[b]] < 0) != inside)[off].sum())
     assert wrong == 0, f"{wrong} wrong signs"
+
+
+def test_triangles_within_reach_count_the_body_s_own_triangles():
+    """A cut body queries pieces of its triangles: the count of triangles it covers is at most the
+    mesh's own, where its face count is more (the scene line said "36637 of 6400")."""
+    v, f = overlapping_boxes()
+    body = BodyMesh(torch.as_tensor(v), torch.as_tensor(f))
+    cut = body.self_intersections
+    assert body.num_faces > len(f)  # 1 297 pieces and faces queried for 24 triangles
+    # Every triangle but the ones left out inside the other box.
+    assert body.source_triangle_count == len(f) - cut["inside_faces"]
+    plain = BodyMesh(torch.as_tensor(v), torch.as_tensor(f), split_self_intersections=False)
+    assert plain.source_triangle_count == plain.num_faces == len(f)

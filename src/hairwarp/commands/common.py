@@ -162,7 +162,7 @@ def method_from_args(args):
 def describe(scene, frames) -> str:
     return (f"scene {scene.name}: {scene.hairstyle.num_strands} strands x {scene.hairstyle.strands.shape[1]} vertices, "
             f"{scene.num_frames} frame(s) at {scene.motion.fps:g} fps, body {scene.body.num_vertices} vertices "
-            f"({frames.body_mesh.num_faces} of {scene.body.num_faces} triangles within the hair's reach)")
+            f"({frames.body_mesh.source_triangle_count} of {scene.body.num_faces} triangles within the hair's reach)")
 
 
 def picture_distances(sd):

@@ -780,6 +780,14 @@ class BodyMesh:
         return dict(self._self_intersections, winding_pieces=self._winding_pieces)
 
     @property
+    def source_triangle_count(self) -> int:
+        """How many of the triangles the body was built from its queried faces lie on: a cut
+        face's pieces count once, a crop counts what it kept (what "triangles within reach" means)."""
+        if self._face_parent is not None:
+            return int(torch.unique(self._face_parent).numel())
+        return self.num_faces
+
+    @property
     def face_indices(self) -> torch.Tensor | None:
         """For a crop: (F,) int64 indices of its faces in the uncropped body; None otherwise."""
         return None if self._face_map is None else self._face_map.clone()
