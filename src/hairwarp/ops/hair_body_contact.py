@@ -782,7 +782,8 @@ class BodyMesh:
     @property
     def source_triangle_count(self) -> int:
         """How many of the triangles the body was built from its queried faces lie on: a cut
-        face's pieces count once, a crop counts what it kept (what "triangles within reach" means)."""
+        face's pieces count once, a crop counts what it kept (what "triangles within reach" means).
+        """
         if self._face_parent is not None:
             return int(torch.unique(self._face_parent).numel())
         return self.num_faces
