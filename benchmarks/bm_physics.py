@@ -47,7 +47,9 @@ def _mean_distance_mm(a: torch.Tensor, b: torch.Tensor) -> float:
 
 def main(argv=None) -> dict:
     args = _parser().parse_args(argv)
+    from hairwarp.config import EnergyConfig
     from hairwarp.evaluation.scenes import comparison_scene
+    from hairwarp.ops import BodyMesh
     from hairwarp.runtime import machine_description, synchronize
     from hairwarp.solvers.physics import PhysicsConfig, PhysicsSolver, simulate_physics
 
@@ -70,9 +72,6 @@ def main(argv=None) -> dict:
         tight = simulate_physics(scene, frames, device=device, config=tight_config, initial=x0)
         trajectory = [_mean_distance_mm(a, b) for a, b in zip(fast_again.positions, tight.positions)]
         # Each step on its own: from the tight states, one fast step against the tight step.
-        from hairwarp.config import EnergyConfig
-        from hairwarp.ops import BodyMesh
-
         energy_config = EnergyConfig().replace(time_step=1.0 / float(scene.motion.fps))
         posed = scene.frames(frames, device=device, build_body=False)
         body = BodyMesh(posed.posed.vertices[:1], scene.body.faces.to(device=device, dtype=torch.int32), bvh="lbvh")

@@ -76,18 +76,13 @@ def _summary(per_frame: dict, rigid: dict) -> dict:
 def _against(frames, out, reference: str, options: MethodOptions, *, simulate: bool) -> dict:
     """The fidelity metrics of `out` against `reference` run on the same frames."""
     from hairwarp import metrics as M
-    from hairwarp.energy import total_energy
 
     ref = make(reference, options)
     truth = ref.simulate(frames) if simulate else ref.drape(frames)
     if simulate:
         found = M.motion_fidelity(out.positions, truth.positions, frames.rigid.positions)
     else:
-        config = options.config()
-        with torch.no_grad():
-            energy = total_energy(out.positions, frames.inputs, config).total.sum()
-            optimum = total_energy(truth.positions, frames.inputs, config).total.sum()
-        found = M.static_fidelity(out.positions, truth.positions, float(energy), float(optimum))
+        found = M.drape_fidelity(out.positions, truth.positions, frames.inputs, options.config())
     return {"reference": ref.name, "reference_time_ms": truth.time_ms, **found}
 
 

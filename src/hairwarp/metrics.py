@@ -300,3 +300,15 @@ def motion_fidelity(x: torch.Tensor, physics: torch.Tensor, rigid: torch.Tensor)
             "physics_swing_mm": physics_swing * _MM,
             "swing_amplitude_ratio": swing / physics_swing if physics_swing > _SWING_FLOOR else None,
             "swing_correlation": corr}
+
+
+def drape_fidelity(x: torch.Tensor, optimum: torch.Tensor, inputs, config=None) -> dict:
+    """`static_fidelity` of drapes `x` against `optimum` (both (B, M, N, 3) [m]) with their static
+    energies (Eq. 5) computed from the frames' `EnergyInputs` and `config`: E / E* included.
+    """
+    from hairwarp.energy import total_energy
+
+    with torch.no_grad():
+        energy = float(total_energy(x, inputs, config).total.sum())
+        optimum_energy = float(total_energy(optimum, inputs, config).total.sum())
+    return static_fidelity(x, optimum, energy, optimum_energy)

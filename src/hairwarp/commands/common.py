@@ -220,19 +220,11 @@ def static_beside(out: str, stem: str, frames, drapes: dict, signed_distances: d
         signed_distances: label -> (B, M, N) [m].
         config: the energy's config (the ratio E / E*).
     """
-    import torch
-
-    from hairwarp.energy import total_energy
-    from hairwarp.metrics import static_fidelity
+    from hairwarp.metrics import drape_fidelity
     from hairwarp.render.preview import render_side_by_side
 
-    def energy(x):
-        with torch.no_grad():
-            return float(total_energy(x, frames.inputs, config).total.sum())
-
-    e_opt = energy(drapes[optimum])
     everything = {"rigid": frames.rigid.positions, **drapes}
-    fidelity = {label: static_fidelity(x, drapes[optimum], energy(x), e_opt) for label, x in everything.items()}
+    fidelity = {label: drape_fidelity(x, drapes[optimum], frames.inputs, config) for label, x in everything.items()}
     cpu = {label: x.detach().cpu()[:1] for label, x in drapes.items()}
     sds = {label: picture_distances(sd[:1]).cpu() for label, sd in signed_distances.items()}
     path = render_side_by_side(os.path.join(out, f"{stem}_side_by_side.png"), cpu,

@@ -204,7 +204,6 @@ class PhysicsSolver:
         self.lbfgs = None
         self.graphs: dict = {}
         self.residual = torch.zeros((), device=self.device, dtype=rigid.dtype)
-        self.captures = 0
 
     # -- the energy and the solver's calls over the fixed buffers --------------------------------
     def _assemble(self, free: torch.Tensor) -> torch.Tensor:
@@ -282,7 +281,6 @@ class PhysicsSolver:
             with torch.cuda.device(self.device):
                 # The warm-up runs `fn` once for real; the capture itself runs nothing.
                 self.graphs[name] = CapturedCall(fn, warmup=1)
-            self.captures += 1
             return
         graph()
 
