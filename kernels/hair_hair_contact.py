@@ -12,18 +12,16 @@ Which segments can touch (decided here, documented in `hairwarp.ops.hair_hair_co
 
 Two passes, because the broad phase's loops are data dependent (and we want no generated
 adjoint at all):
-    1. broad phase, not differentiable: `segment_cells_kernel` gives each segment its midpoint,
-       half length, batch item and grid slot; torch sorts the segments by slot and
-       `grid_ranges_kernel` marks each slot's [start, end) in that order (one grid over the
-       whole batch, the batch item part of the slot, so a query only meets its own item);
-       `hair_hair_pairs_kernel`, one thread per segment, walks the cells of its query box
-       (radius set by its own length: each pair is found by one query, the lower id's between
-       typical segments, the longer segment's otherwise), rejects candidates by the midpoint
-       bound of the pair, and writes every pair (i < j) with an exact segment distance
-       < xi + dhat into a fixed-capacity buffer, counting with an atomic (the count goes on
-       past the capacity, so overflow is detected and the needed size known). The grid's
-       scales live on the device (`grid_params`): nothing is read back to launch it, so it can
-       be captured in a CUDA graph.
+    1. broad phase, not differentiable. On the device, segment boxes in hashed cells
+       (`segment_boxes_kernel` ... `hair_hair_long_pairs_kernel`, below): each pair is tested
+       once, in the cell of the low corner of the two boxes' intersection. On the CPU, a dense
+       grid of segment midpoints (`segment_keys_kernel`, `dense_counting_sort_kernel`,
+       `hair_hair_pairs_cpu_kernel`): each segment walks the cells of its query box (radius set
+       by its own length: each pair is found by one query). Both write every pair (i < j) with
+       an exact segment distance < xi + dhat into a fixed-capacity buffer, counting with an
+       atomic (the count goes on past the capacity, so overflow is detected and the needed size
+       known), or add its energy as they find it. The scales live on the device (`grid_params`):
+       nothing is read back to launch the device's, so it can be captured in a CUDA graph.
     2. narrow phase (`hair_hair_energy_kernel`): one straight-line thread per pair slot computes
        lambda_hh * B(d) and its gradient w.r.t. the four endpoints in the same pass (envelope
        theorem, `kernels/distances.py`), accumulating energy per batch item and gradient per
@@ -43,13 +41,6 @@ wp.set_module_options({"enable_backward": False})
 
 # Vertices 0 and 1 of every strand are fixed (the paper, Section 3.4): no gradient reaches them.
 NUM_FIXED_VERTICES = wp.constant(2)
-
-
-# Cells per axis of the broad phase's grid table: cell (ix, iy, iz) of batch item g has the slot
-# ((g * D + ix mod D) * D + iy mod D) * D + iz mod D. Distinct cells within D of each other never
-# share a slot, so a query (clamped to D cells per axis) visits each candidate once; far cells
-# that wrap onto the same slot only add candidates that the distance test rejects.
-GRID_DIM = wp.constant(64)
 
 
 # The broad phase's scales (`grid_params_kernel`) from per-segment statistics gathered in
@@ -195,156 +186,9 @@ def grid_params_from_ladder_kernel(
 
 
 @wp.func
-def grid_slot(ix: int, iy: int, iz: int, group: int):
-    """Table slot of cell (ix, iy, iz) of batch item `group` (periodic in GRID_DIM per axis)."""
-    d = GRID_DIM
-    return ((group * d + ((ix % d) + d) % d) * d + ((iy % d) + d) % d) * d + ((iz % d) + d) % d
-
-
-@wp.func
 def grid_cell(p: wp.vec3, inv_width: float):
     """Integer cell of point p for cells of width 1 / inv_width [m]."""
     return wp.vec3i(int(wp.floor(p[0] * inv_width)), int(wp.floor(p[1] * inv_width)), int(wp.floor(p[2] * inv_width)))
-
-
-@wp.kernel
-def segment_cells_kernel(
-    # In:
-    x_in: wp.array(dtype=Any),
-    num_vertices: int,
-    num_strands: int,
-    grid_params: wp.array(dtype=float),
-    # Out:
-    midpoint_out: wp.array(dtype=wp.vec3),
-    half_length_out: wp.array(dtype=float),
-    group_out: wp.array(dtype=wp.int32),
-    slot_out: wp.array(dtype=wp.int32),
-):
-    """Midpoint and half length (float32: the grid only needs them to a margin), batch item and
-    grid slot of each segment; the cell width is read from the device (`grid_params[0]`), so the
-    broad phase needs no host value.
-    """
-    seg = wp.tid()
-    strand = seg // (num_vertices - 1)
-    v0 = strand * num_vertices + seg % (num_vertices - 1)
-    m = wp.vec3((x_in[v0] + x_in[v0 + 1]) * type(x_in[v0][0])(0.5))
-    group = strand // num_strands
-    midpoint_out[seg] = m
-    half_length_out[seg] = wp.float32(wp.length(x_in[v0 + 1] - x_in[v0])) * 0.5
-    group_out[seg] = group
-    c = grid_cell(m, 1.0 / grid_params[0])
-    slot_out[seg] = grid_slot(c[0], c[1], c[2], group)
-
-
-@wp.kernel
-def grid_ranges_kernel(
-    # In:
-    sorted_slots: wp.array(dtype=wp.int32),
-    count: int,
-    # Out:
-    slot_start_out: wp.array(dtype=wp.int32),
-    slot_end_out: wp.array(dtype=wp.int32),
-):
-    """[start, end) of each occupied slot in the slot-sorted segment order (others stay 0, 0)."""
-    i = wp.tid()
-    s = sorted_slots[i]
-    if i == 0 or sorted_slots[i - 1] != s:
-        slot_start_out[s] = i
-    if i == count - 1 or sorted_slots[i + 1] != s:
-        slot_end_out[s] = i + 1
-
-
-@wp.kernel
-def hair_hair_pairs_kernel(
-    # In:
-    x_in: wp.array(dtype=Any),
-    sorted_midpoints: wp.array(dtype=wp.vec3),
-    sorted_half_lengths: wp.array(dtype=float),
-    group_in: wp.array(dtype=wp.int32),
-    sorted_ids: wp.array(dtype=wp.int64),
-    slot_start: wp.array(dtype=wp.int32),
-    slot_end: wp.array(dtype=wp.int32),
-    grid_params: wp.array(dtype=float),
-    num_vertices: int,
-    skip_root_segments: int,
-    cutoff32: float,
-    relative_slack: float,
-    cutoff: Any,
-    capacity: int,
-    # Out:
-    count_out: wp.array(dtype=wp.int32),
-    pairs_out: wp.array(dtype=wp.int32),
-):
-    """Pairs (i < j) of segments of different strands with distance < cutoff = xi + dhat.
-
-    One thread per segment walks the grid cells its query box covers (at most GRID_DIM per
-    axis: the whole table row, so no cell is visited twice). Two segments at distance d have
-    midpoints at most d + l_i / 2 + l_j / 2 apart. A segment is "long" when its half length
-    exceeds H = `grid_params[1]`. Each pair is found by one query only: between two short
-    segments by the lower id's, within cutoff + l_i / 2 + H; a pair with a long segment by its
-    longer segment's (ties: the lower id), within cutoff + l_i. So the query radius follows the
-    segment's own length, and a few stretched segments (an L-BFGS line search's trial points
-    reach 8x the rest length) do not widen every query. A candidate j is rejected by the pair's
-    midpoint bound cutoff + (l_i + l_j) / 2 before the exact test. Bounds are widened by
-    `relative_slack` and `grid_params[2]` [m] for the float32 rounding of midpoints and lengths
-    (the ownership tests need none: both threads read the same float32 half lengths). H, the
-    cell width and the slack are device values: the launch needs nothing from the host.
-    """
-    # Threads and candidates in slot order: neighbours in space are neighbours in memory.
-    rank = wp.tid()
-    i = int(sorted_ids[rank])
-    segs_per_strand = num_vertices - 1
-    if i % segs_per_strand < skip_root_segments:
-        return
-    long_half_length = grid_params[1]
-    absolute_slack = grid_params[2]
-    strand_i = i // segs_per_strand
-    group_i = group_in[i]
-    vi = strand_i * num_vertices + i % segs_per_strand
-    p0 = x_in[vi]
-    p1 = x_in[vi + 1]
-    mi = sorted_midpoints[rank]
-    half_i = sorted_half_lengths[rank]
-    long_i = half_i > long_half_length
-    reach_i = cutoff32 + half_i
-    radius = (reach_i + wp.max(half_i, long_half_length)) * (1.0 + relative_slack) + absolute_slack
-    cutoff2 = cutoff * cutoff
-    inv_width = 1.0 / grid_params[0]
-    lo = grid_cell(mi - wp.vec3(radius), inv_width)
-    hi = grid_cell(mi + wp.vec3(radius), inv_width)
-    hi = wp.vec3i(wp.min(hi[0], lo[0] + GRID_DIM - 1), wp.min(hi[1], lo[1] + GRID_DIM - 1),
-                  wp.min(hi[2], lo[2] + GRID_DIM - 1))
-    for cx in range(lo[0], hi[0] + 1):
-        for cy in range(lo[1], hi[1] + 1):
-            for cz in range(lo[2], hi[2] + 1):
-                slot = grid_slot(cx, cy, cz, group_i)
-                for k in range(slot_start[slot], slot_end[slot]):
-                    # Every segment of the slot is of batch item group_i: the item is in the slot.
-                    j = int(sorted_ids[k])
-                    if not long_i and j <= i:
-                        continue  # a short-short pair is the lower id's; this also drops j == i
-                    half_j = sorted_half_lengths[k]
-                    if long_i:
-                        # Short partners, and long ones that are shorter (ties: the lower id).
-                        if half_j > half_i or (half_j == half_i and j <= i):
-                            continue
-                    elif half_j > long_half_length:
-                        continue  # the long segment's query finds this pair
-                    bound = (reach_i + half_j) * (1.0 + relative_slack) + absolute_slack
-                    e = sorted_midpoints[k] - mi
-                    if wp.dot(e, e) > bound * bound:
-                        continue
-                    strand_j = j // segs_per_strand
-                    if strand_j == strand_i or j % segs_per_strand < skip_root_segments:
-                        continue
-                    vj = strand_j * num_vertices + j % segs_per_strand
-                    s, t, dist2 = edge_edge_closest_parameters(p0, p1, x_in[vj], x_in[vj + 1])
-                    if dist2 < cutoff2:
-                        n = wp.atomic_add(count_out, 0, 1)
-                        if n < capacity:
-                            # Stored as (lower id, higher id).
-                            pairs_out[2 * n] = wp.min(i, j)
-                            pairs_out[2 * n + 1] = wp.max(i, j)
 
 
 @wp.func
@@ -585,9 +429,22 @@ def hair_hair_pairs_cpu_kernel(
     energy_out: wp.array(dtype=wp.float64),
     gradient_out: wp.array(dtype=Any),
 ):
-    """The pairs of `hair_hair_pairs_kernel` (same query radii, bounds and ownership of long
-    segments, so the same pairs), shaped for Warp's CPU backend, where threads run one after
-    another and the cost is the candidates each query walks:
+    """Pairs (i < j) of segments of different strands with distance < cutoff = xi + dhat, by
+    queries of a midpoint grid.
+
+    Two segments at distance d have midpoints at most d + l_i / 2 + l_j / 2 apart. A segment is
+    "long" when its half length exceeds H = `grid_params[1]`. Each pair is found by one query
+    only: between two short segments by the lower rank's, within cutoff + l_i / 2 + H; a pair
+    with a long segment by its longer segment's (ties: the lower id), within cutoff + l_i. So
+    the query radius follows the segment's own length, and a few stretched segments (an L-BFGS
+    line search's trial points reach 8x the rest length) do not widen every query. A candidate
+    j is rejected by the pair's midpoint bound cutoff + (l_i + l_j) / 2 before the exact test.
+    Bounds are widened by `relative_slack` and `grid_params[2]` [m] for the float32 rounding of
+    midpoints and lengths (the ownership tests need none: both queries read the same float32
+    half lengths).
+
+    Shaped for Warp's CPU backend, where threads run one after another and the cost is the
+    candidates each query walks:
         - a dense grid (not periodic) of cells finer than the query radius, segments sorted by
           cell key (row-major, z fastest), so the cells of one z row of the query box are one
           contiguous range (`cell_start[key]` .. `cell_start[key + 1]`): one lookup per row,
@@ -776,9 +633,9 @@ def hair_hair_energy_kernel(
 # cell, and finds its own pairs by walking the cells of its box, 32 threads to a long segment
 # (`hair_hair_long_pairs_kernel`).
 # The cells are hashed into a table of 2^k slots, with the batch item in the hash; slots shared by
-# distant cells only add candidates that the exact cell test rejects. Against the midpoint grid
-# (`hair_hair_pairs_kernel`: every segment within the midpoints' bound, ~600 candidates walked for
-# ~1 pair per segment on a drape), a segment meets only the boxes that share its cells.
+# distant cells only add candidates that the exact cell test rejects. Against a midpoint grid
+# (every segment within the midpoints' bound: ~600 candidates walked for ~1 pair per segment on a
+# drape, docs/contact.md 6), a segment meets only the boxes that share its cells.
 
 # Entries per segment: at most two cells per axis.
 MAX_CELLS_PER_SEGMENT = wp.constant(8)

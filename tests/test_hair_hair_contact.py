@@ -25,10 +25,10 @@ FD_H = 1e-8
 FD_RTOL = 1e-5
 
 
-@pytest.fixture(autouse=True, params=["cpu-grid", "cells", "cells-overflow", "cells-lanes", "midpoints"])
+@pytest.fixture(autouse=True, params=["cpu-grid", "cells", "cells-overflow", "cells-lanes"])
 def broad_phase(request, monkeypatch):
-    """Every test of this module runs each broad phase: the CPU's own grid and both device
-    kinds (the boxes in hashed cells, the midpoint grid), whichever device runs it.
+    """Every test of this module runs each broad phase: the CPU's own grid and the device's
+    (the boxes in hashed cells), whichever device runs it.
     "cells-overflow" is the cells kind with a hit list of one partner for one entry per segment:
     most walks go on past their row and many entries have none (`_cell_broad_phase`);
     "cells-lanes" a hit list of two partners whose walks stop after 3 steps, the pairs kernel

@@ -113,7 +113,7 @@ def test_benchmark_torch_peer_item_by_item_equals_whole_batch(rng):
     torch.testing.assert_close(torch_hair_hair_by_item(x, config), whole, rtol=1e-12, atol=0)
 
 
-@pytest.mark.parametrize("kind", ["cpu-grid", "cells", "midpoints"])
+@pytest.mark.parametrize("kind", ["cpu-grid", "cells"])
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_stretched_and_equal_length_segments_find_every_pair_once(rng, dtype, kind, monkeypatch):
     """The broad phase finds a pair from one query only: the lower id's between typical
@@ -152,6 +152,19 @@ def test_stretched_and_equal_length_segments_find_every_pair_once(rng, dtype, ki
     lengths = np.linalg.norm(np.diff(x, axis=2), axis=-1)
     assert lengths.max() > 3 * lengths.mean()  # long segments were present
     assert [5, 16] in found.pairs.tolist()  # the crossing long segments (the last hair) paired
+
+
+def test_removed_midpoint_broad_phase_is_one_clear_error(rng, monkeypatch):
+    """The midpoint grid is gone (issue 30): a broad phase kind other than "cpu-grid" or "cells"
+    is one ValueError naming the accepted kinds, from the pair list and the energy alike.
+    """
+    monkeypatch.setattr(hh, "_broad_phase_kind", lambda device: "midpoints")
+    x = _pile(rng)
+    message = r"broad phase: expected one of \['cpu-grid', 'cells'\], got 'midpoints'"
+    with pytest.raises(ValueError, match=message):
+        hair_hair_contact_pairs(x, XI, DHAT)
+    with pytest.raises(ValueError, match=message):
+        hair_hair_contact_energy(x, XI, DHAT, BP)
 
 
 @pytest.mark.parametrize("slots", [1, 4])

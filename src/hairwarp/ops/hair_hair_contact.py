@@ -17,14 +17,13 @@ Which segment pairs count:
 Normalisation: energy = weight * sum over pairs of B(d), a sum (not a mean), per batch item;
 `weight` is lambda_hh of Eq. 12 [J per pair at B = 1].
 
-Broad phase, on CUDA (`_DEVICE_BROAD_PHASE = "cells"`, `_cell_broad_phase`): each segment's
+Broad phase, on CUDA (`_cell_broad_phase`): each segment's
 bounding box grown by (xi + dhat) / 2 is entered in the <= 8 cells it touches (cells as wide as a
 typical box, hashed with the batch item into one table for the whole batch); two segments closer
 than xi + dhat have overlapping boxes and are tested once, in the cell of the low corner of the
 boxes' intersection; segments wider than two cells are listed and walk their own box. The pairs
-kernels add each kept pair's energy as they find it. The midpoint grid it replaced (one grid over
-all segment midpoints, `torch.sort` by slot, each segment walking the cells of its query box)
-stays selectable as "midpoints"; the CPU has its own grid (`_CpuGrid`) and pair cache.
+kernels add each kept pair's energy as they find it. The CPU has its own grid (`_CpuGrid`) and
+pair cache.
 
 Host synchronisations: none to launch. With `on_overflow` "grow", "raise" or "warn" the pair
 count is read back once (to size the narrow phase and handle overflow). With "defer" nothing is
@@ -37,8 +36,8 @@ need, never shrunk), capped at `max_pairs` pairs of 8 bytes (default 64 per segm
 1024 x 100 hair at batch 32, of which a drape touches ~1 pair per segment, 26 MiB); a call being
 captured in a CUDA graph gets buffers of its own, sized by its capacity (the graph keeps them).
 Besides it, a call of the cells kind holds ~450 bytes per segment (room for 8 entries with their
-boxes, the table, the hit list; `_cell_broad_phase`) and the gradient (the size of `x`); the midpoint kind
-~36 bytes per segment and a 2 MiB slot table per batch item. See docs/contact.md.
+boxes, the table, the hit list; `_cell_broad_phase`) and the gradient (the size of `x`). See
+docs/contact.md.
 """
 
 from __future__ import annotations
@@ -59,8 +58,6 @@ from hairwarp.runtime import StreamFork
 
 OVERFLOW_POLICIES = ("grow", "raise", "warn", "defer")
 DEFAULT_SKIP_ROOT_SEGMENTS = 2
-# Slots of the grid table per batch item (`kernels.hair_hair_contact.GRID_DIM` cubed).
-_GRID_SLOTS = 64**3
 # The grid works on float32 midpoints; this relative slack on the query radius covers their
 # rounding, so no pair within the cutoff is missed (the exact test uses the input precision).
 _RADIUS_SLACK = 1e-4
@@ -69,9 +66,9 @@ _RADIUS_SLACK = 1e-4
 # a typical query's radius (fewer, fuller cells: each visited cell costs a lookup).
 _LONG_FACTOR = 1.5
 _CELL_FACTOR = 1.0
-# The device broad phase: "cells" (segment boxes in hashed cells, `_cell_broad_phase`) or
-# "midpoints" (a midpoint grid walked by each segment's query, `hair_hair_pairs_kernel`).
-_DEVICE_BROAD_PHASE = "cells"
+# The broad phases: "cpu-grid" (`_CpuGrid`, the CPU's) and "cells" (segment boxes in hashed cells,
+# `_cell_broad_phase`, the device's; any device in the tests).
+_BROAD_PHASE_KINDS = ("cpu-grid", "cells")
 # The cells kind's long segments: longer than _LONG_FACTOR x the mean, raised until at most
 # _CELL_LONG_FRACTION of the segments are (`_grid_params`; its cells are as wide as the box of a
 # segment that long). A groom mixing strands of 10x different lengths (half the strands' segments
@@ -323,14 +320,14 @@ def _grid_params(x4: torch.Tensor, cutoff: float, long_fraction: float | None = 
 
 class _CpuGrid:
     """The broad phase's grid on the CPU, for `hair_hair_pairs_cpu_kernel`: a dense grid over
-    the hair's bounding box (cells `_CPU_CELL_FACTOR` x the device path's width, at most
+    the hair's bounding box (cells `_CPU_CELL_FACTOR` x `_grid_params`'s width, at most
     `_CPU_MAX_CELLS_PER_SEGMENT` per segment: wider cells past that), the segments sorted by
     cell key with their midpoints and half lengths packed (x, y, z, half length), and each
     key's first index (`cell_start`, one past the end at key + 1).
 
-    Same query radii, bounds and long-segment rule as the device path (`_broad_phase`), so the
-    same pairs. The bounding box is read back to size the grid: there is no graph to capture
-    on the CPU.
+    Each segment queries within a radius set by its own length (the kernel's docstring), so
+    every pair closer than the cutoff is found once: the pairs of the device's cells kind. The
+    bounding box is read back to size the grid: there is no graph to capture on the CPU.
     """
 
     def __init__(self, x4: torch.Tensor, cutoff: float):
@@ -478,8 +475,9 @@ def _broad_phase(x4, cutoff, capacity, skip_root_segments, on_overflow, max_pair
         return (torch.zeros(0, 2, dtype=torch.int32, device=device), torch.zeros(1, dtype=torch.int32, device=device),
                 0, requested)
 
-    x_flat = x4.detach().reshape(-1, 3)
     kind = _broad_phase_kind(device)
+    if kind not in _BROAD_PHASE_KINDS:
+        raise ValueError(f"broad phase: expected one of {list(_BROAD_PHASE_KINDS)}, got {kind!r}")
     if kind == "cpu-grid":
         if device.type != "cpu":
             raise ValueError(f"x: the CPU grid runs on the CPU only, got a tensor on {device}")
@@ -494,58 +492,15 @@ def _broad_phase(x4, cutoff, capacity, skip_root_segments, on_overflow, max_pair
 
         return _collect(run, count, requested, cap, capacity, num_segments, on_overflow)
 
-    if kind == "cells":
-        run, count = _cell_broad_phase(x4, cutoff, skip_root_segments, cap)
-        return _collect(run, count, requested, cap, capacity, num_segments, on_overflow)
-    params = _grid_params(x4, cutoff)
-    wp_device = _warp.warp_device(device)
-    midpoints = torch.empty(num_segments, 3, dtype=torch.float32, device=device)
-    half_lengths = torch.empty(num_segments, dtype=torch.float32, device=device)
-    groups = torch.empty(num_segments, dtype=torch.int32, device=device)
-    slots = torch.empty(num_segments, dtype=torch.int32, device=device)
-    slot_start = torch.zeros(b * _GRID_SLOTS, dtype=torch.int32, device=device)
-    slot_end = torch.zeros(b * _GRID_SLOTS, dtype=torch.int32, device=device)
-    count = torch.zeros(1, dtype=torch.int32, device=device)
-    x_wp = _warp.as_warp(x_flat, vec3=True)
-    params_wp = _warp.as_warp(params)
-    with _warp.launch_scope(device):
-        mid_wp = _warp.as_warp(midpoints, vec3=True)
-        half_wp = _warp.as_warp(half_lengths)
-        group_wp = _warp.as_warp(groups)
-        _warp.launch(hh_kernels.segment_cells_kernel, dim=num_segments, inputs=[x_wp, n, m, params_wp],
-                     outputs=[mid_wp, half_wp, group_wp, _warp.as_warp(slots)], device=wp_device)
-    sorted_slots, order = torch.sort(slots)
-    sorted_midpoints = midpoints[order]
-    sorted_half_lengths = half_lengths[order]
-    with _warp.launch_scope(device):
-        _warp.launch(hh_kernels.grid_ranges_kernel, dim=num_segments, inputs=[_warp.as_warp(sorted_slots), num_segments],
-                     outputs=[_warp.as_warp(slot_start), _warp.as_warp(slot_end)], device=wp_device)
-    order_wp = _warp.as_warp(order)
-
-    def run(room):
-        count.zero_()
-        pairs = _pair_buffer(device, room, cap)
-        with _warp.launch_scope(device):
-            _warp.launch(
-                hh_kernels.hair_hair_pairs_kernel,
-                dim=num_segments,
-                inputs=[x_wp, _warp.as_warp(sorted_midpoints, vec3=True), _warp.as_warp(sorted_half_lengths),
-                        group_wp, order_wp, _warp.as_warp(slot_start),
-                        _warp.as_warp(slot_end), params_wp, n, skip_root_segments, float(cutoff), _RADIUS_SLACK,
-                        _warp.scalar(cutoff, x4.dtype), room],
-                outputs=[_warp.as_warp(count), _warp.as_warp(pairs)],
-                device=wp_device,
-            )
-        return pairs
-
+    run, count = _cell_broad_phase(x4, cutoff, skip_root_segments, cap)
     return _collect(run, count, requested, cap, capacity, num_segments, on_overflow)
 
 
 def _broad_phase_kind(device: torch.device) -> str:
-    """"cpu-grid" (`_CpuGrid`) on the CPU, `_DEVICE_BROAD_PHASE` on CUDA (the tests run the
-    device kinds on the CPU by replacing this).
+    """"cpu-grid" (`_CpuGrid`) on the CPU, "cells" (`_cell_broad_phase`) on CUDA (the tests run
+    the cells kind on the CPU by replacing this).
     """
-    return "cpu-grid" if device.type == "cpu" else _DEVICE_BROAD_PHASE
+    return "cpu-grid" if device.type == "cpu" else "cells"
 
 
 # Threads of `hair_hair_cell_pairs_kernel` at most: each entry's resumed walk is shared by as
