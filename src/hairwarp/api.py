@@ -32,6 +32,10 @@ class Result:
         method: the method's name; info: its facts (iterations, stop reason, ...).
         frames: the scene frames the method ran on (posed bodies, rigid placement, energy
             inputs): what export and pictures need.
+        guide_positions: for a scene simulated through guides (`Scene.guides`), the guides the
+            method ran on, (K, N, 3) or (T, K, N, 3) [m]; `positions` then holds every strand
+            of the groom, `metrics` are over all strands and `metrics["guides"]` over the
+            guides. None otherwise.
     """
 
     positions: torch.Tensor
@@ -40,15 +44,20 @@ class Result:
     method: str
     info: dict = field(default_factory=dict)
     frames: object = None
+    guide_positions: torch.Tensor | None = None
 
     def write_usd(self, path: str) -> str:
         """Write the hair (and the posed body) as USD (.usda text or .usd/.usdc binary); returns the path."""
         from hairwarp.io.usd import write_usd
 
+        from hairwarp.scene.guides import GUIDE_WIDTH, strand_width
+
         frames = self.frames
         fps = float(frames.scene.motion.fps)
+        guides = frames.scene.guides
+        width = GUIDE_WIDTH if guides is None else strand_width(guides.num_strands, guides.num_guides)
         return write_usd(path, self.positions.detach().cpu(), frames.posed.vertices.detach().cpu().squeeze(0),
-                         frames.scene.body.faces.cpu(), fps=fps)
+                         frames.scene.body.faces.cpu(), fps=fps, widths=width)
 
 
 def _options(method_options: MethodOptions | None, **changes) -> MethodOptions:
@@ -91,14 +100,24 @@ def _run(scene, frames, method: str, options: MethodOptions, *, simulate: bool, 
 
     m = make(method, options)
     out = m.simulate(frames) if simulate else m.drape(frames)
-    per_frame, _ = frame_metrics(out.positions, frames)
-    rigid, _ = frame_metrics(frames.rigid.positions, frames)
-    positions = out.positions if simulate else out.positions[0]
+    per_frame, sd = frame_metrics(out.positions, frames)
+    rigid, rigid_sd = frame_metrics(frames.rigid.positions, frames)
     metrics = _summary(per_frame, rigid)
+    positions, guides = out.positions, None
+    if scene.guides is not None:
+        from hairwarp.metrics import groom_metrics
+
+        groom = groom_metrics(frames, out.positions, sd)
+        groom_rigid = groom_metrics(frames, frames.rigid.positions, rigid_sd, body_pass=False)
+        metrics = {**_summary(groom["per_frame"], groom_rigid["per_frame"]), "guides": metrics,
+                   "body_pass": groom["body_pass"]}
+        positions, guides = groom["positions"], out.positions
     if reference is not None:
         metrics["against_reference"] = _against(frames, out, reference, options, simulate=simulate)
+    if not simulate:
+        positions, guides = positions[0], None if guides is None else guides[0]
     return Result(positions=positions, metrics=metrics, time_ms=out.time_ms, method=m.name,
-                  info=dict(out.info), frames=frames)
+                  info=dict(out.info), frames=frames, guide_positions=guides)
 
 
 def drape(scene, method: str = "auto", *, frame: int = 0, device: str | torch.device = "cpu",

@@ -37,6 +37,8 @@ USD_SUFFIXES = (".usd", ".usda", ".usdc")
 # Frame rate of an animated mesh .npz without an `fps` entry [1/s].
 DEFAULT_MESH_FPS = 30.0
 FIT_MODES = ("auto", "similarity", "translate", "none")
+# Guides of a groom of more strands than this, when none are asked for (the paper's 32 x 32).
+DEFAULT_GUIDES = 1024
 
 
 def _first_line(exc: BaseException) -> str:
@@ -265,7 +267,8 @@ def build_scene(hairstyle: str = "long_straight", body: str = "default", pose: s
                 frame: int | None = None, time: float | None = None, start: float | None = None,
                 num_frames: int | None = None, duration: float | None = None, grow: str = "body",
                 data_units: str = "auto", data_up: str = "y", fit: str = "auto",
-                strand_stride: int = 1, num_vertices: int = 100, seed: int = 0) -> Scene:
+                strand_stride: int = 1, num_vertices: int = 100, seed: int = 0,
+                guides: int | None = None) -> Scene:
     """A `Scene` from names and files (see the module docstring).
 
     Args:
@@ -290,6 +293,9 @@ def build_scene(hairstyle: str = "long_straight", body: str = "default", pose: s
         strand_stride: keep every this-many-th strand (presets: grow on every such root).
         num_vertices: vertices per strand N (>= 3).
         seed: presets: the hairstyle's seed.
+        guides: simulate the groom through this many guide strands, the rest following them
+            (`hairwarp.scene.guides`); None: every strand of a groom of at most
+            `DEFAULT_GUIDES`, else `DEFAULT_GUIDES` guides.
 
     Raises:
         ValueError: naming the argument and what was expected.
@@ -331,6 +337,27 @@ def build_scene(hairstyle: str = "long_straight", body: str = "default", pose: s
             model = model.window(first, first + motion.num_frames)
     else:
         where = "all frames"
+    guide_set = make_guides(style, guides)
+    if guide_set is not None:
+        print(f"simulating {guide_set.describe()}")
+        style = guide_set.guide_hairstyle()
     label = (f"{style.name or 'hair'} on {'default body' if body == 'default' else os.path.basename(body)}, "
              f"{pose if pose == REST_POSE else os.path.basename(pose)} {where}")
-    return Scene(body=model, scalp=scalp, hairstyle=style, motion=motion, name=label)
+    return Scene(body=model, scalp=scalp, hairstyle=style, motion=motion, name=label, guides=guide_set)
+
+
+def make_guides(style, guides: int | None):
+    """The `GuideSet` of a loaded groom for `guides` (see `build_scene`), or None to simulate it whole."""
+    from hairwarp.scene.guides import GuideConfig, GuideSet
+
+    m = style.num_strands
+    if guides is None:
+        if m <= DEFAULT_GUIDES:
+            return None
+        guides = DEFAULT_GUIDES
+    k = positive_int("guides", guides)
+    if k > m:
+        raise ValueError(f"guides: expected at most the groom's {m} strands, got {k}")
+    if k == m:
+        return None
+    return GuideSet.build(style, GuideConfig(num_guides=k))

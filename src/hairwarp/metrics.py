@@ -68,6 +68,35 @@ def frame_metrics(x: torch.Tensor, frames, energy_config=None) -> tuple[dict, to
     return out, sd
 
 
+def groom_metrics(frames, guide_positions: torch.Tensor, guide_signed_distance: torch.Tensor, *,
+                  body_pass: bool = True) -> dict:
+    """The whole groom of a scene simulated through guides, and Table 1's metrics over all its strands.
+
+    Args:
+        frames: the scene's frames (`Scene.frames`), the scene holding a `GuideSet`.
+        guide_positions: (B, K, N, 3) the guides [m] (a method's result or the rigid placement).
+        guide_signed_distance: (B, K, N) their signed distances [m] (`frame_metrics`).
+        body_pass: keep the followers out of the body (False for the rigid placement: doing
+            nothing does nothing).
+
+    Returns:
+        {"positions": (B, M, N, 3) [m], "signed_distance": (B, M, N) [m] (exact where it is
+        negative; see `GuideSet.signed_distance`), "per_frame": {"penetration_percent",
+        "length_change_percent"} lists over the B frames, "body_pass": the pass's facts}.
+    """
+    scene = frames.scene
+    if scene is None or scene.guides is None:
+        raise ValueError("frames: expected frames of a scene simulated through guides (Scene.guides)")
+    with torch.no_grad():
+        x, facts = scene.full_groom(guide_positions.detach(), frames, body_pass=body_pass,
+                                    guide_signed_distance=guide_signed_distance)
+        sd = scene.guides.signed_distance(x, guide_positions.detach(), guide_signed_distance, frames.body_mesh)
+        rest = scene.guides.groom.strands.to(x.device, x.dtype)
+        per_frame = {"penetration_percent": penetration_from_signed_distance(sd).tolist(),
+                     "length_change_percent": length_change_percent(x, (rest[:, 1:] - rest[:, :-1]).norm(dim=-1)).tolist()}
+    return {"positions": x, "signed_distance": sd, "per_frame": per_frame, "body_pass": facts}
+
+
 def length_change_percent(x: torch.Tensor, rest_lengths: torch.Tensor) -> torch.Tensor:
     """Mean |segment length / rest length - 1| in percent, per batch item (Table 1).
 

@@ -85,6 +85,9 @@ def add_scene_arguments(p: argparse.ArgumentParser, *, simulate: bool) -> None:
     g.add_argument("--strand-stride", type=int, default=1,
                    help="keep every K-th strand (presets: grow on every K-th scalp root) (default: 1)")
     g.add_argument("--num-vertices", type=int, default=100, help="vertices per strand (default: 100)")
+    g.add_argument("--guides", type=int, default=None, metavar="K",
+                   help="simulate the groom through K guide strands, the others following them (default: every "
+                        "strand of a groom of at most 1024, else 1024 guides)")
 
 
 def build_scene_from_args(args, *, simulate: bool):
@@ -98,7 +101,8 @@ def build_scene_from_args(args, *, simulate: bool):
     return build_scene(args.hairstyle, args.body, args.pose, duration=args.duration, grow=args.grow,
                        default_motion="head_turn" if simulate else REST_POSE,
                        data_units=args.data_units, data_up=args.data_up, fit=args.fit,
-                       strand_stride=args.strand_stride, num_vertices=args.num_vertices, seed=args.seed, **window)
+                       strand_stride=args.strand_stride, num_vertices=args.num_vertices, seed=args.seed,
+                       guides=args.guides, **window)
 
 
 def method_name(text: str) -> str:
@@ -160,9 +164,40 @@ def method_from_args(args):
 
 
 def describe(scene, frames) -> str:
-    return (f"scene {scene.name}: {scene.hairstyle.num_strands} strands x {scene.hairstyle.strands.shape[1]} vertices, "
+    strands = f"{scene.hairstyle.num_strands} strands" if scene.guides is None else \
+        f"{scene.guides.num_strands} strands through {scene.guides.num_guides} guides"
+    return (f"scene {scene.name}: {strands} x {scene.hairstyle.strands.shape[1]} vertices, "
             f"{scene.num_frames} frame(s) at {scene.motion.fps:g} fps, body {scene.body.num_vertices} vertices "
             f"({frames.body_mesh.source_triangle_count} of {scene.body.num_faces} triangles within the hair's reach)")
+
+
+def whole_groom(frames, label: str, positions, signed_distance, rigid_signed_distance):
+    """For a scene simulated through guides: every strand of the method's result and its rows.
+
+    Args:
+        frames: the scene's frames; label: the method's name.
+        positions: (B, K, N, 3) the method's guides [m]; signed_distance: (B, K, N) theirs [m];
+        rigid_signed_distance: (B, K, N) the rigid placement's [m].
+
+    Returns:
+        None without guides; else {"positions": (B, M, N, 3), "signed_distance": (B, M, N),
+        "rows": table rows of all strands (rigid, method), "metrics": {"rigid", "method"} per
+        frame over all strands, "body_pass": the body pass's facts, "width": strand width [m]}.
+    """
+    from hairwarp.metrics import groom_metrics
+    from hairwarp.scene.guides import strand_width
+
+    guides = frames.scene.guides
+    if guides is None:
+        return None
+    method = groom_metrics(frames, positions, signed_distance)
+    rigid = groom_metrics(frames, frames.rigid.positions, rigid_signed_distance, body_pass=False)
+    m = guides.num_strands
+    return {"positions": method["positions"], "signed_distance": method["signed_distance"],
+            "rows": [(f"rigid, all {m} strands", "-", rigid["per_frame"]),
+                     (f"{label}, all {m} strands", "-", method["per_frame"])],
+            "metrics": {"rigid": rigid["per_frame"], "method": method["per_frame"]}, "body_pass": method["body_pass"],
+            "width": strand_width(m, guides.num_guides), "guides": guides.guide_indices}
 
 
 def picture_distances(sd):
@@ -312,7 +347,7 @@ def run_and_score(method, frames, config, *, simulate: bool):
 
 
 def write_animation(out: str, stem: str, frames, positions, signed_distance, label: str, gif_frames: int,
-                    *, usd_format: str = "usdc") -> list[str]:
+                    *, usd_format: str = "usdc", guides=None, width: float = 1e-3) -> list[str]:
     """USD animation, last frame as `.data`, a 6-frame strip PNG and a GIF; returns the paths.
 
     Args:
@@ -324,6 +359,8 @@ def write_animation(out: str, stem: str, frames, positions, signed_distance, lab
         label: the method's name, for the titles.
         gif_frames: most frames the GIF shows.
         usd_format: "usdc" (binary, the default: what DCC tools open fastest) or "usda" (text).
+        guides: a groom's guide strand indices (drawn thick, the others thin), or None.
+        width: the strands' width in the USD [m].
     """
     from hairwarp.io.hair_data import write_hair_data
     from hairwarp.io.usd import write_usd
@@ -334,13 +371,13 @@ def write_animation(out: str, stem: str, frames, positions, signed_distance, lab
     faces = frames.scene.body.faces.cpu()
     sd = picture_distances(signed_distance).cpu()
     fps = frames.scene.motion.fps
-    written = [write_usd(os.path.join(out, f"{stem}.{usd_format}"), hair, body_v, faces, fps=fps)]
+    written = [write_usd(os.path.join(out, f"{stem}.{usd_format}"), hair, body_v, faces, fps=fps, widths=width)]
     data_path = os.path.join(out, f"{stem}.data")
     write_hair_data(data_path, hair[-1])
     written.append(data_path)
     written.append(render_sequence(os.path.join(out, f"{stem}.png"), hair, body_v, faces, signed_distance=sd,
-                                   frames=6, fps=fps, title=f"{label}: red = inside the body"))
+                                   frames=6, fps=fps, title=f"{label}: red = inside the body", guides=guides))
     stride = max(1, -(-hair.shape[0] // gif_frames))
     written.append(render_animation(os.path.join(out, f"{stem}.gif"), hair, body_v, faces, signed_distance=sd,
-                                    fps=fps, stride=stride, title=label))
+                                    fps=fps, stride=stride, title=label, guides=guides))
     return written

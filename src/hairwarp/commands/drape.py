@@ -61,6 +61,7 @@ def run(args) -> int:
         set_threads,
         static_beside,
         static_table,
+        whole_groom,
         write_metrics,
     )
     from hairwarp.io.hair_data import write_hair_data
@@ -92,25 +93,39 @@ def run(args) -> int:
                                                                    optimum.positions},
                                        {label: sd, args.against: optimum_sd}, args.against, config)
         compared = [side]
+    groom = whole_groom(frames, label, result.positions, sd, rigid_sd)
+    if groom is not None:  # the rows above are the guides'; the whole groom's come first
+        rows = groom["rows"] + [(f"{name} ({scene.guides.num_guides} guides)", ms, m) for name, ms, m in rows]
+        fidelity = None if fidelity is None else {f"{k} ({scene.guides.num_guides} guides)": v
+                                                  for k, v in fidelity.items()}
     table = static_table(rows, fidelity) if fidelity is not None else markdown_table(rows)
     print(table)
 
-    hair = result.positions.detach().cpu()
+    hair = result.positions.detach().cpu() if groom is None else groom["positions"].cpu()
+    picture_sd = sd if groom is None else groom["signed_distance"]
+    picture_guides = None if groom is None else groom["guides"]
     body_v = frames.posed.vertices.detach().cpu()
     faces = scene.body.faces.cpu()
-    written = [write_usd(os.path.join(args.out, "drape.usda"), hair[0], body_v[0], faces, fps=scene.motion.fps)]
+    written = [write_usd(os.path.join(args.out, "drape.usda"), hair[0], body_v[0], faces, fps=scene.motion.fps,
+                         widths=1e-3 if groom is None else groom["width"])]
     data_path = os.path.join(args.out, "drape.data")
     write_hair_data(data_path, hair[0])
     written.append(data_path)
     written.append(render_drape(os.path.join(args.out, "drape.png"), hair[0], body_v[0], faces,
-                                signed_distance=picture_distances(sd[0]).cpu(), title=f"{label}: red = inside the body"))
+                                signed_distance=picture_distances(picture_sd[0]).cpu(),
+                                title=f"{label}: red = inside the body", guides=picture_guides))
     written.append(render_drape(os.path.join(args.out, "drape_rigid.png"), frames.rigid.positions[0].cpu(),
                                 body_v[0], faces, signed_distance=picture_distances(rigid_sd[0]).cpu(),
-                                title="rigid placement (Eq. 1): red = inside the body"))
+                                title="rigid placement (Eq. 1) of the guides: red = inside the body"
+                                if groom is not None else "rigid placement (Eq. 1): red = inside the body"))
     record = {"command": "drape", "scene": scene.name, "method": label, "method_info": result.info,
               "ms_per_frame": result.time_ms, "device": str(device), "strands": scene.hairstyle.num_strands,
               "vertices": int(scene.hairstyle.strands.shape[1]), "rigid": metrics["rigid"], "result": metrics["method"],
               "against": args.against, "fidelity": fidelity}
+    if groom is not None:
+        record.update(strands=scene.guides.num_strands, guides=scene.guides.num_guides, guides_rigid=metrics["rigid"],
+                      guides_result=metrics["method"], rigid=groom["metrics"]["rigid"], result=groom["metrics"]["method"],
+                      body_pass=groom["body_pass"])
     written += compared + write_metrics(args.out, "drape", record, table)
     print(f"wrote {', '.join(os.path.basename(p) for p in written)} into {args.out} "
           f"({time.perf_counter() - t0:.0f} s)")

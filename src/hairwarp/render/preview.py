@@ -81,6 +81,12 @@ STRAND_PALETTE = (
 # of background that anti-aliasing leaves between neighbours.
 HAIR_LINEWIDTH = 0.45
 PENETRATION_LINEWIDTH = 1.6
+# A groom simulated through guides (`hairwarp.scene.guides`): the guides are drawn at
+# HAIR_LINEWIDTH, the strands that follow them this thin [pt], and at most MAX_FOLLOWERS_DRAWN
+# of those (evenly picked, every strand with a vertex inside kept), so 100 000 strands draw in
+# seconds and still read as one head of hair.
+FOLLOWER_LINEWIDTH = 0.12
+MAX_FOLLOWERS_DRAWN = 20000
 # Strands are drawn in pieces of consecutive segments (colour and depth order are per piece):
 # one segment per piece while the hair has at most HAIR_PIECES of them, longer pieces beyond
 # (matplotlib's cost is per piece: 1024 x 100 hair is drawn as about 25 000 pieces of 4).
@@ -239,12 +245,13 @@ def _body_triangles(vertices: np.ndarray, faces: np.ndarray, rot: np.ndarray, li
     return tri[:, :, :2], tri[:, :, 2].mean(axis=1), rgba
 
 
-def _draw_panel(ax, hair, body_v, faces, inside, view, color_by, limits, max_triangles):
+def _draw_panel(ax, hair, body_v, faces, inside, view, color_by, limits, max_triangles, widths=None):
     """Draw one frame of one view into `ax`; returns the number of vertices drawn in red.
 
     Args:
         hair: (M, N, 3) [m]; body_v: (V, 3) [m] or None; faces: (F, 3) or None;
-        inside: (M, N) bool or None; the rest as in `render_drape`.
+        inside: (M, N) bool or None; widths: (M,) line widths [pt] or None (all
+        HAIR_LINEWIDTH); the rest as in `render_drape`.
     """
     rot = _view_matrix(view)
     hv = hair.astype(np.float64) @ rot.T  # (M, N, 3): screen x, screen y, depth
@@ -262,17 +269,20 @@ def _draw_panel(ax, hair, body_v, faces, inside, view, color_by, limits, max_tri
     hair_depth = hv[:, idx[:, : k + 1], 2].mean(axis=2)  # (M, C)
     hair_rgba = _hair_colors(hair_depth, color_by).reshape(-1, 4)
     verts, depth, edge, face = [hair_verts], [hair_depth.reshape(-1)], [hair_rgba], [np.zeros_like(hair_rgba)]
+    line = [np.full(m * chunks, HAIR_LINEWIDTH) if widths is None else np.repeat(widths, chunks)]
     if body_v is not None:
         tv, td, tc = _body_triangles(body_v, faces, rot, limits, max_triangles)
         verts.append(tv[:, np.minimum(np.arange(num_points), 3) % 3])
         depth.append(td)
         edge.append(tc)
         face.append(tc)
+        line.append(np.full(len(td), HAIR_LINEWIDTH))
     order = np.argsort(np.concatenate(depth), kind="stable")
     ax.add_collection(
         _PiecesCollection(
             np.concatenate(verts)[order], facecolors=np.concatenate(face)[order],
-            edgecolors=np.concatenate(edge)[order], linewidths=HAIR_LINEWIDTH,
+            edgecolors=np.concatenate(edge)[order],
+            linewidths=HAIR_LINEWIDTH if widths is None else np.concatenate(line)[order],
         ),
         autolim=False,  # the frame is set below; measuring 35 000 paths costs 0.1 s a view
     )
@@ -325,7 +335,28 @@ def _make_figure(rows: int, cols: int, dpi: float, title: str | None):
     return fig, axes, aspect
 
 
-def _prepare(hair, body_vertices, body_faces, signed_distance, views, color_by, dpi, frames_axis):
+def _followers_thin(hair_t, inside, guides):
+    """(hair, inside, (M',) widths) with the followers thin and at most MAX_FOLLOWERS_DRAWN of them."""
+    m = hair_t.shape[1]
+    try:
+        guide_index = np.asarray(guides, dtype=np.int64).reshape(-1)
+    except (TypeError, ValueError):
+        raise ValueError(f"guides: expected strand indices, got {type(guides).__name__}") from None
+    if guide_index.size and (guide_index.min() < 0 or guide_index.max() >= m):
+        raise ValueError(f"guides: strand indices must lie in [0, {m}), got [{guide_index.min()}, {guide_index.max()}]")
+    is_guide = np.zeros(m, dtype=bool)
+    is_guide[guide_index] = True
+    followers = np.nonzero(~is_guide)[0]
+    keep = np.zeros(m, dtype=bool)
+    keep[is_guide] = True
+    keep[followers[:: max(1, -(-len(followers) // MAX_FOLLOWERS_DRAWN))]] = True
+    if inside is not None:
+        keep |= inside.any(axis=(0, 2))
+    widths = np.where(is_guide[keep], HAIR_LINEWIDTH, FOLLOWER_LINEWIDTH)
+    return hair_t[:, keep], None if inside is None else inside[:, keep], widths
+
+
+def _prepare(hair, body_vertices, body_faces, signed_distance, views, color_by, dpi, frames_axis, guides=None):
     hair_t, _ = hair_frames("hair", hair, frames=frames_axis)
     body_v, faces = body_pair(
         body_vertices, body_faces, hair_t.shape[0], frames=None if frames_axis else False
@@ -336,7 +367,10 @@ def _prepare(hair, body_vertices, body_faces, signed_distance, views, color_by, 
     views = _check_views(views)
     color_by = _check_color_by(color_by, signed_distance)
     dpi = check_positive_number("dpi", dpi)
-    return hair_t, body_v, faces, inside, views, color_by, dpi
+    widths = None
+    if guides is not None:
+        hair_t, inside, widths = _followers_thin(hair_t, inside, guides)
+    return hair_t, body_v, faces, inside, views, color_by, dpi, widths
 
 
 def _save(fig, path: str) -> None:
@@ -355,6 +389,7 @@ def render_drape(
     title: str | None = None,
     dpi: float = 100,
     max_triangles: int = 20000,
+    guides=None,
 ) -> str:
     """Draw one drape (hair on a body) from one or more orthographic views into a PNG.
 
@@ -374,6 +409,8 @@ def render_drape(
         dpi: pixels per inch; each panel is 4 x 5 inches (400 x 500 pixels at 100 dpi).
         max_triangles: most body triangles drawn per view (after culling those facing away or
             outside the frame); beyond it the body is coarsened by vertex clustering, for speed.
+        guides: for a groom simulated through guides, the (K,) indices of the guide strands:
+            they are drawn at full width, the other strands thin (at most MAX_FOLLOWERS_DRAWN).
 
     Returns:
         The path written. The image is `len(views) * 4 * dpi` by `5 * dpi (+ 0.35 * dpi with a
@@ -384,8 +421,8 @@ def render_drape(
             out-of-range face index, unknown view or colour mode, wrong file extension).
     """
     path = check_path("path", path, (".png",))
-    hair_t, body_v, faces, inside, views, color_by, dpi = _prepare(
-        hair, body_vertices, body_faces, signed_distance, views, color_by, dpi, frames_axis=False
+    hair_t, body_v, faces, inside, views, color_by, dpi, widths = _prepare(
+        hair, body_vertices, body_faces, signed_distance, views, color_by, dpi, frames_axis=False, guides=guides
     )
     max_triangles = _check_positive_int("max_triangles", max_triangles)
     fig, axes, aspect = _make_figure(1, len(views), dpi, title)
@@ -393,7 +430,7 @@ def render_drape(
     for c, view in enumerate(views):
         k = _draw_panel(
             axes[0, c], hair_t[0], None if body_v is None else body_v[0], faces,
-            None if inside is None else inside[0], view, color_by, limits[view], max_triangles,
+            None if inside is None else inside[0], view, color_by, limits[view], max_triangles, widths,
         )
         axes[0, c].set_title(_panel_label(view, color_by, k), fontsize=8)
     _save(fig, path)
@@ -418,6 +455,7 @@ def render_sequence(
     title: str | None = None,
     dpi: float = 80,
     max_triangles: int = 20000,
+    guides=None,
 ) -> str:
     """Draw a strip of evenly spaced frames of a motion into one PNG (rows: views, columns: frames).
 
@@ -437,6 +475,7 @@ def render_sequence(
         title: text above the strip.
         dpi: pixels per inch; each panel is 4 x 5 inches.
         max_triangles: as in `render_drape`.
+        guides: as in `render_drape`.
 
     Returns:
         The path written.
@@ -445,8 +484,8 @@ def render_sequence(
         ValueError: naming the malformed argument.
     """
     path = check_path("path", path, (".png",))
-    hair_t, body_v, faces, inside, views, color_by, dpi = _prepare(
-        hair, body_vertices, body_faces, signed_distance, views, color_by, dpi, frames_axis=True
+    hair_t, body_v, faces, inside, views, color_by, dpi, widths = _prepare(
+        hair, body_vertices, body_faces, signed_distance, views, color_by, dpi, frames_axis=True, guides=guides
     )
     frames = _check_positive_int("frames", frames)
     fps = check_positive_number("fps", fps)
@@ -458,7 +497,7 @@ def render_sequence(
         for r, view in enumerate(views):
             k = _draw_panel(
                 axes[r, c], hair_t[t], None if body_v is None else body_v[min(t, len(body_v) - 1)], faces,
-                None if inside is None else inside[t], view, color_by, limits[view], max_triangles,
+                None if inside is None else inside[t], view, color_by, limits[view], max_triangles, widths,
             )
             prefix = f"frame {t}, t = {t / fps:.2f} s\n"
             axes[r, c].set_title(_panel_label(view, color_by, k, prefix), fontsize=8)
@@ -479,6 +518,7 @@ def render_animation(
     title: str | None = None,
     dpi: float = 80,
     max_triangles: int = 20000,
+    guides=None,
 ) -> str:
     """Write the motion as an animated GIF (Pillow), one image per shown frame, looping.
 
@@ -496,6 +536,7 @@ def render_animation(
         title: text above the panels.
         dpi: pixels per inch; each panel is 4 x 5 inches.
         max_triangles: as in `render_drape`.
+        guides: as in `render_drape`.
 
     Returns:
         The path written.
@@ -504,8 +545,8 @@ def render_animation(
         ValueError: naming the malformed argument.
     """
     path = check_path("path", path, (".gif",))
-    hair_t, body_v, faces, inside, views, color_by, dpi = _prepare(
-        hair, body_vertices, body_faces, signed_distance, views, color_by, dpi, frames_axis=True
+    hair_t, body_v, faces, inside, views, color_by, dpi, widths = _prepare(
+        hair, body_vertices, body_faces, signed_distance, views, color_by, dpi, frames_axis=True, guides=guides
     )
     fps = check_positive_number("fps", fps)
     stride = _check_positive_int("stride", stride)
@@ -521,7 +562,7 @@ def render_animation(
                 artist.remove()
             k = _draw_panel(
                 ax, hair_t[t], None if body_v is None else body_v[min(t, len(body_v) - 1)], faces,
-                None if inside is None else inside[t], view, color_by, limits[view], max_triangles,
+                None if inside is None else inside[t], view, color_by, limits[view], max_triangles, widths,
             )
             ax.set_title(_panel_label(view, color_by, k, f"frame {t}, t = {t / fps:.2f} s\n"), fontsize=8)
         images.append(_gif_image(fig))
@@ -583,7 +624,7 @@ def render_side_by_side(
     fps = check_positive_number("fps", fps)
     max_triangles = _check_positive_int("max_triangles", max_triangles)
     labels = list(prepared)
-    _, body_v, faces, _, (view,), color_by, dpi = prepared[labels[0]]
+    _, body_v, faces, _, (view,), color_by, dpi, _ = prepared[labels[0]]
     num_frames = lengths[labels[0]]
     gif = str(path).endswith(".gif")
     idx = np.arange(0, num_frames, _check_positive_int("stride", stride)) if gif else \
@@ -595,7 +636,7 @@ def render_side_by_side(
     limits = _frame_limits(everything, (view,), aspect)[view]
 
     def draw(ax, label, t):
-        hair_t, _, _, inside, _, mode, _ = prepared[label]
+        hair_t, _, _, inside, _, mode, _, _ = prepared[label]
         for artist in list(ax.collections):
             artist.remove()
         k = _draw_panel(ax, hair_t[t], None if body_v is None else body_v[min(t, len(body_v) - 1)], faces,

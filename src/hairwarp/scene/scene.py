@@ -14,6 +14,7 @@ import torch
 
 from hairwarp.energy import EnergyInputs
 from hairwarp.scene.body import Body, PosedBody, default_body
+from hairwarp.scene.guides import GuideSet
 from hairwarp.scene.hairstyles import Hairstyle, generate_hairstyle
 from hairwarp.scene.motion import Motion, procedural_motion
 from hairwarp.scene.placement import RigidHair, rigid_placement, root_search
@@ -55,6 +56,9 @@ class Scene:
         motion: poses (T, 66), trans (T, 3), betas (16,), fps. A static scene is a motion of
             one frame.
         name: a label.
+        guides: for a groom simulated through guide strands, the `GuideSet` (its whole groom
+            and how each strand follows the guides); `hairstyle` then holds the guides only,
+            what every method runs on. None: the hairstyle is simulated whole.
     """
 
     body: Body
@@ -62,17 +66,48 @@ class Scene:
     hairstyle: Hairstyle
     motion: Motion
     name: str = ""
+    guides: GuideSet | None = None
 
     def __post_init__(self):
         strands = self.hairstyle.strands
         self._rest_lengths = (strands[:, 1:] - strands[:, :-1]).norm(dim=-1)
         self._strand_lengths = self._rest_lengths.sum(dim=1)
+        if self.guides is not None:
+            if self.guides.num_guides != self.hairstyle.num_strands:
+                raise ValueError(f"guides: {self.guides.num_guides} guides for a hairstyle of "
+                                 f"{self.hairstyle.num_strands} strands")
+            # The body crop must keep what the followers reach, not only the guides.
+            self._strand_lengths = torch.maximum(self._strand_lengths, self.guides.reach_lengths())
         self._search = None
         self._cache = {}
 
     @property
     def num_frames(self) -> int:
         return self.motion.num_frames
+
+    @property
+    def num_strands(self) -> int:
+        """Strands of the whole groom (the guides' count when there are no followers)."""
+        return self.hairstyle.num_strands if self.guides is None else self.guides.num_strands
+
+    def full_groom(self, positions: torch.Tensor, frames: SceneFrames, *, body_pass: bool = True,
+                   guide_signed_distance: torch.Tensor | None = None) -> tuple[torch.Tensor, dict]:
+        """Every strand of the groom from the guides' positions on `frames` (`GuideSet.follow`).
+
+        Args:
+            positions: (B, K, N, 3) the guides in the B frames of `frames` [m].
+            frames: the frames (`Scene.frames`), for the head's rotation and the body.
+            body_pass: keep the followers out of the body (False for the rigid placement).
+            guide_signed_distance: (B, K, N) the guides' signed distances [m], if known.
+
+        Returns:
+            ((B, M, N, 3) [m], the body pass's facts); without guides, `positions` itself.
+        """
+        if self.guides is None:
+            return positions, {}
+        body = frames.body_mesh if body_pass else None
+        return self.guides.follow(positions, frames.posed.head_transform[:, :3, :3], body,
+                                  guide_signed_distance=guide_signed_distance)
 
     @property
     def rest_lengths(self) -> torch.Tensor:

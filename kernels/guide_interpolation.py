@@ -1,0 +1,185 @@
+"""Guide strands drive the full groom: the guides' segment frames, the followers' positions, and
+a bound on how close a follower vertex can be to the body. float32, no autograd (a post-process).
+
+Frames. A guide's frame at segment i is carried along the strand by parallel transport (the
+minimal rotation taking one segment's direction to the next, Bishop frames), in the rest pose
+and now; `guide_frame_rotations_kernel` writes the rotation R_i = F_i F0_i^T that takes the rest
+frame to the current one, as a unit quaternion. The walk starts from the head's rotation (so a
+twist about the root segment follows the head) corrected by the minimal rotation from the
+rigidly turned rest root segment to the current one. Parallel transport commutes with a rigid
+motion, so a guide that moved rigidly by (R, c) with R the head's rotation gets R_i = R at every
+segment: a follower then moves by exactly the same rigid motion.
+
+Followers. A follower vertex at rest arc length s reads guide j at the parameter u = s / l_j
+(l_j the guide's rest segment length; `follower_ratios` holds L_follower / L_guide, so u = i *
+ratio), on the guide's segment i0 = floor(u) (extrapolated past the tip; the two fixed vertices
+read segment 0, which is rigid with the head, so a follower's root and first segment stay with
+the scalp), and keeps its rest offset from that anchor in the segment's frame:
+
+    x_i = sum_j w_j ( p_j(u) + R_j,i0 (x0_i - p0_j(u)) ),  p(u) = g_i0 + (u - i0)(g_i0+1 - g_i0)
+
+A follower sitting on its guide (offset zero, ratio 1, one guide) reproduces it exactly; a curl
+of the follower is carried in its offsets, so it keeps its shape as the frames turn.
+
+Bound. The signed distance is 1-Lipschitz: for any guide vertex g with signed distance d_g,
+d(x) >= d_g - |x - g|. `follower_distance_bound_kernel` takes the largest such bound over the
+follower's guides (at their anchor vertices); a vertex whose bound clears the margin is outside
+the body without a query.
+"""
+
+import warp as wp
+
+from hairwarp.config import NUM_FIXED_VERTICES
+
+wp.set_module_options({"enable_backward": False})
+
+FIXED_VERTICES = wp.constant(NUM_FIXED_VERTICES)
+# Below this length [m] a segment has no direction: the previous one is kept.
+TANGENT_EPS = wp.constant(1.0e-12)
+
+
+@wp.func
+def rotation_between(a: wp.vec3, b: wp.vec3):
+    """The unit quaternion of the minimal rotation taking unit vector a to unit vector b."""
+    c = wp.dot(a, b)
+    if c < -0.999999:
+        # Opposite directions: half a turn about any axis perpendicular to a.
+        axis = wp.cross(a, wp.vec3(1.0, 0.0, 0.0))
+        if wp.length(axis) < 1.0e-3:
+            axis = wp.cross(a, wp.vec3(0.0, 1.0, 0.0))
+        axis = wp.normalize(axis)
+        return wp.quat(axis[0], axis[1], axis[2], 0.0)
+    v = wp.cross(a, b)
+    return wp.normalize(wp.quat(v[0], v[1], v[2], 1.0 + c))
+
+
+@wp.func
+def segment_direction(p0: wp.vec3, p1: wp.vec3, previous: wp.vec3):
+    """The unit direction of segment p0 -> p1, or `previous` for a segment of no length."""
+    d = p1 - p0
+    n = wp.length(d)
+    if n > TANGENT_EPS:
+        return d / n
+    return previous
+
+
+@wp.kernel
+def guide_frame_rotations_kernel(
+    guides_rest: wp.array(dtype=wp.vec3),
+    guides_now: wp.array(dtype=wp.vec3),
+    head_rotation: wp.array(dtype=wp.quat),
+    num_guides: int,
+    num_vertices: int,
+    rotations: wp.array(dtype=wp.quat),
+):
+    """R_i of one guide in one frame (thread = frame * K + guide), i = 0 .. N-2.
+
+    guides_rest (K*N,), guides_now (B*K*N,), head_rotation (B,), rotations (B*K*(N-1),).
+    """
+    tid = wp.tid()
+    b = tid // num_guides
+    g = tid - b * num_guides
+    rest = g * num_vertices
+    now = tid * num_vertices
+    out = tid * (num_vertices - 1)
+    q_head = head_rotation[b]
+    up = wp.vec3(0.0, 1.0, 0.0)
+    t0 = segment_direction(guides_rest[rest], guides_rest[rest + 1], up)
+    t = segment_direction(guides_now[now], guides_now[now + 1], wp.quat_rotate(q_head, t0))
+    q = rotation_between(wp.quat_rotate(q_head, t0), t) * q_head
+    rotations[out] = q
+    for i in range(1, num_vertices - 1):
+        t0_next = segment_direction(guides_rest[rest + i], guides_rest[rest + i + 1], t0)
+        t_next = segment_direction(guides_now[now + i], guides_now[now + i + 1], t)
+        q = wp.normalize(rotation_between(t, t_next) * q * wp.quat_inverse(rotation_between(t0, t0_next)))
+        rotations[out + i] = q
+        t0 = t0_next
+        t = t_next
+
+
+@wp.func
+def guide_anchor(guides: wp.array(dtype=wp.vec3), base: int, i0: int, a: float):
+    """p(u) = g_i0 + a (g_i0+1 - g_i0) on the strand starting at `base` (a > 1: past the tip)."""
+    return guides[base + i0] + a * (guides[base + i0 + 1] - guides[base + i0])
+
+
+@wp.func
+def anchor_segment(i: int, ratio: float, num_vertices: int):
+    """(segment i0, fraction a) of follower vertex i on a guide; a > 1 past the guide's tip."""
+    u = float(i) * ratio
+    i0 = wp.clamp(int(wp.floor(u)), 0, num_vertices - 2)
+    if i < FIXED_VERTICES:
+        i0 = 0
+    return i0, u - float(i0)
+
+
+@wp.kernel
+def interpolate_followers_kernel(
+    guides_rest: wp.array(dtype=wp.vec3),
+    guides_now: wp.array(dtype=wp.vec3),
+    rotations: wp.array(dtype=wp.quat),
+    followers_rest: wp.array(dtype=wp.vec3),
+    follower_guides: wp.array(dtype=wp.int32),
+    follower_weights: wp.array(dtype=float),
+    follower_ratios: wp.array(dtype=float),
+    num_guides: int,
+    num_followers: int,
+    num_vertices: int,
+    neighbours: int,
+    out: wp.array(dtype=wp.vec3),
+):
+    """x_i of one follower vertex in one frame (thread = (frame * M + follower) * N + i).
+
+    followers_rest (M*N,), follower_guides / weights / ratios (M*k,), out (B*M*N,).
+    """
+    tid = wp.tid()
+    i = tid % num_vertices
+    fm = tid // num_vertices
+    b = fm // num_followers
+    m = fm - b * num_followers
+    x0 = followers_rest[m * num_vertices + i]
+    x = wp.vec3(0.0, 0.0, 0.0)
+    for j in range(neighbours):
+        w = follower_weights[m * neighbours + j]
+        if w != 0.0:
+            g = follower_guides[m * neighbours + j]
+            i0, a = anchor_segment(i, follower_ratios[m * neighbours + j], num_vertices)
+            p0 = guide_anchor(guides_rest, g * num_vertices, i0, a)
+            p = guide_anchor(guides_now, (b * num_guides + g) * num_vertices, i0, a)
+            q = rotations[(b * num_guides + g) * (num_vertices - 1) + i0]
+            x += w * (p + wp.quat_rotate(q, x0 - p0))
+    out[tid] = x
+
+
+@wp.kernel
+def follower_distance_bound_kernel(
+    guides_now: wp.array(dtype=wp.vec3),
+    guide_signed_distance: wp.array(dtype=float),
+    followers: wp.array(dtype=wp.vec3),
+    follower_guides: wp.array(dtype=wp.int32),
+    follower_weights: wp.array(dtype=float),
+    follower_ratios: wp.array(dtype=float),
+    num_guides: int,
+    num_followers: int,
+    num_vertices: int,
+    neighbours: int,
+    bound: wp.array(dtype=float),
+):
+    """A lower bound [m] on the signed distance of one follower vertex (thread as above)."""
+    tid = wp.tid()
+    i = tid % num_vertices
+    fm = tid // num_vertices
+    b = fm // num_followers
+    m = fm - b * num_followers
+    x = followers[tid]
+    best = float(-1.0e30)
+    for j in range(neighbours):
+        if follower_weights[m * neighbours + j] != 0.0:
+            g = follower_guides[m * neighbours + j]
+            i0, a = anchor_segment(i, follower_ratios[m * neighbours + j], num_vertices)
+            near = i0
+            if a > 0.5:
+                near = i0 + 1
+            k = (b * num_guides + g) * num_vertices + near
+            best = wp.max(best, guide_signed_distance[k] - wp.length(x - guides_now[k]))
+    bound[tid] = best

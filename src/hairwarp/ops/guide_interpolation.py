@@ -1,0 +1,159 @@
+"""Torch bridge of the guide-to-follower interpolation; device code in
+`hairwarp.kernels.guide_interpolation` (the formulas are there).
+
+    rotations = guide_frame_rotations(guides_rest, guides_now, head_rotation)      # (B, K, N-1, 4)
+    x = interpolate_followers(guides_rest, guides_now, rotations, followers_rest,
+                              follower_guides, follower_weights, follower_ratios)  # (B, M, N, 3)
+    lower = follower_distance_bound(guides_now, guide_signed_distance, x, ...)    # (B, M, N)
+
+Every computation is float32 (a float64 input is computed in float32 and returned in float64)
+and carries no gradient: the followers are a post-process of a method's guides.
+"""
+
+from __future__ import annotations
+
+import torch
+import warp as wp
+
+from hairwarp import _warp
+from hairwarp._validate import check_tensor
+from hairwarp.kernels import guide_interpolation as kernels
+from hairwarp.scene.rotations import matrix_to_axis_angle
+
+INDEX_DTYPES = (torch.int32, torch.int64)
+
+
+def _quats(t: torch.Tensor) -> wp.array:
+    return wp.from_torch(t.reshape(-1, 4), dtype=wp.quat, requires_grad=False)
+
+
+def _run(kernel, dim: int, device: torch.device, inputs, outputs) -> None:
+    if dim == 0:
+        return
+    with _warp.launch_scope(device):
+        _warp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=_warp.warp_device(device))
+
+
+def rotation_quaternions(rotation: torch.Tensor) -> torch.Tensor:
+    """(..., 3, 3) rotation matrices -> (..., 4) unit quaternions (x, y, z, w), float32."""
+    axis_angle = matrix_to_axis_angle(rotation.double())
+    angle = axis_angle.norm(dim=-1, keepdim=True)
+    axis = axis_angle / angle.clamp_min(1e-30)
+    q = torch.cat([axis * torch.sin(angle / 2), torch.cos(angle / 2)], dim=-1)
+    return q.to(torch.float32)
+
+
+def _check_guides(guides_rest: torch.Tensor, guides_now: torch.Tensor) -> tuple[int, int, int]:
+    check_tensor("guides_rest", guides_rest, shape=(None, None, 3), allow_empty=False)
+    check_tensor("guides_now", guides_now, shape=(None,) + tuple(guides_rest.shape), device=guides_rest.device)
+    if guides_rest.shape[1] < 3:
+        raise ValueError(f"guides_rest: expected at least 3 vertices per strand, got {guides_rest.shape[1]}")
+    return guides_now.shape[0], guides_rest.shape[0], guides_rest.shape[1]
+
+
+def guide_frame_rotations(guides_rest: torch.Tensor, guides_now: torch.Tensor,
+                          head_rotation: torch.Tensor) -> torch.Tensor:
+    """The rotation of each guide segment's parallel-transported frame from rest to now.
+
+    Args:
+        guides_rest: (K, N, 3) guide strands at rest [m].
+        guides_now: (B, K, N, 3) the same guides in B frames [m] (a method's result).
+        head_rotation: (B, 3, 3) the head's rotation in each frame (`PosedBody.head_transform`).
+
+    Returns:
+        (B, K, N-1, 4) float32 unit quaternions (x, y, z, w), R_i = F_i F0_i^T per segment.
+    """
+    batch, k, n = _check_guides(guides_rest, guides_now)
+    check_tensor("head_rotation", head_rotation, shape=(batch, 3, 3), device=guides_rest.device)
+    device = guides_rest.device
+    rest = guides_rest.detach().to(torch.float32).contiguous()
+    now = guides_now.detach().to(torch.float32).contiguous()
+    head = rotation_quaternions(head_rotation.detach()).to(device).contiguous()
+    out = torch.empty(batch, k, n - 1, 4, dtype=torch.float32, device=device)
+    _run(kernels.guide_frame_rotations_kernel, batch * k, device,
+         [_warp.as_warp(rest, vec3=True), _warp.as_warp(now, vec3=True), _quats(head), k, n], [_quats(out)])
+    return out
+
+
+def _check_followers(followers_rest, follower_guides, follower_weights, follower_ratios, num_guides: int,
+                     num_vertices: int, device) -> int:
+    check_tensor("followers_rest", followers_rest, shape=(None, num_vertices, 3), device=device)
+    m = followers_rest.shape[0]
+    check_tensor("follower_guides", follower_guides, shape=(m, None), dtypes=INDEX_DTYPES, device=device)
+    k = follower_guides.shape[1]
+    check_tensor("follower_weights", follower_weights, shape=(m, k), device=device)
+    check_tensor("follower_ratios", follower_ratios, shape=(m, k), device=device)
+    if m and (int(follower_guides.min()) < 0 or int(follower_guides.max()) >= num_guides):
+        raise ValueError(f"follower_guides: expected guide indices in [0, {num_guides}), "
+                         f"got [{int(follower_guides.min())}, {int(follower_guides.max())}]")
+    return k
+
+
+def _follower_arrays(follower_guides, follower_weights, follower_ratios) -> list:
+    return [_warp.as_warp(follower_guides.to(torch.int32).contiguous()),
+            _warp.as_warp(follower_weights.detach().to(torch.float32).contiguous()),
+            _warp.as_warp(follower_ratios.detach().to(torch.float32).contiguous())]
+
+
+def interpolate_followers(guides_rest: torch.Tensor, guides_now: torch.Tensor, rotations: torch.Tensor,
+                          followers_rest: torch.Tensor, follower_guides: torch.Tensor,
+                          follower_weights: torch.Tensor, follower_ratios: torch.Tensor) -> torch.Tensor:
+    """Follower strands carried by their guides' frames (`hairwarp.kernels.guide_interpolation`).
+
+    Args:
+        guides_rest: (K, N, 3) guides at rest [m].
+        guides_now: (B, K, N, 3) guides in B frames [m].
+        rotations: (B, K, N-1, 4) `guide_frame_rotations` of those frames.
+        followers_rest: (M, N, 3) follower strands at rest [m].
+        follower_guides: (M, k) int guide indices of each follower.
+        follower_weights: (M, k) blend weights (rows sum to 1; 0 skips a slot).
+        follower_ratios: (M, k) follower rest length / guide rest length.
+
+    Returns:
+        (B, M, N, 3) follower positions [m], in the dtype of `guides_now`.
+    """
+    batch, num_guides, n = _check_guides(guides_rest, guides_now)
+    device = guides_rest.device
+    check_tensor("rotations", rotations, shape=(batch, num_guides, n - 1, 4), device=device)
+    k = _check_followers(followers_rest, follower_guides, follower_weights, follower_ratios, num_guides, n, device)
+    m = followers_rest.shape[0]
+    out = torch.empty(batch, m, n, 3, dtype=torch.float32, device=device)
+    inputs = [_warp.as_warp(guides_rest.detach().to(torch.float32).contiguous(), vec3=True),
+              _warp.as_warp(guides_now.detach().to(torch.float32).contiguous(), vec3=True),
+              _quats(rotations.detach().to(torch.float32).contiguous()),
+              _warp.as_warp(followers_rest.detach().to(torch.float32).contiguous(), vec3=True),
+              *_follower_arrays(follower_guides, follower_weights, follower_ratios), num_guides, m, n, k]
+    _run(kernels.interpolate_followers_kernel, batch * m * n, device, inputs, [_warp.as_warp(out, vec3=True)])
+    return out.to(guides_now.dtype)
+
+
+def follower_distance_bound(guides_now: torch.Tensor, guide_signed_distance: torch.Tensor, followers: torch.Tensor,
+                            follower_guides: torch.Tensor, follower_weights: torch.Tensor,
+                            follower_ratios: torch.Tensor) -> torch.Tensor:
+    """A lower bound on each follower vertex's signed distance to the body [m].
+
+    Args:
+        guides_now: (B, K, N, 3) guides [m]; guide_signed_distance: (B, K, N) theirs [m].
+        followers: (B, M, N, 3) follower positions [m].
+        follower_guides, follower_weights, follower_ratios: as `interpolate_followers`.
+
+    Returns:
+        (B, M, N) float32: d(x) >= bound for every vertex (1-Lipschitz signed distance).
+    """
+    check_tensor("guides_now", guides_now, shape=(None, None, None, 3), allow_empty=False)
+    batch, num_guides, n = guides_now.shape[:3]
+    device = guides_now.device
+    check_tensor("guide_signed_distance", guide_signed_distance, shape=(batch, num_guides, n), device=device)
+    check_tensor("followers", followers, shape=(batch, None, n, 3), device=device)
+    m = followers.shape[1]
+    k = _check_followers(followers[0], follower_guides, follower_weights, follower_ratios, num_guides, n, device)
+    out = torch.empty(batch, m, n, dtype=torch.float32, device=device)
+    inputs = [_warp.as_warp(guides_now.detach().to(torch.float32).contiguous(), vec3=True),
+              _warp.as_warp(guide_signed_distance.detach().to(torch.float32).contiguous()),
+              _warp.as_warp(followers.detach().to(torch.float32).contiguous(), vec3=True),
+              *_follower_arrays(follower_guides, follower_weights, follower_ratios), num_guides, m, n, k]
+    _run(kernels.follower_distance_bound_kernel, batch * m * n, device, inputs, [_warp.as_warp(out)])
+    return out
+
+
+__all__ = ["follower_distance_bound", "guide_frame_rotations", "interpolate_followers", "rotation_quaternions"]

@@ -1,0 +1,336 @@
+"""Guide strands for a dense groom: which strands are simulated, and how the rest follow them.
+
+A groom of 10 000 - 150 000 strands is simulated as K guide strands (1 024 by default, the
+paper's strand count: its strands are guides standing for bundles, Section 3.4.1); every method
+runs on the guides only, and the followers are interpolated from them afterwards, as production
+hair systems do (guide and follow strands; Hsu et al. 2024 for the step from guides to a groom).
+
+Choice of guides. Each strand is described by its root and the shape of its centreline: the
+mean position of each quarter of the strand (by arc length) relative to its root, which averages
+a curl's phase away and keeps where the strand goes. Guides are picked by farthest-point
+sampling in that space, starting from the strand nearest the mean: every strand ends within the
+smallest radius such a greedy cover reaches (within 2x of the best K-centre cover), so no part of
+the scalp and no style (a fringe, a strand combed the other way) is left without a guide.
+
+Followers. Each strand follows its `neighbours` nearest guides in the same space (a guide follows
+only itself), blended by inverse squared distance, each guide carrying the follower's rest
+offset in its parallel-transported segment frames (`hairwarp.kernels.guide_interpolation`): a
+rigid motion of the guides moves the followers rigidly and a curl keeps its shape. Then the
+followers are projected onto their rest lengths (follow-the-leader), and a body pass walks each
+strand that comes within `body_margin` of the body from its root, pushing a vertex inside out
+along the signed distance's gradient and carrying the displacement down the strand
+(`GuideSet._keep_outside`). Only the vertices whose guides do not prove them outside (the signed
+distance is 1-Lipschitz) are queried.
+
+Contact between guides. The energy's per-vertex constants (mass, stiffnesses, contact weights)
+stand for a whole bundle: scaling all of them by the same bundle size leaves the minimiser
+unchanged, so they are kept. The hair-hair barrier keeps `EnergyConfig.hair_diameter` as the
+bundle's diameter rather than one grown to the guides' spacing: neighbouring guides rest a
+spacing apart on the scalp (7-8 mm for 1 024 guides), so a radius of that size would push them
+apart in the rest pose itself; the bundles keep apart because their guides do.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from hairwarp.config import NUM_FIXED_VERTICES
+
+# Quarters of a strand whose mean positions describe its shape in the guide choice.
+SHAPE_SAMPLES = 4
+# Width [m] a strand is written with (USD `widths`) when it stands for a guide's bundle alone.
+GUIDE_WIDTH = 1.0e-3
+
+
+def strand_width(num_strands: int, num_guides: int) -> float:
+    """The width [m] each of `num_strands` strands is written with when `num_guides` would cover the
+    same scalp at GUIDE_WIDTH: the strands' total cross-section stays that of the guides'
+    (1 mm for 1 024 guides alone, 0.32 mm for 10 000 strands, 0.1 mm for 100 000).
+    """
+    return GUIDE_WIDTH * (num_guides / max(num_strands, 1)) ** 0.5
+
+
+@dataclass(frozen=True)
+class GuideConfig:
+    """How a groom is split into guides and followers.
+
+    Attributes:
+        num_guides: K guides (a groom of at most K strands is simulated whole); 1 024 by default,
+            the paper's strand count.
+        neighbours: guides blended per follower.
+        shape_weight: weight of the strand shape against the root position in the guide choice
+            and the followers' guides (both are lengths [m]).
+        body_margin: the body pass pushes follower vertices to at least this signed distance [m]
+            (the hair-body barrier's hard distance, 1 mm).
+        body_passes: push-out and length projection rounds per vertex of the body pass (0: no
+            body pass).
+    """
+
+    num_guides: int = 1024
+    neighbours: int = 3
+    shape_weight: float = 1.0
+    body_margin: float = 1.0e-3
+    body_passes: int = 3
+
+    def __post_init__(self):
+        for name in ("num_guides", "neighbours", "body_passes"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < (0 if name == "body_passes" else 1):
+                raise ValueError(f"{name}: expected an integer >= {0 if name == 'body_passes' else 1}, got {value!r}")
+        if not self.shape_weight >= 0:
+            raise ValueError(f"shape_weight: expected a number >= 0, got {self.shape_weight}")
+        if not self.body_margin >= 0:
+            raise ValueError(f"body_margin: expected a number >= 0 [m], got {self.body_margin}")
+
+
+def strand_features(strands: torch.Tensor, shape_weight: float = 1.0) -> torch.Tensor:
+    """(M, 3 + 3 * SHAPE_SAMPLES) float32: the root, then each quarter's mean position minus the root.
+
+    Args:
+        strands: (M, N, 3) strands [m], vertices evenly spaced in arc length.
+        shape_weight: factor on the shape part [dimensionless].
+    """
+    x = strands.to(torch.float32)
+    root = x[:, 0]
+    n = x.shape[1]
+    bounds = torch.linspace(0, n, SHAPE_SAMPLES + 1).round().long().tolist()
+    quarters = [x[:, a:max(b, a + 1)].mean(dim=1) - root for a, b in zip(bounds[:-1], bounds[1:])]
+    return torch.cat([root, shape_weight * torch.cat(quarters, dim=1)], dim=1)
+
+
+def select_guides(features: torch.Tensor, num_guides: int) -> torch.Tensor:
+    """(K,) int64 strand indices picked by farthest-point sampling of `features` (M, D).
+
+    Starts from the strand nearest the features' mean; deterministic. K >= M returns every strand.
+    """
+    m = features.shape[0]
+    if num_guides >= m:
+        return torch.arange(m)
+    f = features.to(torch.float32)
+    first = int(((f - f.mean(0)) ** 2).sum(1).argmin())
+    chosen = torch.empty(num_guides, dtype=torch.int64)
+    chosen[0] = first
+    nearest = ((f - f[first]) ** 2).sum(1)
+    for k in range(1, num_guides):
+        pick = int(nearest.argmax())
+        chosen[k] = pick
+        torch.minimum(nearest, ((f - f[pick]) ** 2).sum(1), out=nearest)
+    return chosen
+
+
+def nearest_guides(features: torch.Tensor, guide_features: torch.Tensor, neighbours: int,
+                   chunk: int = 8192) -> tuple[torch.Tensor, torch.Tensor]:
+    """(indices (M, k) int64, distances (M, k)) of each strand's k nearest guides in feature space."""
+    k = min(neighbours, guide_features.shape[0])
+    index, distance = [], []
+    for start in range(0, features.shape[0], chunk):
+        d = torch.cdist(features[start:start + chunk], guide_features)
+        top = d.topk(k, dim=1, largest=False)
+        index.append(top.indices)
+        distance.append(top.values)
+    return torch.cat(index), torch.cat(distance)
+
+
+@dataclass(eq=False)
+class GuideSet:
+    """A groom split into guides and followers.
+
+    Attributes:
+        groom: the whole groom (`Hairstyle`, M strands x N vertices, rest pose) [m].
+        guide_indices: (K,) int64 indices of the guides in the groom.
+        follower_guides: (M, k) int64 the guides (0 .. K-1) each strand follows.
+        follower_weights: (M, k) float32 blend weights (rows sum to 1).
+        follower_ratios: (M, k) float32 strand rest length / guide rest length.
+        bundle_sizes: (K,) int64 strands whose nearest guide each guide is (itself included).
+        config: the `GuideConfig` used.
+    """
+
+    groom: object
+    guide_indices: torch.Tensor
+    follower_guides: torch.Tensor
+    follower_weights: torch.Tensor
+    follower_ratios: torch.Tensor
+    bundle_sizes: torch.Tensor
+    config: GuideConfig
+
+    @classmethod
+    def build(cls, groom, config: GuideConfig = GuideConfig()) -> GuideSet:
+        """Choose K guides of a `Hairstyle` and each strand's guides and weights (see the module)."""
+        strands = groom.strands
+        m = strands.shape[0]
+        if m == 0:
+            raise ValueError("groom: expected at least one strand")
+        features = strand_features(strands, config.shape_weight)
+        guides = select_guides(features, config.num_guides)
+        index, distance = nearest_guides(features, features[guides], config.neighbours)
+        weights = 1.0 / (distance.double() ** 2 + 1e-12)
+        exact = distance[:, 0] <= 1e-9  # the guides themselves (and exact copies of them)
+        weights[exact] = 0.0
+        weights[exact, 0] = 1.0
+        weights = (weights / weights.sum(1, keepdim=True)).to(torch.float32)
+        lengths = (strands[:, 1:] - strands[:, :-1]).double().norm(dim=-1).sum(1)
+        ratios = (lengths[:, None] / lengths[guides][index].clamp_min(1e-12)).to(torch.float32)
+        bundle = torch.bincount(index[:, 0], minlength=len(guides))
+        return cls(groom=groom, guide_indices=guides, follower_guides=index, follower_weights=weights,
+                   follower_ratios=ratios, bundle_sizes=bundle, config=config)
+
+    @property
+    def num_guides(self) -> int:
+        return int(self.guide_indices.numel())
+
+    @property
+    def num_strands(self) -> int:
+        return int(self.groom.strands.shape[0])
+
+    def guide_hairstyle(self):
+        """The guides as a `Hairstyle` (what the methods simulate)."""
+        return self.groom.subset(self.guide_indices)
+
+    def reach_lengths(self) -> torch.Tensor:
+        """(K,) [m] the farthest any strand following a guide reaches from the guide's root.
+
+        A strand reaches at most its own length from its own root; the body crop of the guides
+        (`BodyMesh.crop_for_hair`) uses these in place of the guides' lengths so it keeps every
+        triangle a follower can reach.
+        """
+        strands = self.groom.strands.to(torch.float32)
+        lengths = (strands[:, 1:] - strands[:, :-1]).norm(dim=-1).sum(1)
+        roots = strands[:, 0]
+        reach = torch.zeros(self.num_guides)
+        for j in range(self.follower_guides.shape[1]):
+            g = self.follower_guides[:, j]
+            far = lengths + (roots - roots[self.guide_indices][g]).norm(dim=-1)
+            reach.scatter_reduce_(0, g, far, reduce="amax")
+        return reach
+
+    def describe(self) -> str:
+        b = self.bundle_sizes.double()
+        return (f"{self.num_guides} guides of {self.num_strands} strands (bundles of {int(b.min())}-"
+                f"{int(b.max())} strands, median {float(b.median()):g})")
+
+    @torch.no_grad()
+    def follow(self, guide_positions: torch.Tensor, head_rotation: torch.Tensor, body=None,
+               guide_signed_distance: torch.Tensor | None = None) -> tuple[torch.Tensor, dict]:
+        """Every strand of the groom from the guides' positions in B frames.
+
+        Args:
+            guide_positions: (B, K, N, 3) the guides [m] (a method's result, or the rigid
+                placement).
+            head_rotation: (B, 3, 3) the head's rotation in each frame.
+            body: the frames' `BodyMesh` (batch 1 or B) for the body pass; None skips it.
+            guide_signed_distance: (B, K, N) the guides' signed distances [m] if known.
+
+        Returns:
+            ((B, M, N, 3) positions [m] in the dtype of `guide_positions`, the guides' rows
+            exactly theirs; facts: "queried" vertices and "pushed" vertices of the body pass).
+        """
+        from hairwarp.ops import follow_the_leader, hair_body_signed_distance
+        from hairwarp.ops.guide_interpolation import guide_frame_rotations, interpolate_followers
+
+        device = guide_positions.device
+        rest = self.groom.strands.to(device=device, dtype=torch.float32)
+        guides_rest = rest[self.guide_indices.to(device)]
+        guides = guide_positions.to(torch.float32)
+        batch = guides.shape[0]
+        link = [t.to(device) for t in (self.follower_guides, self.follower_weights, self.follower_ratios)]
+        rotations = guide_frame_rotations(guides_rest, guides, head_rotation.to(device))
+        x = interpolate_followers(guides_rest, guides, rotations, rest, *link)
+        rest_b = rest.expand(batch, -1, -1, -1)
+        x = follow_the_leader(rest_b.contiguous() if batch > 1 else rest_b, x)
+        facts = {"queried": 0, "pushed": 0}
+        if body is not None and self.config.body_passes > 0:
+            if guide_signed_distance is None:
+                guide_signed_distance = hair_body_signed_distance(guides, body)
+            x = self._keep_outside(x, guides, guide_signed_distance.to(torch.float32), body, rest, link, facts)
+        x[:, self.guide_indices.to(device)] = guides
+        return x.to(guide_positions.dtype), facts
+
+    @torch.no_grad()
+    def signed_distance(self, x: torch.Tensor, guide_positions: torch.Tensor, guide_signed_distance: torch.Tensor,
+                        body, exact_below: float = 0.0) -> torch.Tensor:
+        """Each strand vertex's signed distance to the body, queried only where it could be low.
+
+        Args:
+            x: (B, M, N, 3) the groom [m] (`follow`'s result).
+            guide_positions: (B, K, N, 3) its guides [m]; guide_signed_distance: (B, K, N) theirs.
+            body: the frames' `BodyMesh`.
+            exact_below: [m] vertices whose bound (see `hairwarp.kernels.guide_interpolation`)
+                is below this are queried exactly.
+
+        Returns:
+            (B, M, N) [m]: exact where the bound is below `exact_below`, else the bound itself (a
+            lower bound, so the sign, and whether a vertex is inside, is exact everywhere).
+        """
+        from hairwarp.ops import hair_body_signed_distance
+        from hairwarp.ops.guide_interpolation import follower_distance_bound
+
+        device = x.device
+        link = [t.to(device) for t in (self.follower_guides, self.follower_weights, self.follower_ratios)]
+        out = follower_distance_bound(guide_positions.to(torch.float32), guide_signed_distance.to(torch.float32),
+                                      x.to(torch.float32), *link)
+        strand, vertex = (out < exact_below).any(dim=0).nonzero(as_tuple=True)
+        if strand.numel():
+            points = x[:, strand, vertex].unsqueeze(2).to(torch.float32)
+            out[:, strand, vertex] = hair_body_signed_distance(points, body).squeeze(2)
+        out[:, self.guide_indices.to(device)] = guide_signed_distance.to(torch.float32)
+        return out
+
+    def _keep_outside(self, x, guides, guide_sd, body, rest, link, facts):
+        """The body pass: walk each strand that comes within the margin from its root, keeping
+        every segment's rest direction until a vertex is inside, pushing that vertex out along
+        the signed distance's gradient and back onto its rest length from its (already placed)
+        predecessor, and carrying the displacement down the rest of the strand. The strand
+        slides over the body instead of being pulled back through it, and every segment keeps
+        its rest length.
+        """
+        from hairwarp.ops import hair_body_signed_distance_and_normal
+        from hairwarp.ops.guide_interpolation import follower_distance_bound
+
+        margin = float(self.config.body_margin)
+        n = x.shape[2]
+        bound = follower_distance_bound(guides, guide_sd, x, *link)
+        bound[:, :, :NUM_FIXED_VERTICES] = float("inf")  # the root and its neighbour stay with the scalp
+        bound[:, self.guide_indices.to(x.device)] = float("inf")  # the guides are the method's
+        # One batched query of every vertex the guides do not prove clear (equal counts in every
+        # frame: a batched body takes one set of points per frame).
+        strand, vertex = (bound < margin).any(dim=0).nonzero(as_tuple=True)
+        if strand.numel() == 0:
+            return x
+        distance, _ = hair_body_signed_distance_and_normal(x[:, strand, vertex].unsqueeze(2), body)
+        facts["queried"] += int(strand.numel() * x.shape[0])
+        near = (distance.squeeze(2) < margin).any(dim=0)
+        if not bool(near.any()):
+            return x
+        exact = bound.clone()
+        exact[:, strand, vertex] = distance.squeeze(2)
+        walked = torch.unique(strand[near])
+        xs, ds = x[:, walked], exact[:, walked]  # (B, S, N, 3), (B, S, N)
+        lengths = (rest[walked, 1:] - rest[walked, :-1]).norm(dim=-1)  # (S, N-1)
+        shift = torch.zeros_like(xs[:, :, 0])  # (B, S, 3) displacement carried down each strand
+        first = int((ds < margin).any(dim=0).float().argmax(dim=1).min())
+        for i in range(max(first, NUM_FIXED_VERTICES), n):
+            xs[:, :, i] += shift
+            need = ((ds[:, :, i] - shift.norm(dim=-1)) < margin).any(dim=0).nonzero().squeeze(1)
+            if need.numel() == 0:
+                continue
+            p = xs[:, need, i]
+            leader, length = xs[:, need, i - 1], lengths[need, i - 1, None]
+            for _ in range(self.config.body_passes):
+                d, direction = hair_body_signed_distance_and_normal(p.unsqueeze(2), body)
+                facts["queried"] += int(p.shape[0] * p.shape[1])
+                push = (margin - d).clamp_min(0.0)
+                if not bool((push > 0).any()):
+                    break
+                facts["pushed"] += int((push > 0).sum())
+                moved = p + push * direction.squeeze(2)
+                step = moved - leader
+                p = leader + length * step / step.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+            shift[:, need] += p - xs[:, need, i]
+            xs[:, need, i] = p
+        x[:, walked] = xs
+        return x
+
+
+__all__ = ["GUIDE_WIDTH", "GuideConfig", "GuideSet", "strand_width", "nearest_guides", "select_guides", "strand_features"]
