@@ -3,7 +3,9 @@ a bound on how close a follower vertex can be to the body. float32, no autograd 
 
 Frames. A guide's frame at segment i is carried along the strand by parallel transport (the
 minimal rotation taking one segment's direction to the next, Bishop frames), in the rest pose
-and now; `guide_frame_rotations_kernel` writes the rotation R_i = F_i F0_i^T that takes the rest
+and now, with each segment's direction read over a window of segments (the centreline's: a
+follower sits centimetres from its guide, so the guide's vertex-to-vertex jitter, turned into
+a rotation of that offset, would bend the follower's curl); `guide_frame_rotations_kernel` writes the rotation R_i = F_i F0_i^T that takes the rest
 frame to the current one, as a unit quaternion. The walk starts from the head's rotation (so a
 twist about the root segment follows the head) corrected by the minimal rotation from the
 rigidly turned rest root segment to the current one. Parallel transport commutes with a rigid
@@ -63,6 +65,15 @@ def segment_direction(p0: wp.vec3, p1: wp.vec3, previous: wp.vec3):
     return previous
 
 
+@wp.func
+def smoothed_direction(strand: wp.array(dtype=wp.vec3), base: int, i: int, window: int, num_vertices: int,
+                       previous: wp.vec3):
+    """The direction of segment i seen over `window` segments on each side (the chord from vertex
+    i - window to vertex i + 1 + window, clamped to the strand): the centreline's direction."""
+    return segment_direction(strand[base + wp.max(i - window, 0)],
+                             strand[base + wp.min(i + 1 + window, num_vertices - 1)], previous)
+
+
 @wp.kernel
 def guide_frame_rotations_kernel(
     guides_rest: wp.array(dtype=wp.vec3),
@@ -70,11 +81,15 @@ def guide_frame_rotations_kernel(
     head_rotation: wp.array(dtype=wp.quat),
     num_guides: int,
     num_vertices: int,
+    window: int,
     rotations: wp.array(dtype=wp.quat),
 ):
     """R_i of one guide in one frame (thread = frame * K + guide), i = 0 .. N-2.
 
     guides_rest (K*N,), guides_now (B*K*N,), head_rotation (B,), rotations (B*K*(N-1),).
+    Segment 0 (fixed with the scalp) is transported from the head's rotation exactly; segments
+    i >= 1 by their `smoothed_direction`, so a follower rides on its guide's centreline and a
+    guide's vertex-to-vertex jitter does not turn its offset back and forth.
     """
     tid = wp.tid()
     b = tid // num_guides
@@ -89,8 +104,8 @@ def guide_frame_rotations_kernel(
     q = rotation_between(wp.quat_rotate(q_head, t0), t) * q_head
     rotations[out] = q
     for i in range(1, num_vertices - 1):
-        t0_next = segment_direction(guides_rest[rest + i], guides_rest[rest + i + 1], t0)
-        t_next = segment_direction(guides_now[now + i], guides_now[now + i + 1], t)
+        t0_next = smoothed_direction(guides_rest, rest, i, window, num_vertices, t0)
+        t_next = smoothed_direction(guides_now, now, i, window, num_vertices, t)
         q = wp.normalize(rotation_between(t, t_next) * q * wp.quat_inverse(rotation_between(t0, t0_next)))
         rotations[out + i] = q
         t0 = t0_next

@@ -19,8 +19,9 @@ def unit(v):
     return v / np.linalg.norm(v)
 
 
-def guide_frame_rotations(rest, now, head_rotation):
-    """(K, N-1, 3, 3) R_i = F_i F0_i^T of one frame: rest (K, N, 3), now (K, N, 3), head (3, 3)."""
+def guide_frame_rotations(rest, now, head_rotation, window=4):
+    """(K, N-1, 3, 3) R_i = F_i F0_i^T of one frame: rest (K, N, 3), now (K, N, 3), head (3, 3);
+    segment i >= 1 read as the chord from vertex i - window to i + 1 + window (clamped)."""
     k, n = rest.shape[:2]
     out = np.zeros((k, n - 1, 3, 3))
     for g in range(k):
@@ -29,8 +30,9 @@ def guide_frame_rotations(rest, now, head_rotation):
         r = rotation_between(head_rotation @ t0, t) @ head_rotation
         out[g, 0] = r
         for i in range(1, n - 1):
-            t0n = unit(rest[g, i + 1] - rest[g, i])
-            tn = unit(now[g, i + 1] - now[g, i])
+            lo, hi = max(i - window, 0), min(i + 1 + window, n - 1)
+            t0n = unit(rest[g, hi] - rest[g, lo])
+            tn = unit(now[g, hi] - now[g, lo])
             r = rotation_between(t, tn) @ r @ rotation_between(t0, t0n).T
             out[g, i] = r
             t0, t = t0n, tn

@@ -51,27 +51,34 @@ def _check_guides(guides_rest: torch.Tensor, guides_now: torch.Tensor) -> tuple[
     return guides_now.shape[0], guides_rest.shape[0], guides_rest.shape[1]
 
 
+# Segments on each side over which a guide's direction is read (`smoothed_direction`).
+FRAME_WINDOW = 4
+
+
 def guide_frame_rotations(guides_rest: torch.Tensor, guides_now: torch.Tensor,
-                          head_rotation: torch.Tensor) -> torch.Tensor:
+                          head_rotation: torch.Tensor, window: int = FRAME_WINDOW) -> torch.Tensor:
     """The rotation of each guide segment's parallel-transported frame from rest to now.
 
     Args:
         guides_rest: (K, N, 3) guide strands at rest [m].
         guides_now: (B, K, N, 3) the same guides in B frames [m] (a method's result).
         head_rotation: (B, 3, 3) the head's rotation in each frame (`PosedBody.head_transform`).
+        window: segments on each side over which a segment's direction is read (0: its own).
 
     Returns:
         (B, K, N-1, 4) float32 unit quaternions (x, y, z, w), R_i = F_i F0_i^T per segment.
     """
     batch, k, n = _check_guides(guides_rest, guides_now)
     check_tensor("head_rotation", head_rotation, shape=(batch, 3, 3), device=guides_rest.device)
+    if isinstance(window, bool) or not isinstance(window, int) or window < 0:
+        raise ValueError(f"window: expected an integer >= 0, got {window!r}")
     device = guides_rest.device
     rest = guides_rest.detach().to(torch.float32).contiguous()
     now = guides_now.detach().to(torch.float32).contiguous()
     head = rotation_quaternions(head_rotation.detach()).to(device).contiguous()
     out = torch.empty(batch, k, n - 1, 4, dtype=torch.float32, device=device)
     _run(kernels.guide_frame_rotations_kernel, batch * k, device,
-         [_warp.as_warp(rest, vec3=True), _warp.as_warp(now, vec3=True), _quats(head), k, n], [_quats(out)])
+         [_warp.as_warp(rest, vec3=True), _warp.as_warp(now, vec3=True), _quats(head), k, n, window], [_quats(out)])
     return out
 
 
@@ -156,4 +163,4 @@ def follower_distance_bound(guides_now: torch.Tensor, guide_signed_distance: tor
     return out
 
 
-__all__ = ["follower_distance_bound", "guide_frame_rotations", "interpolate_followers", "rotation_quaternions"]
+__all__ = ["FRAME_WINDOW", "follower_distance_bound", "guide_frame_rotations", "interpolate_followers", "rotation_quaternions"]

@@ -237,8 +237,8 @@ class GuideSet:
         link = [t.to(device) for t in (self.follower_guides, self.follower_weights, self.follower_ratios)]
         rotations = guide_frame_rotations(guides_rest, guides, head_rotation.to(device))
         x = interpolate_followers(guides_rest, guides, rotations, rest, *link)
-        rest_b = rest.expand(batch, -1, -1, -1)
-        x = follow_the_leader(rest_b.contiguous() if batch > 1 else rest_b, x)
+        for b in range(batch):  # frame by frame: the rest strands are not copied B times
+            x[b] = follow_the_leader(rest, x[b])
         facts = {"queried": 0, "pushed": 0}
         if body is not None and self.config.body_passes > 0:
             if guide_signed_distance is None:
