@@ -5,8 +5,8 @@ Frames. A guide's frame at segment i is carried along the strand by parallel tra
 minimal rotation taking one segment's direction to the next, Bishop frames), in the rest pose
 and now, with each segment's direction read over a window of segments (the centreline's: a
 follower sits centimetres from its guide, so the guide's vertex-to-vertex jitter, turned into
-a rotation of that offset, would bend the follower's curl); `guide_frame_rotations_kernel` writes the rotation R_i = F_i F0_i^T that takes the rest
-frame to the current one, as a unit quaternion. The walk starts from the head's rotation (so a
+a rotation of that offset, would bend the follower's curl); `guide_frame_rotations_kernel`
+writes the rotation R_i = F_i F0_i^T that takes the rest frame to the current one, as a unit quaternion. The walk starts from the head's rotation (so a
 twist about the root segment follows the head) corrected by the minimal rotation from the
 rigidly turned rest root segment to the current one. Parallel transport commutes with a rigid
 motion, so a guide that moved rigidly by (R, c) with R the head's rotation gets R_i = R at every
@@ -69,7 +69,8 @@ def segment_direction(p0: wp.vec3, p1: wp.vec3, previous: wp.vec3):
 def smoothed_direction(strand: wp.array(dtype=wp.vec3), base: int, i: int, window: int, num_vertices: int,
                        previous: wp.vec3):
     """The direction of segment i seen over `window` segments on each side (the chord from vertex
-    i - window to vertex i + 1 + window, clamped to the strand): the centreline's direction."""
+    i - window to vertex i + 1 + window, clamped to the strand): the centreline's direction.
+    """
     return segment_direction(strand[base + wp.max(i - window, 0)],
                              strand[base + wp.min(i + 1 + window, num_vertices - 1)], previous)
 

@@ -145,9 +145,23 @@ def test_network_errors_name_the_problem(checkpoints, poses_scene, tmp_path):
     (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
     with pytest.raises(ValueError, match="checkpoint: cannot load"):
         make("static", MethodOptions(checkpoint=str(tmp_path / "junk.pt"))).drape(frames)
-    wrong_n = comparison_scene("medium_rest", strand_stride=16, num_vertices=TINY_N + 1)
-    with pytest.raises(ValueError, match="num_vertices"):
-        _make("static", checkpoints).drape(wrong_n.frames())
+
+
+@pytest.mark.parametrize("num_vertices", [TINY_N - 5, TINY_N + 7])
+@pytest.mark.parametrize("name", ["static", "dynamic"])
+def test_networks_run_any_vertex_count_and_keep_rest_lengths(checkpoints, name, num_vertices):
+    from hairwarp.metrics import length_change_percent
+
+    scene = comparison_scene("whiplash", strand_stride=16, num_vertices=num_vertices)
+    frames = scene.frames([0, 1, 2])
+    out = _make(name, checkpoints).simulate(frames)
+    assert out.positions.shape == frames.rigid.positions.shape
+    assert out.info["network_vertices"] == TINY_N
+    torch.testing.assert_close(out.positions[:, :, :2], frames.rigid.positions[:, :, :2])
+    assert float(length_change_percent(out.positions, frames.inputs.rest_lengths).max()) < 1e-3
+    # At the network's own count nothing is resampled: the same result as the network's.
+    same = comparison_scene("whiplash", strand_stride=16, num_vertices=TINY_N).frames([0, 1, 2])
+    assert "network_vertices" not in _make(name, checkpoints).simulate(same).info
 
 
 def test_simulate_poses_rejects_mismatched_frames(checkpoints, poses_scene):

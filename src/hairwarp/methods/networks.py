@@ -13,7 +13,10 @@ Eq. 1, is shared by every method and not counted).
 - "quaffure": the adapted Quaffure decoder (Section 4.3.1), one drape per frame.
 
 The shipped dynamic checkpoint holds its frozen static network, so "static" falls back to it.
-The networks need SMPL-convention pose and shape (they read (beta, Theta)).
+The networks need SMPL-convention pose and shape (they read (beta, Theta)). A scene whose
+strands have another vertex count than the network's is run at the network's (the hairstyle and
+the rigid placement resampled by arc length, `at_network_resolution`) and the result resampled
+back and projected onto the scene's rest lengths (`back_to_scene_resolution`).
 """
 
 from __future__ import annotations
@@ -246,6 +249,60 @@ def load_simulator(name: str, checkpoint: str | None, device: torch.device) -> H
     return sim
 
 
+def resample_polylines_torch(points: torch.Tensor, num_vertices: int) -> torch.Tensor:
+    """(..., K, 3) polylines -> (..., num_vertices, 3) points evenly spaced in arc length (torch,
+    any device; the first and last points kept).
+    """
+    seg = (points[..., 1:, :] - points[..., :-1, :]).norm(dim=-1)
+    cum = torch.cat([torch.zeros_like(seg[..., :1]), seg.cumsum(-1)], dim=-1)  # (..., K)
+    total = cum[..., -1:]
+    t = torch.linspace(0.0, 1.0, num_vertices, device=points.device, dtype=points.dtype) * total
+    k = points.shape[-2]
+    idx = (torch.searchsorted(cum.contiguous(), t.contiguous(), right=True) - 1).clamp(0, k - 2)
+    c0, c1 = cum.gather(-1, idx), cum.gather(-1, idx + 1)
+    w = ((t - c0) / (c1 - c0).clamp_min(1e-30)).clamp(0.0, 1.0)[..., None]
+    gather = lambda i: points.gather(-2, i[..., None].expand(*i.shape, 3))  # noqa: E731
+    out = gather(idx) * (1 - w) + gather(idx + 1) * w
+    out[..., 0, :] = points[..., 0, :]
+    out[..., -1, :] = points[..., -1, :]
+    return out
+
+
+def at_network_resolution(frames, num_vertices: int):
+    """`frames` with the hairstyle and the rigid placement resampled to `num_vertices` per strand
+    (the same frames when they have it already). The resampled hairstyle is made once per scene.
+    """
+    import dataclasses
+
+    from hairwarp.scene.scene import Scene
+
+    if frames.rigid.positions.shape[2] == num_vertices:
+        return frames
+    scene = frames.scene
+    key = ("network_resolution", num_vertices)
+    if key not in scene._cache:
+        scene._cache[key] = Scene(body=scene.body, scalp=scene.scalp,
+                                  hairstyle=scene.hairstyle.subset(None, num_vertices), motion=scene.motion,
+                                  name=scene.name)
+    rigid = dataclasses.replace(frames.rigid, positions=resample_polylines_torch(frames.rigid.positions, num_vertices))
+    return dataclasses.replace(frames, rigid=rigid, scene=scene._cache[key])
+
+
+def back_to_scene_resolution(positions: torch.Tensor, frames) -> torch.Tensor:
+    """(B, M, n, 3) network output -> the scene's N vertices per strand: resampled by arc length,
+    the fixed vertices set to the rigid placement's, and projected onto its rest lengths.
+    """
+    from hairwarp.config import NUM_FIXED_VERTICES
+    from hairwarp.ops import follow_the_leader
+
+    rigid = frames.rigid.positions
+    if positions.shape[2] == rigid.shape[2]:
+        return positions
+    out = resample_polylines_torch(positions, rigid.shape[2])
+    out[:, :, :NUM_FIXED_VERTICES] = rigid[:, :, :NUM_FIXED_VERTICES]
+    return follow_the_leader(rigid.contiguous(), out.contiguous())
+
+
 class NetworkMethod(Method):
     """A trained network draping or simulating scene frames (see the module docstring)."""
 
@@ -258,20 +315,23 @@ class NetworkMethod(Method):
         self.name = name
 
     def simulator(self, frames) -> HairFormerSimulator:
-        """The loaded network, checked against the frames (SMPL pose and shape, vertex count)."""
+        """The loaded network, checked against the frames (SMPL pose and shape)."""
         scene = frames.scene
         if scene is None or not getattr(scene.body, "has_smpl_pose", True):
             raise ValueError(f"method: the {self.name} network needs an SMPL-convention body (pose and shape "
                              "parameters); use adam, lbfgs or reference on this body")
-        sim = load_simulator(self.name, self.options.checkpoint, frames.rigid.positions.device)
-        n = frames.rigid.positions.shape[2]
-        if n != sim.num_vertices:
-            raise ValueError(f"num_vertices: the {self.name} network was trained on {sim.num_vertices} vertices "
-                             f"per strand, the scene has {n}; build the scene with num_vertices={sim.num_vertices}")
-        return sim
+        return load_simulator(self.name, self.options.checkpoint, frames.rigid.positions.device)
 
     def drape(self, frames, *, metrics: Callable | None = None) -> MethodResult:
         sim = self.simulator(frames)
+        ours = at_network_resolution(frames, sim.num_vertices)
+        out = self._drape(sim, ours)
+        out.positions = back_to_scene_resolution(out.positions, frames)
+        if ours is not frames:
+            out.info["network_vertices"] = sim.num_vertices
+        return out
+
+    def _drape(self, sim, frames) -> MethodResult:
         device = frames.rigid.positions.device
         if self.name != "dynamic":
             positions, seconds = timed(lambda: sim.drape(frames), device)
@@ -296,5 +356,8 @@ class NetworkMethod(Method):
         if self.name != "dynamic":
             return self.drape(frames)
         sim = self.simulator(frames)
-        positions, seconds = timed(lambda: sim.simulate(frames), frames.rigid.positions.device)
-        return MethodResult(positions=positions, time_ms=seconds * 1e3 / positions.shape[0])
+        ours = at_network_resolution(frames, sim.num_vertices)
+        positions, seconds = timed(lambda: sim.simulate(ours), frames.rigid.positions.device)
+        info = {} if ours is frames else {"network_vertices": sim.num_vertices}
+        return MethodResult(positions=back_to_scene_resolution(positions, frames),
+                            time_ms=seconds * 1e3 / positions.shape[0], info=info)

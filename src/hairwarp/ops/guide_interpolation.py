@@ -163,4 +163,5 @@ def follower_distance_bound(guides_now: torch.Tensor, guide_signed_distance: tor
     return out
 
 
-__all__ = ["FRAME_WINDOW", "follower_distance_bound", "guide_frame_rotations", "interpolate_followers", "rotation_quaternions"]
+__all__ = ["FRAME_WINDOW", "follower_distance_bound", "guide_frame_rotations", "interpolate_followers",
+           "rotation_quaternions"]
