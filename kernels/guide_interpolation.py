@@ -6,9 +6,10 @@ minimal rotation taking one segment's direction to the next, Bishop frames), in 
 and now, with each segment's direction read over a window of segments (the centreline's: a
 follower sits centimetres from its guide, so the guide's vertex-to-vertex jitter, turned into
 a rotation of that offset, would bend the follower's curl); `guide_frame_rotations_kernel`
-writes the rotation R_i = F_i F0_i^T that takes the rest frame to the current one, as a unit quaternion. The walk starts from the head's rotation (so a
-twist about the root segment follows the head) corrected by the minimal rotation from the
-rigidly turned rest root segment to the current one. Parallel transport commutes with a rigid
+writes the rotation R_i = F_i F0_i^T that takes the rest frame to the current one, as a unit
+quaternion. The walk starts from the head's rotation (so a twist about the root segment follows
+the head) corrected by the minimal rotation from the rigidly turned rest root segment to the
+current one. Parallel transport commutes with a rigid
 motion, so a guide that moved rigidly by (R, c) with R the head's rotation gets R_i = R at every
 segment: a follower then moves by exactly the same rigid motion.
 
