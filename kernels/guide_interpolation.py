@@ -24,6 +24,8 @@ the scalp), and keeps its rest offset from that anchor in the segment's frame:
 A follower sitting on its guide (offset zero, ratio 1, one guide) reproduces it exactly; a curl
 of the follower is carried in its offsets, so it keeps its shape as the frames turn.
 
+Body walk. `follower_body_walk_kernel` keeps the followers out of the body (its docstring).
+
 Bound. The signed distance is 1-Lipschitz: for any guide vertex g with signed distance d_g,
 d(x) >= d_g - |x - g|. `follower_distance_bound_kernel` takes the largest such bound over the
 follower's guides (at their anchor vertices); a vertex whose bound clears the margin is outside
@@ -33,6 +35,7 @@ the body without a query.
 import warp as wp
 
 from hairwarp.config import NUM_FIXED_VERTICES
+from hairwarp.kernels.hair_body_contact import FAR, body_signed_distance, winding_signed
 
 wp.set_module_options({"enable_backward": False})
 
@@ -200,3 +203,76 @@ def follower_distance_bound_kernel(
             k = (b * num_guides + g) * num_vertices + near
             best = wp.max(best, guide_signed_distance[k] - wp.length(x - guides_now[k]))
     bound[tid] = best
+
+
+@wp.kernel
+def follower_body_walk_kernel(
+    x: wp.array(dtype=wp.vec3),
+    bound: wp.array(dtype=float),
+    rest_lengths: wp.array(dtype=float),
+    mesh_ids: wp.array(dtype=wp.uint64),
+    body_vertices: wp.array(dtype=wp.vec3),
+    faces: wp.array(dtype=wp.int32),
+    vertex_normals: wp.array(dtype=wp.vec3),
+    edge_normals: wp.array(dtype=wp.vec3),
+    winding_ids: wp.array(dtype=wp.uint64),
+    first_piece: int,
+    seam_sides: wp.array(dtype=wp.vec4),
+    num_followers: int,
+    num_vertices: int,
+    body_vertex_count: int,
+    body_face_count: int,
+    body_batch_stride: int,
+    margin: float,
+    passes: int,
+    zero_dist: float,
+    pushed: wp.array(dtype=wp.int32),
+):
+    """The body pass of one strand in one frame (thread = frame * M + strand), in place on x.
+
+    Walks the strand from its first vertex whose `bound` (a lower bound on its signed distance)
+    is below `margin`: each vertex keeps its rest offset from its predecessor (the displacement
+    of the vertices before it carried along) unless its signed distance, queried where the bound
+    minus that displacement is below the margin, is: then it is pushed out along the gradient to
+    the margin and back onto its rest length from its predecessor, up to `passes` times. The
+    strand slides over the body instead of being pulled back through it; every walked segment
+    keeps its rest length. x (B*M*N,), bound (B*M*N,), rest_lengths (M*(N-1),), pushed (B*M,):
+    the vertices moved.
+    """
+    tid = wp.tid()
+    b = tid // num_followers
+    m = tid - b * num_followers
+    base = tid * num_vertices
+    first = int(-1)
+    for i in range(FIXED_VERTICES, num_vertices):
+        if first < 0 and bound[base + i] < margin:
+            first = i
+    if first < 0:
+        pushed[tid] = 0
+        return
+    body = b * body_batch_stride
+    shift = wp.vec3(0.0, 0.0, 0.0)
+    count = int(0)
+    for i in range(first, num_vertices):
+        original = x[base + i]
+        p = original + shift
+        if bound[base + i] - wp.length(shift) < margin:
+            leader = x[base + i - 1]
+            rest = rest_lengths[m * (num_vertices - 1) + i - 1]
+            for k in range(passes):
+                found, d, g = body_signed_distance(
+                    mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides,
+                    body * body_vertex_count, body * body_face_count * 3, p, float(FAR), zero_dist,
+                )
+                d, g = winding_signed(winding_ids[body], p, found, d, g, zero_dist)
+                if found == 0 or d >= margin:
+                    break
+                p = p + (margin - d) * g
+                step = p - leader
+                n = wp.length(step)
+                if n > TANGENT_EPS:
+                    p = leader + step * (rest / n)
+                count += 1
+            shift = p - original
+        x[base + i] = p
+    pushed[tid] = count

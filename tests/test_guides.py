@@ -211,7 +211,7 @@ def test_body_pass_leaves_no_follower_inside_and_keeps_rest_lengths(rng, shape):
     rest = (groom.strands[:, 1:] - groom.strands[:, :-1]).norm(dim=-1)
     lengths = (after[0, :, 1:] - after[0, :, :-1]).norm(dim=-1)
     torch.testing.assert_close(lengths[followers], rest[followers], atol=1e-5, rtol=1e-4)
-    assert facts["pushed"] > 0
+    assert int(facts["pushed"].sum()) > 0
     torch.testing.assert_close(after[0, guides.guide_indices], guide_positions[0])  # the guides stay the method's
 
 

@@ -82,7 +82,8 @@ def groom_metrics(frames, guide_positions: torch.Tensor, guide_signed_distance: 
     Returns:
         {"positions": (B, M, N, 3) [m], "signed_distance": (B, M, N) [m] (exact where it is
         negative; see `GuideSet.signed_distance`), "per_frame": {"penetration_percent",
-        "length_change_percent"} lists over the B frames, "body_pass": the pass's facts}.
+        "length_change_percent"} lists over the B frames, "body_pass": {"pushed_vertices",
+        "pushed_strands"} summed over the frames}.
     """
     scene = frames.scene
     if scene is None or scene.guides is None:
@@ -94,7 +95,9 @@ def groom_metrics(frames, guide_positions: torch.Tensor, guide_signed_distance: 
         rest = scene.guides.groom.strands.to(x.device, x.dtype)
         per_frame = {"penetration_percent": penetration_from_signed_distance(sd).tolist(),
                      "length_change_percent": length_change_percent(x, (rest[:, 1:] - rest[:, :-1]).norm(dim=-1)).tolist()}
-    return {"positions": x, "signed_distance": sd, "per_frame": per_frame, "body_pass": facts}
+    pushed = facts.get("pushed")
+    body = {} if pushed is None else {"pushed_vertices": int(pushed.sum()), "pushed_strands": int((pushed > 0).sum())}
+    return {"positions": x, "signed_distance": sd, "per_frame": per_frame, "body_pass": body}
 
 
 def length_change_percent(x: torch.Tensor, rest_lengths: torch.Tensor) -> torch.Tensor:

@@ -163,5 +163,38 @@ def follower_distance_bound(guides_now: torch.Tensor, guide_signed_distance: tor
     return out
 
 
+def walk_followers_outside(x: torch.Tensor, bound: torch.Tensor, rest_lengths: torch.Tensor, body,
+                           margin: float, passes: int) -> torch.Tensor:
+    """Keep strands out of the body, in place (`follower_body_walk_kernel`, one thread per strand).
+
+    Args:
+        x: (B, M, N, 3) float32 contiguous strands [m], changed in place.
+        bound: (B, M, N) float32 lower bounds on their signed distances [m] (inf: never walk).
+        rest_lengths: (M, N-1) rest segment lengths [m].
+        body: the frames' `BodyMesh` (batch 1 or B).
+        margin: the signed distance vertices are pushed to [m].
+        passes: push-and-project rounds per vertex.
+
+    Returns:
+        (B, M) int32: the vertices each strand's walk moved.
+    """
+    from hairwarp.ops.hair_body_contact import _ZERO_DISTANCE, _body_stride, _check_body
+
+    _check_body(body)
+    check_tensor("x", x, shape=(None, None, None, 3), dtypes=(torch.float32,), device=body.device)
+    batch, m, n = x.shape[:3]
+    check_tensor("bound", bound, shape=(batch, m, n), dtypes=(torch.float32,), device=x.device, finite=False)
+    check_tensor("rest_lengths", rest_lengths, shape=(m, n - 1), device=x.device)
+    if not x.is_contiguous():
+        raise ValueError("x: expected a contiguous tensor (it is changed in place)")
+    pushed = torch.zeros(batch, m, dtype=torch.int32, device=x.device)
+    inputs = [_warp.as_warp(x, vec3=True), _warp.as_warp(bound.contiguous()),
+              _warp.as_warp(rest_lengths.detach().to(torch.float32).contiguous()),
+              *body._kernel_arrays(torch.float32), m, n, body.num_vertices, body.num_faces,
+              _body_stride(body, batch), float(margin), int(passes), float(_ZERO_DISTANCE[torch.float32])]
+    _run(kernels.follower_body_walk_kernel, batch * m, x.device, inputs, [_warp.as_warp(pushed)])
+    return pushed
+
+
 __all__ = ["FRAME_WINDOW", "follower_distance_bound", "guide_frame_rotations", "interpolate_followers",
-           "rotation_quaternions"]
+           "rotation_quaternions", "walk_followers_outside"]

@@ -224,7 +224,8 @@ class GuideSet:
 
         Returns:
             ((B, M, N, 3) positions [m] in the dtype of `guide_positions`, the guides' rows
-            exactly theirs; facts: "queried" vertices and "pushed" vertices of the body pass).
+            exactly theirs; facts: "pushed", a (B, M) int32 tensor of the vertices the body pass
+            moved per strand, on the device: read it only when needed, it waits for the GPU).
         """
         from hairwarp.ops import follow_the_leader, hair_body_signed_distance
         from hairwarp.ops.guide_interpolation import guide_frame_rotations, interpolate_followers
@@ -239,7 +240,7 @@ class GuideSet:
         x = interpolate_followers(guides_rest, guides, rotations, rest, *link)
         for b in range(batch):  # frame by frame: the rest strands are not copied B times
             x[b] = follow_the_leader(rest, x[b])
-        facts = {"queried": 0, "pushed": 0}
+        facts = {}
         if body is not None and self.config.body_passes > 0:
             if guide_signed_distance is None:
                 guide_signed_distance = hair_body_signed_distance(guides, body)
@@ -278,58 +279,20 @@ class GuideSet:
         return out
 
     def _keep_outside(self, x, guides, guide_sd, body, rest, link, facts):
-        """The body pass: walk each strand that comes within the margin from its root, keeping
-        every segment's rest direction until a vertex is inside, pushing that vertex out along
-        the signed distance's gradient and back onto its rest length from its (already placed)
-        predecessor, and carrying the displacement down the rest of the strand. The strand
-        slides over the body instead of being pulled back through it, and every segment keeps
-        its rest length.
+        """The body pass (`hairwarp.kernels.guide_interpolation.follower_body_walk_kernel`):
+        every strand whose bound comes within the margin is walked from there to its tip, each
+        vertex keeping its rest offset from its predecessor unless it is inside (or within the
+        margin), then pushed out and back onto its rest length; the guides stay as they are.
         """
-        from hairwarp.ops import hair_body_signed_distance_and_normal
-        from hairwarp.ops.guide_interpolation import follower_distance_bound
+        from hairwarp.ops.guide_interpolation import follower_distance_bound, walk_followers_outside
 
-        margin = float(self.config.body_margin)
-        n = x.shape[2]
         bound = follower_distance_bound(guides, guide_sd, x, *link)
         bound[:, :, :NUM_FIXED_VERTICES] = float("inf")  # the root and its neighbour stay with the scalp
         bound[:, self.guide_indices.to(x.device)] = float("inf")  # the guides are the method's
-        # One batched query of every vertex the guides do not prove clear (equal counts in every
-        # frame: a batched body takes one set of points per frame).
-        strand, vertex = (bound < margin).any(dim=0).nonzero(as_tuple=True)
-        if strand.numel() == 0:
-            return x
-        distance, _ = hair_body_signed_distance_and_normal(x[:, strand, vertex].unsqueeze(2), body)
-        facts["queried"] += int(strand.numel() * x.shape[0])
-        near = (distance.squeeze(2) < margin).any(dim=0)
-        if not bool(near.any()):
-            return x
-        exact = bound.clone()
-        exact[:, strand, vertex] = distance.squeeze(2)
-        walked = torch.unique(strand[near])
-        xs, ds = x[:, walked], exact[:, walked]  # (B, S, N, 3), (B, S, N)
-        lengths = (rest[walked, 1:] - rest[walked, :-1]).norm(dim=-1)  # (S, N-1)
-        shift = torch.zeros_like(xs[:, :, 0])  # (B, S, 3) displacement carried down each strand
-        first = int((ds < margin).any(dim=0).float().argmax(dim=1).min())
-        for i in range(max(first, NUM_FIXED_VERTICES), n):
-            xs[:, :, i] += shift
-            need = ((ds[:, :, i] - shift.norm(dim=-1)) < margin).any(dim=0).nonzero().squeeze(1)
-            if need.numel() == 0:
-                continue
-            p = xs[:, need, i]
-            leader, length = xs[:, need, i - 1], lengths[need, i - 1, None]
-            for _ in range(self.config.body_passes):
-                d, direction = hair_body_signed_distance_and_normal(p.unsqueeze(2), body)
-                facts["queried"] += int(p.shape[0] * p.shape[1])
-                push = (margin - d).clamp_min(0.0)
-                if not bool((push > 0).any()):
-                    break
-                facts["pushed"] += int((push > 0).sum())
-                moved = p + push * direction.squeeze(2)
-                step = moved - leader
-                p = leader + length * step / step.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-            shift[:, need] += p - xs[:, need, i]
-            xs[:, need, i] = p
-        x[:, walked] = xs
+        x = x.to(torch.float32).contiguous()
+        pushed = walk_followers_outside(x, bound, (rest[:, 1:] - rest[:, :-1]).norm(dim=-1), body,
+                                        self.config.body_margin, self.config.body_passes)
+        facts["pushed"] = pushed
         return x
 
 
