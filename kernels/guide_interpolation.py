@@ -35,7 +35,7 @@ the body without a query.
 import warp as wp
 
 from hairwarp.config import NUM_FIXED_VERTICES
-from hairwarp.kernels.hair_body_contact import FAR, body_signed_distance, winding_signed
+from hairwarp.kernels.hair_body_contact import body_signed_distance, winding_signed
 
 wp.set_module_options({"enable_backward": False})
 
@@ -146,13 +146,15 @@ def interpolate_followers_kernel(
     num_followers: int,
     num_vertices: int,
     neighbours: int,
+    first_thread: int,
     out: wp.array(dtype=wp.vec3),
 ):
-    """x_i of one follower vertex in one frame (thread = (frame * M + follower) * N + i).
+    """x_i of one follower vertex in one frame (thread = (frame * M + follower) * N + i, counted
+    from `first_thread`: a launch may cover a part, so two CPU threads share the work).
 
     followers_rest (M*N,), follower_guides / weights / ratios (M*k,), out (B*M*N,).
     """
-    tid = wp.tid()
+    tid = wp.tid() + first_thread
     i = tid % num_vertices
     fm = tid // num_vertices
     b = fm // num_followers
@@ -183,10 +185,11 @@ def follower_distance_bound_kernel(
     num_followers: int,
     num_vertices: int,
     neighbours: int,
+    first_thread: int,
     bound: wp.array(dtype=float),
 ):
     """A lower bound [m] on the signed distance of one follower vertex (thread as above)."""
-    tid = wp.tid()
+    tid = wp.tid() + first_thread
     i = tid % num_vertices
     fm = tid // num_vertices
     b = fm // num_followers
@@ -226,6 +229,7 @@ def follower_body_walk_kernel(
     margin: float,
     passes: int,
     zero_dist: float,
+    first_thread: int,
     pushed: wp.array(dtype=wp.int32),
 ):
     """The body pass of one strand in one frame (thread = frame * M + strand), in place on x.
@@ -237,9 +241,14 @@ def follower_body_walk_kernel(
     the margin and back onto its rest length from its predecessor, up to `passes` times. The
     strand slides over the body instead of being pulled back through it; every walked segment
     keeps its rest length. x (B*M*N,), bound (B*M*N,), rest_lengths (M*(N-1),), pushed (B*M,):
-    the vertices moved.
+    the vertices moved (threads counted from `first_thread`).
+
+    Each query is capped at the segment's rest length plus the margin: a vertex whose ball of
+    that radius holds no face is on its predecessor's side of the surface, which is outside
+    (clear by its bound, or placed at the margin), so a miss is "outside" and costs a shallow
+    descent of the tree instead of the walk to the closest face.
     """
-    tid = wp.tid()
+    tid = wp.tid() + first_thread
     b = tid // num_followers
     m = tid - b * num_followers
     base = tid * num_vertices
@@ -262,7 +271,7 @@ def follower_body_walk_kernel(
             for k in range(passes):
                 found, d, g = body_signed_distance(
                     mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides,
-                    body * body_vertex_count, body * body_face_count * 3, p, float(FAR), zero_dist,
+                    body * body_vertex_count, body * body_face_count * 3, p, rest + margin, zero_dist,
                 )
                 d, g = winding_signed(winding_ids[body], p, found, d, g, zero_dist)
                 if found == 0 or d >= margin:

@@ -91,9 +91,9 @@ def test_side_threads_error_reaches_the_caller(two_interop_threads):
 
 
 def test_side_thread_is_made_again_in_a_forked_child(monkeypatch):
-    first = runtime._cpu_side_executor()
-    assert runtime._cpu_side_executor() is first
+    first = runtime.cpu_side_executor()
+    assert runtime.cpu_side_executor() is first
     monkeypatch.setattr(os, "getpid", lambda: -1)  # as a child of os.fork sees it: another process
-    child = runtime._cpu_side_executor()
+    child = runtime.cpu_side_executor()
     assert child is not first
     assert child.submit(threading.get_ident).result() != threading.get_ident()

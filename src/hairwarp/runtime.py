@@ -275,7 +275,10 @@ STREAM_FORKS = True
 _cpu_side: tuple[int, ThreadPoolExecutor] | None = None
 
 
-def _cpu_side_executor() -> ThreadPoolExecutor:
+def cpu_side_executor() -> ThreadPoolExecutor:
+    """The CPU's one side thread (made again in a forked child): work submitted to it runs beside
+    the caller's thread (Warp's CPU kernels release Python's lock, so the two use two cores).
+    """
     global _cpu_side
     if _cpu_side is None or _cpu_side[0] != os.getpid():
         _cpu_side = (os.getpid(), ThreadPoolExecutor(max_workers=1, thread_name_prefix="hairwarp-side"))
@@ -362,7 +365,7 @@ class StreamFork:
                 with torch.inference_mode(inference), torch.set_grad_enabled(grad):
                     return fn(*args, **kwargs)
 
-            return _cpu_side_executor().submit(task)
+            return cpu_side_executor().submit(task)
         done: Future = Future()
         with self:
             done.set_result(fn(*args, **kwargs))

@@ -21,6 +21,8 @@ from hairwarp.kernels import guide_interpolation as kernels
 from hairwarp.scene.rotations import matrix_to_axis_angle
 
 INDEX_DTYPES = (torch.int32, torch.int64)
+# A CPU launch of at least twice this many threads is split between two cores (`_run_shared`).
+CPU_SPLIT_THREADS = 4096
 
 
 def _quats(t: torch.Tensor) -> wp.array:
@@ -32,6 +34,22 @@ def _run(kernel, dim: int, device: torch.device, inputs, outputs) -> None:
         return
     with _warp.launch_scope(device):
         _warp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=_warp.warp_device(device))
+
+
+def _run_shared(kernel, dim: int, device: torch.device, inputs, outputs) -> None:
+    """`_run` of a kernel whose last input is its first thread's index: on the CPU the threads
+    are split in two launches, one on the side thread (`hairwarp.runtime`; Warp's CPU kernels
+    release Python's lock), so both cores work; one launch elsewhere.
+    """
+    from hairwarp.runtime import cpu_side_executor
+
+    half = dim // 2
+    if device.type != "cpu" or half < CPU_SPLIT_THREADS or torch.get_num_interop_threads() < 2:
+        _run(kernel, dim, device, [*inputs, 0], outputs)
+        return
+    pending = cpu_side_executor().submit(_run, kernel, dim - half, device, [*inputs, half], outputs)
+    _run(kernel, half, device, [*inputs, 0], outputs)
+    pending.result()
 
 
 def rotation_quaternions(rotation: torch.Tensor) -> torch.Tensor:
@@ -130,7 +148,7 @@ def interpolate_followers(guides_rest: torch.Tensor, guides_now: torch.Tensor, r
               _quats(rotations.detach().to(torch.float32).contiguous()),
               _warp.as_warp(followers_rest.detach().to(torch.float32).contiguous(), vec3=True),
               *_follower_arrays(follower_guides, follower_weights, follower_ratios), num_guides, m, n, k]
-    _run(kernels.interpolate_followers_kernel, batch * m * n, device, inputs, [_warp.as_warp(out, vec3=True)])
+    _run_shared(kernels.interpolate_followers_kernel, batch * m * n, device, inputs, [_warp.as_warp(out, vec3=True)])
     return out.to(guides_now.dtype)
 
 
@@ -159,7 +177,7 @@ def follower_distance_bound(guides_now: torch.Tensor, guide_signed_distance: tor
               _warp.as_warp(guide_signed_distance.detach().to(torch.float32).contiguous()),
               _warp.as_warp(followers.detach().to(torch.float32).contiguous(), vec3=True),
               *_follower_arrays(follower_guides, follower_weights, follower_ratios), num_guides, m, n, k]
-    _run(kernels.follower_distance_bound_kernel, batch * m * n, device, inputs, [_warp.as_warp(out)])
+    _run_shared(kernels.follower_distance_bound_kernel, batch * m * n, device, inputs, [_warp.as_warp(out)])
     return out
 
 
@@ -192,7 +210,7 @@ def walk_followers_outside(x: torch.Tensor, bound: torch.Tensor, rest_lengths: t
               _warp.as_warp(rest_lengths.detach().to(torch.float32).contiguous()),
               *body._kernel_arrays(torch.float32), m, n, body.num_vertices, body.num_faces,
               _body_stride(body, batch), float(margin), int(passes), float(_ZERO_DISTANCE[torch.float32])]
-    _run(kernels.follower_body_walk_kernel, batch * m, x.device, inputs, [_warp.as_warp(pushed)])
+    _run_shared(kernels.follower_body_walk_kernel, batch * m, x.device, inputs, [_warp.as_warp(pushed)])
     return pushed
 
 

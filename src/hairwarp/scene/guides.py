@@ -133,6 +133,21 @@ def nearest_guides(features: torch.Tensor, guide_features: torch.Tensor, neighbo
     return torch.cat(index), torch.cat(distance)
 
 
+def _rest_lengths_kept(rest: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """`follow_the_leader(rest, x)` for (M, N, 3) strands; on the CPU the strands' halves on two
+    cores (the side thread of `hairwarp.runtime`)."""
+    from hairwarp.ops import follow_the_leader
+    from hairwarp.ops.guide_interpolation import CPU_SPLIT_THREADS
+    from hairwarp.runtime import cpu_side_executor
+
+    half = x.shape[0] // 2
+    if x.device.type != "cpu" or half < CPU_SPLIT_THREADS // 4 or torch.get_num_interop_threads() < 2:
+        return follow_the_leader(rest, x)
+    pending = cpu_side_executor().submit(follow_the_leader, rest[half:], x[half:])
+    first = follow_the_leader(rest[:half], x[:half])
+    return torch.cat([first, pending.result()])
+
+
 @dataclass(eq=False)
 class GuideSet:
     """A groom split into guides and followers.
@@ -227,7 +242,7 @@ class GuideSet:
             exactly theirs; facts: "pushed", a (B, M) int32 tensor of the vertices the body pass
             moved per strand, on the device: read it only when needed, it waits for the GPU).
         """
-        from hairwarp.ops import follow_the_leader, hair_body_signed_distance
+        from hairwarp.ops import hair_body_signed_distance
         from hairwarp.ops.guide_interpolation import guide_frame_rotations, interpolate_followers
 
         device = guide_positions.device
@@ -239,7 +254,7 @@ class GuideSet:
         rotations = guide_frame_rotations(guides_rest, guides, head_rotation.to(device))
         x = interpolate_followers(guides_rest, guides, rotations, rest, *link)
         for b in range(batch):  # frame by frame: the rest strands are not copied B times
-            x[b] = follow_the_leader(rest, x[b])
+            x[b] = _rest_lengths_kept(rest, x[b])
         facts = {}
         if body is not None and self.config.body_passes > 0:
             if guide_signed_distance is None:
