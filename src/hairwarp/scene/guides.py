@@ -135,7 +135,8 @@ def nearest_guides(features: torch.Tensor, guide_features: torch.Tensor, neighbo
 
 def _rest_lengths_kept(rest: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     """`follow_the_leader(rest, x)` for (M, N, 3) strands; on the CPU the strands' halves on two
-    cores (the side thread of `hairwarp.runtime`)."""
+    cores (the side thread of `hairwarp.runtime`).
+    """
     from hairwarp.ops import follow_the_leader
     from hairwarp.ops.guide_interpolation import CPU_SPLIT_THREADS
     from hairwarp.runtime import cpu_side_executor
