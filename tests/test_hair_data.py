@@ -87,6 +87,12 @@ MALFORMED = {
     "nan_coordinate": (_i(1) + _i(2) + _f(0, 0, 0, 1, float("nan"), 1), "NaN"),
     "inf_coordinate": (_i(1) + _i(1) + _f(float("inf"), 0, 0), "NaN or Inf"),
     "trailing_bytes": (_i(1) + _i(1) + _f(0, 0, 0) + b"\x00\x01", "trailing"),
+    # The first fault in file order is the one named, whatever its kind.
+    "nan_in_a_later_strand": (_i(3) + _i(1) + _f(0, 0, 0) + _i(2) + _f(0, 0, 0, 1, float("inf"), 1) + _i(0),
+                              "strand 1 vertex 1 has a NaN or Inf"),
+    "nan_before_truncation": (_i(2) + _i(1) + _f(float("nan"), 0, 0) + _i(5) + _f(0, 0, 0), "strand 0 vertex 0"),
+    "truncation_before_nan": (_i(2) + _i(1) + _f(0, 0, 0) + _i(2) + _f(float("nan"), 0, 0), "truncated: strand 1"),
+    "nan_before_trailing": (_i(1) + _i(1) + _f(0, float("nan"), 0) + b"\x00", "strand 0 vertex 0 has a NaN"),
 }
 
 

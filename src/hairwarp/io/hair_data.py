@@ -30,11 +30,34 @@ def read_hair_data(path: str | os.PathLike) -> list[np.ndarray]:
         path: file path.
 
     Returns:
-        A list of S float32 arrays of shape (n_i, 3), in the file's units and axes.
+        A list of S float32 arrays of shape (n_i, 3), in the file's units and axes (views into
+        one array: `read_hair_data_flat`).
 
     Raises:
         ValueError: naming the file and what is wrong (empty, truncated, negative or absurd
             counts, NaN/Inf coordinates, trailing bytes).
+    """
+    points, counts = read_hair_data_flat(path)
+    if len(counts) == 0:
+        return []
+    return np.split(points, np.cumsum(counts)[:-1])
+
+
+def read_hair_data_flat(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Read a `.data` strand file as one array: the strands' vertices concatenated.
+
+    One pass over the vertex counts (each strand's offset depends on the ones before it), then
+    the coordinates gathered and checked in single numpy operations.
+
+    Args:
+        path: file path.
+
+    Returns:
+        (points (V, 3) float32 in the file's units and axes, counts (S,) int64): strand i is
+        points[sum(counts[:i]) : sum(counts[:i + 1])].
+
+    Raises:
+        ValueError: as `read_hair_data`, with the same messages (the first fault in file order).
     """
     name = os.fspath(path)
     try:
@@ -53,30 +76,44 @@ def read_hair_data(path: str | os.PathLike) -> list[np.ndarray]:
     # Each strand needs at least its 4-byte vertex count.
     if count > (size - 4) // 4:
         raise ValueError(f"{name}: strand count {count} is absurd for a file of {size} bytes")
-    strands = []
+    counts = []
+    fault = None  # a structural fault at strand len(counts); strands before it are whole
     offset = 4
+    unpack = _INT.unpack_from
     for i in range(count):
         if offset + 4 > size:
-            raise ValueError(f"{name}: truncated: file ends before the vertex count of strand {i} of {count}")
-        (n,) = _INT.unpack_from(data, offset)
+            fault = f"{name}: truncated: file ends before the vertex count of strand {i} of {count}"
+            break
+        (n,) = unpack(data, offset)
         offset += 4
         if n < 0:
-            raise ValueError(f"{name}: strand {i} has a negative vertex count {n}")
+            fault = f"{name}: strand {i} has a negative vertex count {n}"
+            break
         end = offset + 12 * n
         if end > size:
-            raise ValueError(
-                f"{name}: truncated: strand {i} declares {n} vertices ({12 * n} bytes) but only "
-                f"{size - offset} bytes remain"
-            )
-        xyz = np.frombuffer(data, dtype="<f4", count=3 * n, offset=offset).reshape(n, 3)
-        if not np.isfinite(xyz).all():
-            bad = int(np.nonzero(~np.isfinite(xyz).all(axis=1))[0][0])
-            raise ValueError(f"{name}: strand {i} vertex {bad} has a NaN or Inf coordinate")
-        strands.append(xyz.astype(np.float32))
+            fault = (f"{name}: truncated: strand {i} declares {n} vertices ({12 * n} bytes) but only "
+                     f"{size - offset} bytes remain")
+            break
+        counts.append(n)
         offset = end
+    counts = np.array(counts, dtype=np.int64)
+    # The whole strands as 4-byte words: each strand's count word, then its 3 n coordinates.
+    whole = 4 + 4 * len(counts) + 12 * int(counts.sum())
+    words = np.frombuffer(data, dtype="<f4", count=(whole - 4) // 4, offset=4)
+    is_coordinate = np.ones(len(words), dtype=bool)
+    is_coordinate[np.arange(len(counts)) + 3 * (np.cumsum(counts) - counts)] = False
+    points = words[is_coordinate].astype(np.float32, copy=False).reshape(-1, 3)
+    finite = np.isfinite(points).all(axis=1)
+    if not finite.all():
+        row = int(np.argmin(finite))
+        strand = int(np.searchsorted(np.cumsum(counts), row, side="right"))
+        vertex = row - int(counts[:strand].sum())
+        raise ValueError(f"{name}: strand {strand} vertex {vertex} has a NaN or Inf coordinate")
+    if fault is not None:
+        raise ValueError(fault)
     if offset != size:
         raise ValueError(f"{name}: {size - offset} trailing bytes after the last of {count} strands")
-    return strands
+    return points, counts
 
 
 def write_hair_data(path: str | os.PathLike, strands) -> None:
@@ -103,10 +140,9 @@ def write_hair_data(path: str | os.PathLike, strands) -> None:
 
 def strand_lengths(strands) -> np.ndarray:
     """Arc length of each strand [file units], (S,) float64."""
-    items = as_strand_list("strands", strands)
-    return np.array([
-        float(np.linalg.norm(np.diff(np.asarray(a, dtype=np.float64), axis=0), axis=1).sum()) for a in items
-    ])
+    from hairwarp.scene.groom import flat_strand_lengths, flatten_strands
+
+    return flat_strand_lengths(*flatten_strands(as_strand_list("strands", strands)))
 
 
 _UP_AXES = {
@@ -128,12 +164,14 @@ def load_hairstyle(
     align: str = "none",
     snap_roots: bool = True,
     head_points=None,
+    orient_roots: bool = True,
 ) -> Hairstyle:
     """Load a `.data` hairstyle onto the scalp grid, in our frame (metres, y up, face +z).
 
     Steps: read; convert units and the up axis; place it on the head (`align`); drop strands
     with fewer than 2 vertices or shorter than `min_length` (Section 3.1); resample to
-    `num_vertices` by arc length; map each root to the nearest scalp root.
+    `num_vertices` by arc length; map each root to the nearest scalp root (and after a
+    similarity fit, turn the strand there from the file's scalp normal to ours).
 
     Args:
         path: the `.data` file (PERM files: y up, face +z, centimetres).
@@ -148,19 +186,22 @@ def load_hairstyle(
         snap_roots: translate each strand so its root sits exactly on its scalp root.
         head_points: (P, 3) rest head surface [m], the similarity fit's target (default: the
             scalp grid roots).
+        orient_roots: after a similarity fit, turn the root part of each snapped strand so it
+            leaves our scalp at the angle it left the file's (`hairwarp.scene.groom`).
 
     Returns:
         A `Hairstyle`: strands (M, num_vertices, 3) float32 [m]; root_index the nearest scalp
         root of each strand; filtered the file strand indices dropped; info with the keys
         "root_distance_mean", "root_distance_max", "root_distance_median" [m] (root to
         nearest scalp root, before snapping), "num_file_strands", "translation" [m], "scale",
-        and "fit" (the fit's description, or None).
+        "fit" (the fit's description, or None), and after a turn at the roots
+        "root_rotation_deg_median" / "_max" [deg].
 
     Raises:
         ValueError: for a malformed file (naming it), bad arguments, or when no strand
             survives the filtering.
     """
-    from hairwarp.scene.groom import attach_strands, place_groom
+    from hairwarp.scene.groom import attach_flat_strands, place_flat_groom, transform_points
 
     if units not in LENGTH_UNITS:
         raise ValueError(f"units: expected one of {sorted(LENGTH_UNITS)}, got {units!r}")
@@ -174,21 +215,21 @@ def load_hairstyle(
         raise ValueError(f"num_vertices: expected an int >= 2, got {num_vertices}")
     scalp_arrays(scalp)  # checks the scalp before reading the file
     name = os.fspath(path)
-    raw = read_hair_data(name)
-    rot = _UP_AXES[up] * LENGTH_UNITS[units]
-    strands = [a.astype(np.float64) @ rot.T for a in raw]
-    if not any(len(a) >= 2 for a in strands):
+    raw, counts = read_hair_data_flat(name)
+    points = transform_points(raw, _UP_AXES[up] * LENGTH_UNITS[units])
+    if not (counts >= 2).any():
         raise ValueError(f"{name}: no strand with at least 2 vertices")
     head = scalp_arrays(scalp)[0] if head_points is None else np.asarray(head_points, dtype=np.float64)
     try:
-        style, fit = place_groom(strands, scalp, head, fit=modes[align], num_vertices=int(num_vertices),
-                                 min_length=float(min_length), name=os.path.basename(name))
+        style, fit = place_flat_groom(points, counts, scalp, head, fit=modes[align], num_vertices=int(num_vertices),
+                                      min_length=float(min_length), name=os.path.basename(name),
+                                      orient_roots=orient_roots)
     except ValueError as exc:
         raise ValueError(f"{name}: {exc}") from None
     if not snap_roots:
-        moved = [a if fit is None else fit.apply(a) for a in strands]
-        style = attach_strands(moved, scalp, num_vertices=int(num_vertices), min_length=float(min_length),
-                               snap_roots=False, name=style.name, info=style.info)
+        moved = points if fit is None else fit.apply(points)
+        style = attach_flat_strands(moved, counts, scalp, num_vertices=int(num_vertices), min_length=float(min_length),
+                                    snap_roots=False, name=style.name, info=style.info)
     style.info["translation"] = np.zeros(3) if fit is None else fit.translation
     style.info["scale"] = 1.0 if fit is None else fit.scale
     return style

@@ -304,8 +304,9 @@ def _open_stage(path):
 def _world(prim, points: np.ndarray, time, Usd, UsdGeom) -> np.ndarray:
     """Prim-local points (P, 3) in the stage's world frame (its Xform ancestors applied)."""
     matrix = np.array(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(time), dtype=np.float64)
-    # USD matrices act on row vectors: p_world = [p 1] M.
-    return points.astype(np.float64) @ matrix[:3, :3] + matrix[3, :3]
+    # USD matrices act on row vectors: p_world = [p 1] M. By einsum's own loop: a BLAS product
+    # of millions of points with a 3 x 3 matrix crawls on a CPU whose cores are shared.
+    return np.einsum("pj,jk->pk", points.astype(np.float64), matrix[:3, :3]) + matrix[3, :3]
 
 
 def read_usd_curves(path: str | os.PathLike) -> dict:
@@ -316,7 +317,9 @@ def read_usd_curves(path: str | os.PathLike) -> dict:
     gives its first sample.
 
     Returns:
-        dict with strands: list of (n_i, 3) float64 arrays [m]; up_axis; meters_per_unit;
+        dict with strands: list of (n_i, 3) float64 arrays [m] (views into `points`); points:
+        (V, 3) float64 [m], the strands concatenated; counts: (S,) int64 vertices per strand
+        (`hairwarp.scene.groom.place_flat_groom` takes these two); up_axis; meters_per_unit;
         prim: the curves' path.
 
     Raises:
@@ -342,7 +345,8 @@ def read_usd_curves(path: str | os.PathLike) -> dict:
     time = Usd.TimeCode(times[0]) if times else Usd.TimeCode.Default()
     world = _from_stage(_world(prim, points, time, Usd, UsdGeom), up_axis, mpu).astype(np.float64)
     strands = np.split(world, np.cumsum(counts)[:-1])
-    return {"strands": strands, "up_axis": up_axis, "meters_per_unit": mpu, "prim": str(prim.GetPath())}
+    return {"strands": strands, "points": world, "counts": counts, "up_axis": up_axis, "meters_per_unit": mpu,
+            "prim": str(prim.GetPath())}
 
 
 def read_usd_mesh(path: str | os.PathLike) -> dict:
