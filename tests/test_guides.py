@@ -90,7 +90,9 @@ def test_frame_rotations_and_followers_match_the_float64_reference(rng):
 
 
 def test_head_rotation_quaternions_are_the_matrices(rng):
-    matrices = np.stack([random_rotation(rng) for _ in range(6)] + [np.eye(3)])
+    half_turns = [axis_angle_to_matrix(torch.tensor(np.pi * np.asarray(a) / np.linalg.norm(a))).numpy()
+                  for a in ([1.0, -1.0, 0.0], [0.0, 1.0, 0.0], [1.0, 2.0, -3.0])]
+    matrices = np.stack([random_rotation(rng) for _ in range(6)] + [np.eye(3)] + half_turns)
     q = rotation_quaternions(torch.tensor(matrices))
     np.testing.assert_allclose(quaternion_matrices(q), matrices, atol=1e-6)
 

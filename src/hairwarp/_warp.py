@@ -282,21 +282,26 @@ _views: dict = {}
 _MAX_VIEWS = 1024
 
 
-def as_warp(t: torch.Tensor, vec3: bool = False) -> wp.array:
-    """Zero-copy Warp view of a tensor, flat; `vec3=True` views (..., 3) as vec3. A
-    non-contiguous tensor is copied first (pass only inputs so). The view keeps the tensor alive.
+def as_warp(t: torch.Tensor, vec3: bool = False, quat: bool = False) -> wp.array:
+    """Zero-copy Warp view of a tensor, flat; `vec3=True` views (..., 3) as vec3, `quat=True` a
+    float32 (..., 4) as quaternions (x, y, z, w). A non-contiguous tensor is copied first (pass
+    only inputs so). The view keeps the tensor alive.
     """
     init()
     t = t.detach()
     if not t.is_contiguous():
         t = t.contiguous()
-    key = (t.data_ptr(), t.numel(), t.dtype, vec3, t.device)
+    key = (t.data_ptr(), t.numel(), t.dtype, vec3, quat, t.device)
     template = _views.get(key)
     if template is None:
         if len(_views) >= _MAX_VIEWS:
             _views.clear()
-        flat = t.reshape(-1, 3) if vec3 else t.reshape(-1)
-        template = wp.from_torch(flat, dtype=_VEC3[t.dtype] if vec3 else _SCALAR.get(t.dtype), requires_grad=False)
+        if quat:
+            flat, dtype = t.reshape(-1, 4), wp.quat
+        else:
+            flat = t.reshape(-1, 3) if vec3 else t.reshape(-1)
+            dtype = _VEC3[t.dtype] if vec3 else _SCALAR.get(t.dtype)
+        template = wp.from_torch(flat, dtype=dtype, requires_grad=False)
         template._tensor = None
         _views[key] = template
     view = object.__new__(type(template))

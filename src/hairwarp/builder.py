@@ -132,14 +132,13 @@ def load_body(body: str = "default"):
 
 def data_units(path: str, units: str = "auto") -> str:
     """The length unit of a `.data` file: `units`, or for "auto" cm/m by the hair's extent."""
-    from hairwarp.io.hair_data import read_hair_data
+    from hairwarp.io.hair_data import read_hair_data_flat
 
     if units != "auto":
         return units
-    strands = [s for s in read_hair_data(path) if len(s)]
-    if not strands:
+    points, _ = read_hair_data_flat(path)
+    if len(points) == 0:
         return "m"
-    points = np.concatenate(strands)
     return "cm" if float((points.max(0) - points.min(0)).max()) > AUTO_CM_EXTENT else "m"
 
 

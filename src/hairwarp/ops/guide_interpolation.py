@@ -13,20 +13,18 @@ and carries no gradient: the followers are a post-process of a method's guides.
 from __future__ import annotations
 
 import torch
-import warp as wp
 
 from hairwarp import _warp
 from hairwarp._validate import check_tensor
 from hairwarp.kernels import guide_interpolation as kernels
-from hairwarp.scene.rotations import matrix_to_axis_angle
 
 INDEX_DTYPES = (torch.int32, torch.int64)
 # A CPU launch of at least twice this many threads is split between two cores (`_run_shared`).
 CPU_SPLIT_THREADS = 4096
 
 
-def _quats(t: torch.Tensor) -> wp.array:
-    return wp.from_torch(t.reshape(-1, 4), dtype=wp.quat, requires_grad=False)
+def _quats(t: torch.Tensor):
+    return _warp.as_warp(t, quat=True)
 
 
 def _run(kernel, dim: int, device: torch.device, inputs, outputs) -> None:
@@ -53,12 +51,26 @@ def _run_shared(kernel, dim: int, device: torch.device, inputs, outputs) -> None
 
 
 def rotation_quaternions(rotation: torch.Tensor) -> torch.Tensor:
-    """(..., 3, 3) rotation matrices -> (..., 4) unit quaternions (x, y, z, w), float32."""
-    axis_angle = matrix_to_axis_angle(rotation.double())
-    angle = axis_angle.norm(dim=-1, keepdim=True)
-    axis = axis_angle / angle.clamp_min(1e-30)
-    q = torch.cat([axis * torch.sin(angle / 2), torch.cos(angle / 2)], dim=-1)
-    return q.to(torch.float32)
+    """(..., 3, 3) rotation matrices -> (..., 4) unit quaternions (x, y, z, w), float32.
+
+    Shepperd's method: each matrix's quaternion is read from whichever of w, x, y, z is largest
+    (that component's square root is far from zero), so half turns come out exact.
+    """
+    r = rotation.double()
+    m00, m11, m22 = r[..., 0, 0], r[..., 1, 1], r[..., 2, 2]
+    trace = m00 + m11 + m22
+    candidates = torch.stack([
+        torch.stack([r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0], r[..., 1, 0] - r[..., 0, 1], 1 + trace], -1),
+        torch.stack([1 + m00 - m11 - m22, r[..., 0, 1] + r[..., 1, 0], r[..., 0, 2] + r[..., 2, 0],
+                     r[..., 2, 1] - r[..., 1, 2]], -1),
+        torch.stack([r[..., 0, 1] + r[..., 1, 0], 1 - m00 + m11 - m22, r[..., 1, 2] + r[..., 2, 1],
+                     r[..., 0, 2] - r[..., 2, 0]], -1),
+        torch.stack([r[..., 0, 2] + r[..., 2, 0], r[..., 1, 2] + r[..., 2, 1], 1 - m00 - m11 + m22,
+                     r[..., 1, 0] - r[..., 0, 1]], -1),
+    ], -2)  # (..., 4 branches, 4): each branch's quaternion times 4 * its leading component
+    best = torch.stack([trace, m00, m11, m22], -1).argmax(-1)
+    q = candidates.gather(-2, best[..., None, None].expand(*best.shape, 1, 4)).squeeze(-2)
+    return (q / q.norm(dim=-1, keepdim=True)).to(torch.float32)
 
 
 def _check_guides(guides_rest: torch.Tensor, guides_now: torch.Tensor) -> tuple[int, int, int]:
