@@ -86,7 +86,7 @@ FRAME_WINDOW = 4
 
 
 def guide_frame_rotations(guides_rest: torch.Tensor, guides_now: torch.Tensor,
-                          head_rotation: torch.Tensor, window: int = FRAME_WINDOW) -> torch.Tensor:
+                          head_rotation: torch.Tensor, window: int = FRAME_WINDOW, *, check: bool = True) -> torch.Tensor:
     """The rotation of each guide segment's parallel-transported frame from rest to now.
 
     Args:
@@ -94,14 +94,18 @@ def guide_frame_rotations(guides_rest: torch.Tensor, guides_now: torch.Tensor,
         guides_now: (B, K, N, 3) the same guides in B frames [m] (a method's result).
         head_rotation: (B, 3, 3) the head's rotation in each frame (`PosedBody.head_transform`).
         window: segments on each side over which a segment's direction is read (0: its own).
+        check: validate the arguments (False: a caller that built them itself; on a GPU each
+            check of a tensor's values waits for the device).
 
     Returns:
         (B, K, N-1, 4) float32 unit quaternions (x, y, z, w), R_i = F_i F0_i^T per segment.
     """
-    batch, k, n = _check_guides(guides_rest, guides_now)
-    check_tensor("head_rotation", head_rotation, shape=(batch, 3, 3), device=guides_rest.device)
-    if isinstance(window, bool) or not isinstance(window, int) or window < 0:
-        raise ValueError(f"window: expected an integer >= 0, got {window!r}")
+    if check:
+        _check_guides(guides_rest, guides_now)
+        check_tensor("head_rotation", head_rotation, shape=(guides_now.shape[0], 3, 3), device=guides_rest.device)
+        if isinstance(window, bool) or not isinstance(window, int) or window < 0:
+            raise ValueError(f"window: expected an integer >= 0, got {window!r}")
+    batch, k, n = guides_now.shape[0], guides_rest.shape[0], guides_rest.shape[1]
     device = guides_rest.device
     rest = guides_rest.detach().to(torch.float32).contiguous()
     now = guides_now.detach().to(torch.float32).contiguous()
@@ -134,7 +138,8 @@ def _follower_arrays(follower_guides, follower_weights, follower_ratios) -> list
 
 def interpolate_followers(guides_rest: torch.Tensor, guides_now: torch.Tensor, rotations: torch.Tensor,
                           followers_rest: torch.Tensor, follower_guides: torch.Tensor,
-                          follower_weights: torch.Tensor, follower_ratios: torch.Tensor) -> torch.Tensor:
+                          follower_weights: torch.Tensor, follower_ratios: torch.Tensor, *,
+                          check: bool = True) -> torch.Tensor:
     """Follower strands carried by their guides' frames (`hairwarp.kernels.guide_interpolation`).
 
     Args:
@@ -145,15 +150,18 @@ def interpolate_followers(guides_rest: torch.Tensor, guides_now: torch.Tensor, r
         follower_guides: (M, k) int guide indices of each follower.
         follower_weights: (M, k) blend weights (rows sum to 1; 0 skips a slot).
         follower_ratios: (M, k) follower rest length / guide rest length.
+        check: as in `guide_frame_rotations`.
 
     Returns:
         (B, M, N, 3) follower positions [m], in the dtype of `guides_now`.
     """
-    batch, num_guides, n = _check_guides(guides_rest, guides_now)
+    batch, num_guides, n = guides_now.shape[0], guides_rest.shape[0], guides_rest.shape[1]
     device = guides_rest.device
-    check_tensor("rotations", rotations, shape=(batch, num_guides, n - 1, 4), device=device)
-    k = _check_followers(followers_rest, follower_guides, follower_weights, follower_ratios, num_guides, n, device)
-    m = followers_rest.shape[0]
+    if check:
+        _check_guides(guides_rest, guides_now)
+        check_tensor("rotations", rotations, shape=(batch, num_guides, n - 1, 4), device=device)
+        _check_followers(followers_rest, follower_guides, follower_weights, follower_ratios, num_guides, n, device)
+    m, k = followers_rest.shape[0], follower_guides.shape[1]
     out = torch.empty(batch, m, n, 3, dtype=torch.float32, device=device)
     inputs = [_warp.as_warp(guides_rest.detach().to(torch.float32).contiguous(), vec3=True),
               _warp.as_warp(guides_now.detach().to(torch.float32).contiguous(), vec3=True),
@@ -166,24 +174,27 @@ def interpolate_followers(guides_rest: torch.Tensor, guides_now: torch.Tensor, r
 
 def follower_distance_bound(guides_now: torch.Tensor, guide_signed_distance: torch.Tensor, followers: torch.Tensor,
                             follower_guides: torch.Tensor, follower_weights: torch.Tensor,
-                            follower_ratios: torch.Tensor) -> torch.Tensor:
+                            follower_ratios: torch.Tensor, *, check: bool = True) -> torch.Tensor:
     """A lower bound on each follower vertex's signed distance to the body [m].
 
     Args:
         guides_now: (B, K, N, 3) guides [m]; guide_signed_distance: (B, K, N) theirs [m].
         followers: (B, M, N, 3) follower positions [m].
         follower_guides, follower_weights, follower_ratios: as `interpolate_followers`.
+        check: as in `guide_frame_rotations`.
 
     Returns:
         (B, M, N) float32: d(x) >= bound for every vertex (1-Lipschitz signed distance).
     """
-    check_tensor("guides_now", guides_now, shape=(None, None, None, 3), allow_empty=False)
+    if check:
+        check_tensor("guides_now", guides_now, shape=(None, None, None, 3), allow_empty=False)
     batch, num_guides, n = guides_now.shape[:3]
     device = guides_now.device
-    check_tensor("guide_signed_distance", guide_signed_distance, shape=(batch, num_guides, n), device=device)
-    check_tensor("followers", followers, shape=(batch, None, n, 3), device=device)
-    m = followers.shape[1]
-    k = _check_followers(followers[0], follower_guides, follower_weights, follower_ratios, num_guides, n, device)
+    if check:
+        check_tensor("guide_signed_distance", guide_signed_distance, shape=(batch, num_guides, n), device=device)
+        check_tensor("followers", followers, shape=(batch, None, n, 3), device=device)
+        _check_followers(followers[0], follower_guides, follower_weights, follower_ratios, num_guides, n, device)
+    m, k = followers.shape[1], follower_guides.shape[1]
     out = torch.empty(batch, m, n, dtype=torch.float32, device=device)
     inputs = [_warp.as_warp(guides_now.detach().to(torch.float32).contiguous(), vec3=True),
               _warp.as_warp(guide_signed_distance.detach().to(torch.float32).contiguous()),
@@ -194,7 +205,7 @@ def follower_distance_bound(guides_now: torch.Tensor, guide_signed_distance: tor
 
 
 def walk_followers_outside(x: torch.Tensor, bound: torch.Tensor, rest_lengths: torch.Tensor, body,
-                           margin: float, passes: int) -> torch.Tensor:
+                           margin: float, passes: int, *, check: bool = True) -> torch.Tensor:
     """Keep strands out of the body, in place (`follower_body_walk_kernel`, one thread per strand).
 
     Args:
@@ -204,6 +215,7 @@ def walk_followers_outside(x: torch.Tensor, bound: torch.Tensor, rest_lengths: t
         body: the frames' `BodyMesh` (batch 1 or B).
         margin: the signed distance vertices are pushed to [m].
         passes: push-and-project rounds per vertex.
+        check: as in `guide_frame_rotations`.
 
     Returns:
         (B, M) int32: the vertices each strand's walk moved.
@@ -211,10 +223,11 @@ def walk_followers_outside(x: torch.Tensor, bound: torch.Tensor, rest_lengths: t
     from hairwarp.ops.hair_body_contact import _ZERO_DISTANCE, _body_stride, _check_body
 
     _check_body(body)
-    check_tensor("x", x, shape=(None, None, None, 3), dtypes=(torch.float32,), device=body.device)
     batch, m, n = x.shape[:3]
-    check_tensor("bound", bound, shape=(batch, m, n), dtypes=(torch.float32,), device=x.device, finite=False)
-    check_tensor("rest_lengths", rest_lengths, shape=(m, n - 1), device=x.device)
+    if check:
+        check_tensor("x", x, shape=(None, None, None, 3), dtypes=(torch.float32,), device=body.device)
+        check_tensor("bound", bound, shape=(batch, m, n), dtypes=(torch.float32,), device=x.device, finite=False)
+        check_tensor("rest_lengths", rest_lengths, shape=(m, n - 1), device=x.device)
     if not x.is_contiguous():
         raise ValueError("x: expected a contiguous tensor (it is changed in place)")
     pushed = torch.zeros(batch, m, dtype=torch.int32, device=x.device)

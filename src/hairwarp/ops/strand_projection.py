@@ -52,7 +52,7 @@ class _FollowTheLeader(torch.autograd.Function):
         return None, grad_target
 
 
-def follow_the_leader(rigid: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+def follow_the_leader(rigid: torch.Tensor, target: torch.Tensor, *, check: bool = True) -> torch.Tensor:
     """Project target strands onto the rest segment lengths of the rigid placement.
 
     x_k = target_k for the fixed vertices k < 2; then x_i = x_{i-1} + l_i * unit(target_i -
@@ -63,6 +63,8 @@ def follow_the_leader(rigid: torch.Tensor, target: torch.Tensor) -> torch.Tensor
         rigid: (..., M, N, 3) strands whose segment lengths are the rest lengths [m] (the
             rigid placement, Eq. 1); treated as constant (no gradient).
         target: (..., M, N, 3) wanted positions [m], same shape, dtype and device.
+        check: validate the arguments (False: a caller that built them; each check of a
+            tensor's values waits for a GPU).
 
     Returns:
         (..., M, N, 3) projected positions [m], differentiable w.r.t. `target`.
@@ -70,12 +72,13 @@ def follow_the_leader(rigid: torch.Tensor, target: torch.Tensor) -> torch.Tensor
     Raises:
         ValueError: on a wrong shape, dtype or device, fewer than 3 vertices, NaN or Inf.
     """
-    check_tensor("rigid", rigid, shape=["...", None, 3])
-    check_tensor("target", target, dtypes=(rigid.dtype,), device=rigid.device)
-    if target.shape != rigid.shape:
-        raise ValueError(f"target: expected shape {tuple(rigid.shape)} like rigid, got {tuple(target.shape)}")
-    if rigid.dim() < 3 or rigid.shape[-2] <= NUM_FIXED_VERTICES:
-        raise ValueError(f"rigid: expected (..., M, N, 3) with N > {NUM_FIXED_VERTICES}, got {tuple(rigid.shape)}")
+    if check:
+        check_tensor("rigid", rigid, shape=["...", None, 3])
+        check_tensor("target", target, dtypes=(rigid.dtype,), device=rigid.device)
+        if target.shape != rigid.shape:
+            raise ValueError(f"target: expected shape {tuple(rigid.shape)} like rigid, got {tuple(target.shape)}")
+        if rigid.dim() < 3 or rigid.shape[-2] <= NUM_FIXED_VERTICES:
+            raise ValueError(f"rigid: expected (..., M, N, 3) with N > {NUM_FIXED_VERTICES}, got {tuple(rigid.shape)}")
     return _FollowTheLeader.apply(rigid.detach(), target)
 
 

@@ -38,6 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from hairwarp._validate import check_tensor
 from hairwarp.config import NUM_FIXED_VERTICES
 
 # Quarters of a strand whose mean positions describe its shape in the guide choice.
@@ -159,9 +160,9 @@ def _rest_lengths_kept(rest: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
 
     half = x.shape[0] // 2
     if x.device.type != "cpu" or half < CPU_SPLIT_THREADS // 4 or torch.get_num_interop_threads() < 2:
-        return follow_the_leader(rest, x)
-    pending = cpu_side_executor().submit(follow_the_leader, rest[half:], x[half:])
-    first = follow_the_leader(rest[:half], x[:half])
+        return follow_the_leader(rest, x, check=False)
+    pending = cpu_side_executor().submit(follow_the_leader, rest[half:], x[half:].contiguous(), check=False)
+    first = follow_the_leader(rest[:half], x[:half].contiguous(), check=False)
     return torch.cat([first, pending.result()])
 
 
@@ -237,6 +238,20 @@ class GuideSet:
             reach.scatter_reduce_(0, g, far, reduce="amax")
         return reach
 
+    def _on(self, device: torch.device) -> dict:
+        """The groom's tensors on `device`, copied there once (100 000 strands are 120 MB)."""
+        key = str(device)
+        cache = self.__dict__.setdefault("_device_cache", {})
+        if key not in cache:
+            rest = self.groom.strands.to(device=device, dtype=torch.float32).contiguous()
+            index = self.guide_indices.to(device)
+            cache[key] = {"rest": rest, "guide_indices": index, "guides_rest": rest[index].contiguous(),
+                          "rest_lengths": (rest[:, 1:] - rest[:, :-1]).norm(dim=-1).contiguous(),
+                          "link": [self.follower_guides.to(device=device, dtype=torch.int32).contiguous(),
+                                   self.follower_weights.to(device).contiguous(),
+                                   self.follower_ratios.to(device).contiguous()]}
+        return cache[key]
+
     def describe(self) -> str:
         b = self.bundle_sizes.double()
         return (f"{self.num_guides} guides of {self.num_strands} strands (bundles of {int(b.min())}-"
@@ -263,21 +278,23 @@ class GuideSet:
         from hairwarp.ops.guide_interpolation import guide_frame_rotations, interpolate_followers
 
         device = guide_positions.device
-        rest = self.groom.strands.to(device=device, dtype=torch.float32)
-        guides_rest = rest[self.guide_indices.to(device)]
+        on = self._on(device)
+        rest, guides_rest, link = on["rest"], on["guides_rest"], on["link"]
         guides = guide_positions.to(torch.float32)
         batch = guides.shape[0]
-        link = [t.to(device) for t in (self.follower_guides, self.follower_weights, self.follower_ratios)]
-        rotations = guide_frame_rotations(guides_rest, guides, head_rotation.to(device))
-        x = interpolate_followers(guides_rest, guides, rotations, rest, *link)
+        check_tensor("guide_positions", guides, shape=(None, self.num_guides, rest.shape[1], 3))
+        check_tensor("head_rotation", head_rotation, shape=(batch, 3, 3))
+        # The groom's own tensors need no check; the guides' were checked once above.
+        rotations = guide_frame_rotations(guides_rest, guides, head_rotation.to(device), check=False)
+        x = interpolate_followers(guides_rest, guides, rotations, rest, *link, check=False)
         for b in range(batch):  # frame by frame: the rest strands are not copied B times
             x[b] = _rest_lengths_kept(rest, x[b])
         facts = {}
         if body is not None and self.config.body_passes > 0:
             if guide_signed_distance is None:
                 guide_signed_distance = hair_body_signed_distance(guides, body)
-            x = self._keep_outside(x, guides, guide_signed_distance.to(torch.float32), body, rest, link, facts)
-        x[:, self.guide_indices.to(device)] = guides
+            x = self._keep_outside(x, guides, guide_signed_distance.to(torch.float32), body, on, facts)
+        x[:, on["guide_indices"]] = guides
         return x.to(guide_positions.dtype), facts
 
     @torch.no_grad()
@@ -300,17 +317,18 @@ class GuideSet:
         from hairwarp.ops.guide_interpolation import follower_distance_bound
 
         device = x.device
-        link = [t.to(device) for t in (self.follower_guides, self.follower_weights, self.follower_ratios)]
+        on = self._on(device)
+        link = on["link"]
         out = follower_distance_bound(guide_positions.to(torch.float32), guide_signed_distance.to(torch.float32),
                                       x.to(torch.float32), *link)
         strand, vertex = (out < exact_below).any(dim=0).nonzero(as_tuple=True)
         if strand.numel():
             points = x[:, strand, vertex].unsqueeze(2).to(torch.float32)
             out[:, strand, vertex] = hair_body_signed_distance(points, body).squeeze(2)
-        out[:, self.guide_indices.to(device)] = guide_signed_distance.to(torch.float32)
+        out[:, on["guide_indices"]] = guide_signed_distance.to(torch.float32)
         return out
 
-    def _keep_outside(self, x, guides, guide_sd, body, rest, link, facts):
+    def _keep_outside(self, x, guides, guide_sd, body, on, facts):
         """The body pass (`hairwarp.kernels.guide_interpolation.follower_body_walk_kernel`):
         every strand whose bound comes within the margin is walked from there to its tip, each
         vertex keeping its rest offset from its predecessor unless it is inside (or within the
@@ -318,12 +336,12 @@ class GuideSet:
         """
         from hairwarp.ops.guide_interpolation import follower_distance_bound, walk_followers_outside
 
-        bound = follower_distance_bound(guides, guide_sd, x, *link)
+        bound = follower_distance_bound(guides, guide_sd, x, *on["link"], check=False)
         bound[:, :, :NUM_FIXED_VERTICES] = float("inf")  # the root and its neighbour stay with the scalp
-        bound[:, self.guide_indices.to(x.device)] = float("inf")  # the guides are the method's
+        bound[:, on["guide_indices"]] = float("inf")  # the guides are the method's
         x = x.to(torch.float32).contiguous()
-        pushed = walk_followers_outside(x, bound, (rest[:, 1:] - rest[:, :-1]).norm(dim=-1), body,
-                                        self.config.body_margin, self.config.body_passes)
+        pushed = walk_followers_outside(x, bound, on["rest_lengths"], body, self.config.body_margin,
+                                        self.config.body_passes, check=False)
         facts["pushed"] = pushed
         return x
 
