@@ -24,7 +24,8 @@ the scalp), and keeps its rest offset from that anchor in the segment's frame:
 A follower sitting on its guide (offset zero, ratio 1, one guide) reproduces it exactly; a curl
 of the follower is carried in its offsets, so it keeps its shape as the frames turn.
 
-Body walk. `follower_body_walk_kernel` keeps the followers out of the body (its docstring).
+One pass. `follow_guides_kernel` walks each strand from its root: the target above, the rest
+length (follow-the-leader) and the body (its docstring), one thread per strand.
 
 Bound. The signed distance is 1-Lipschitz: for any guide vertex g with signed distance d_g,
 d(x) >= d_g - |x - g|. `follower_distance_bound_kernel` takes the largest such bound over the
@@ -133,8 +134,67 @@ def anchor_segment(i: int, ratio: float, num_vertices: int):
     return i0, u - float(i0)
 
 
+@wp.func
+def follower_target(
+    guides_rest: wp.array(dtype=wp.vec3),
+    guides_now: wp.array(dtype=wp.vec3),
+    rotations: wp.array(dtype=wp.quat),
+    x0: wp.vec3,
+    follower_guides: wp.array(dtype=wp.int32),
+    follower_weights: wp.array(dtype=float),
+    follower_ratios: wp.array(dtype=float),
+    row: int,
+    b: int,
+    i: int,
+    num_guides: int,
+    num_vertices: int,
+    neighbours: int,
+):
+    """x_i of a follower (its rest vertex x0, its guides from `row` = m * k): the blend above."""
+    x = wp.vec3(0.0, 0.0, 0.0)
+    for j in range(neighbours):
+        w = follower_weights[row + j]
+        if w != 0.0:
+            g = follower_guides[row + j]
+            i0, a = anchor_segment(i, follower_ratios[row + j], num_vertices)
+            p0 = guide_anchor(guides_rest, g * num_vertices, i0, a)
+            p = guide_anchor(guides_now, (b * num_guides + g) * num_vertices, i0, a)
+            q = rotations[(b * num_guides + g) * (num_vertices - 1) + i0]
+            x += w * (p + wp.quat_rotate(q, x0 - p0))
+    return x
+
+
+@wp.func
+def distance_bound(
+    guides_now: wp.array(dtype=wp.vec3),
+    guide_signed_distance: wp.array(dtype=float),
+    x: wp.vec3,
+    follower_guides: wp.array(dtype=wp.int32),
+    follower_weights: wp.array(dtype=float),
+    follower_ratios: wp.array(dtype=float),
+    row: int,
+    b: int,
+    i: int,
+    num_guides: int,
+    num_vertices: int,
+    neighbours: int,
+):
+    """The largest d_g - |x - g| over a follower vertex's guides (at their anchor vertices)."""
+    best = float(-1.0e30)
+    for j in range(neighbours):
+        if follower_weights[row + j] != 0.0:
+            g = follower_guides[row + j]
+            i0, a = anchor_segment(i, follower_ratios[row + j], num_vertices)
+            near = i0
+            if a > 0.5:
+                near = i0 + 1
+            k = (b * num_guides + g) * num_vertices + near
+            best = wp.max(best, guide_signed_distance[k] - wp.length(x - guides_now[k]))
+    return best
+
+
 @wp.kernel
-def interpolate_followers_kernel(
+def follow_guides_kernel(
     guides_rest: wp.array(dtype=wp.vec3),
     guides_now: wp.array(dtype=wp.vec3),
     rotations: wp.array(dtype=wp.quat),
@@ -142,35 +202,91 @@ def interpolate_followers_kernel(
     follower_guides: wp.array(dtype=wp.int32),
     follower_weights: wp.array(dtype=float),
     follower_ratios: wp.array(dtype=float),
+    guide_slot: wp.array(dtype=wp.int32),
+    rest_lengths: wp.array(dtype=float),
+    guide_signed_distance: wp.array(dtype=float),
+    mesh_ids: wp.array(dtype=wp.uint64),
+    body_vertices: wp.array(dtype=wp.vec3),
+    faces: wp.array(dtype=wp.int32),
+    vertex_normals: wp.array(dtype=wp.vec3),
+    edge_normals: wp.array(dtype=wp.vec3),
+    winding_ids: wp.array(dtype=wp.uint64),
+    first_piece: int,
+    seam_sides: wp.array(dtype=wp.vec4),
+    body_vertex_count: int,
+    body_face_count: int,
+    body_batch_stride: int,
     num_guides: int,
     num_followers: int,
     num_vertices: int,
     neighbours: int,
+    project: int,
+    body_pass: int,
+    margin: float,
+    passes: int,
+    zero_dist: float,
     first_thread: int,
     out: wp.array(dtype=wp.vec3),
+    pushed: wp.array(dtype=wp.int32),
 ):
-    """x_i of one follower vertex in one frame (thread = (frame * M + follower) * N + i, counted
-    from `first_thread`: a launch may cover a part, so two CPU threads share the work).
+    """One strand of the groom in one frame (thread = frame * M + strand, from `first_thread`).
 
-    followers_rest (M*N,), follower_guides / weights / ratios (M*k,), out (B*M*N,).
+    A guide's row (`guide_slot` >= 0) is the guide's. A follower is walked from its root: each
+    vertex's target is `follower_target`; with `project` the vertex is placed on the ray from
+    its (placed) predecessor to the target at its rest length (follow-the-leader, Mueller et al.
+    2012); with `body_pass`, where the vertex's `distance_bound` is below `margin` its signed
+    distance is queried and, inside or within the margin, it is pushed out along the gradient to
+    the margin and back onto its rest length, up to `passes` times. Each query is capped at the
+    segment's rest length plus the margin: a vertex whose ball of that radius holds no face is on
+    its predecessor's side of the surface, outside (clear by its bound or placed at the margin),
+    so a miss costs a shallow descent of the tree. The strand slides over the body; every
+    segment keeps its rest length. out (B*M*N,), pushed (B*M,): vertices the body pass moved.
     """
     tid = wp.tid() + first_thread
-    i = tid % num_vertices
-    fm = tid // num_vertices
-    b = fm // num_followers
-    m = fm - b * num_followers
-    x0 = followers_rest[m * num_vertices + i]
-    x = wp.vec3(0.0, 0.0, 0.0)
-    for j in range(neighbours):
-        w = follower_weights[m * neighbours + j]
-        if w != 0.0:
-            g = follower_guides[m * neighbours + j]
-            i0, a = anchor_segment(i, follower_ratios[m * neighbours + j], num_vertices)
-            p0 = guide_anchor(guides_rest, g * num_vertices, i0, a)
-            p = guide_anchor(guides_now, (b * num_guides + g) * num_vertices, i0, a)
-            q = rotations[(b * num_guides + g) * (num_vertices - 1) + i0]
-            x += w * (p + wp.quat_rotate(q, x0 - p0))
-    out[tid] = x
+    b = tid // num_followers
+    m = tid - b * num_followers
+    base = tid * num_vertices
+    slot = guide_slot[m]
+    if slot >= 0:
+        for i in range(num_vertices):
+            out[base + i] = guides_now[(b * num_guides + slot) * num_vertices + i]
+        pushed[tid] = 0
+        return
+    row = m * neighbours
+    body = b * body_batch_stride
+    leader = wp.vec3(0.0, 0.0, 0.0)
+    count = int(0)
+    for i in range(num_vertices):
+        x = follower_target(guides_rest, guides_now, rotations, followers_rest[m * num_vertices + i],
+                            follower_guides, follower_weights, follower_ratios, row, b, i, num_guides,
+                            num_vertices, neighbours)
+        if i >= FIXED_VERTICES and project != 0:
+            rest = rest_lengths[m * (num_vertices - 1) + i - 1]
+            step = x - leader
+            n = wp.length(step)
+            if n > TANGENT_EPS:
+                x = leader + step * (rest / n)
+            if body_pass != 0:
+                if distance_bound(guides_now, guide_signed_distance, x, follower_guides, follower_weights,
+                                  follower_ratios, row, b, i, num_guides, num_vertices, neighbours) < margin:
+                    for k in range(passes):
+                        found, d, g = body_signed_distance(
+                            mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece,
+                            seam_sides, body * body_vertex_count, body * body_face_count * 3, x, rest + margin,
+                            zero_dist,
+                        )
+                        d, g = winding_signed(winding_ids[body], x, found, d, g, zero_dist)
+                        if found == 0 or d >= margin:
+                            break
+                        x = x + (margin - d) * g
+                        step = x - leader
+                        n = wp.length(step)
+                        if n > TANGENT_EPS:
+                            x = leader + step * (rest / n)
+                        count += 1
+        out[base + i] = x
+        leader = x
+    pushed[tid] = count
 
 
 @wp.kernel
@@ -188,100 +304,13 @@ def follower_distance_bound_kernel(
     first_thread: int,
     bound: wp.array(dtype=float),
 ):
-    """A lower bound [m] on the signed distance of one follower vertex (thread as above)."""
+    """A lower bound [m] on the signed distance of one follower vertex (thread = (frame * M +
+    follower) * N + i, from `first_thread`): `distance_bound`.
+    """
     tid = wp.tid() + first_thread
     i = tid % num_vertices
     fm = tid // num_vertices
     b = fm // num_followers
     m = fm - b * num_followers
-    x = followers[tid]
-    best = float(-1.0e30)
-    for j in range(neighbours):
-        if follower_weights[m * neighbours + j] != 0.0:
-            g = follower_guides[m * neighbours + j]
-            i0, a = anchor_segment(i, follower_ratios[m * neighbours + j], num_vertices)
-            near = i0
-            if a > 0.5:
-                near = i0 + 1
-            k = (b * num_guides + g) * num_vertices + near
-            best = wp.max(best, guide_signed_distance[k] - wp.length(x - guides_now[k]))
-    bound[tid] = best
-
-
-@wp.kernel
-def follower_body_walk_kernel(
-    x: wp.array(dtype=wp.vec3),
-    bound: wp.array(dtype=float),
-    rest_lengths: wp.array(dtype=float),
-    mesh_ids: wp.array(dtype=wp.uint64),
-    body_vertices: wp.array(dtype=wp.vec3),
-    faces: wp.array(dtype=wp.int32),
-    vertex_normals: wp.array(dtype=wp.vec3),
-    edge_normals: wp.array(dtype=wp.vec3),
-    winding_ids: wp.array(dtype=wp.uint64),
-    first_piece: int,
-    seam_sides: wp.array(dtype=wp.vec4),
-    num_followers: int,
-    num_vertices: int,
-    body_vertex_count: int,
-    body_face_count: int,
-    body_batch_stride: int,
-    margin: float,
-    passes: int,
-    zero_dist: float,
-    first_thread: int,
-    pushed: wp.array(dtype=wp.int32),
-):
-    """The body pass of one strand in one frame (thread = frame * M + strand), in place on x.
-
-    Walks the strand from its first vertex whose `bound` (a lower bound on its signed distance)
-    is below `margin`: each vertex keeps its rest offset from its predecessor (the displacement
-    of the vertices before it carried along) unless its signed distance, queried where the bound
-    minus that displacement is below the margin, is: then it is pushed out along the gradient to
-    the margin and back onto its rest length from its predecessor, up to `passes` times. The
-    strand slides over the body instead of being pulled back through it; every walked segment
-    keeps its rest length. x (B*M*N,), bound (B*M*N,), rest_lengths (M*(N-1),), pushed (B*M,):
-    the vertices moved (threads counted from `first_thread`).
-
-    Each query is capped at the segment's rest length plus the margin: a vertex whose ball of
-    that radius holds no face is on its predecessor's side of the surface, which is outside
-    (clear by its bound, or placed at the margin), so a miss is "outside" and costs a shallow
-    descent of the tree instead of the walk to the closest face.
-    """
-    tid = wp.tid() + first_thread
-    b = tid // num_followers
-    m = tid - b * num_followers
-    base = tid * num_vertices
-    first = int(-1)
-    for i in range(FIXED_VERTICES, num_vertices):
-        if first < 0 and bound[base + i] < margin:
-            first = i
-    if first < 0:
-        pushed[tid] = 0
-        return
-    body = b * body_batch_stride
-    shift = wp.vec3(0.0, 0.0, 0.0)
-    count = int(0)
-    for i in range(first, num_vertices):
-        original = x[base + i]
-        p = original + shift
-        if bound[base + i] - wp.length(shift) < margin:
-            leader = x[base + i - 1]
-            rest = rest_lengths[m * (num_vertices - 1) + i - 1]
-            for k in range(passes):
-                found, d, g = body_signed_distance(
-                    mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides,
-                    body * body_vertex_count, body * body_face_count * 3, p, rest + margin, zero_dist,
-                )
-                d, g = winding_signed(winding_ids[body], p, found, d, g, zero_dist)
-                if found == 0 or d >= margin:
-                    break
-                p = p + (margin - d) * g
-                step = p - leader
-                n = wp.length(step)
-                if n > TANGENT_EPS:
-                    p = leader + step * (rest / n)
-                count += 1
-            shift = p - original
-        x[base + i] = p
-    pushed[tid] = count
+    bound[tid] = distance_bound(guides_now, guide_signed_distance, followers[tid], follower_guides, follower_weights,
+                                follower_ratios, m * neighbours, b, i, num_guides, num_vertices, neighbours)

@@ -13,6 +13,7 @@ and carries no gradient: the followers are a post-process of a method's guides.
 from __future__ import annotations
 
 import torch
+import warp as wp
 
 from hairwarp import _warp
 from hairwarp._validate import check_tensor
@@ -140,7 +141,8 @@ def interpolate_followers(guides_rest: torch.Tensor, guides_now: torch.Tensor, r
                           followers_rest: torch.Tensor, follower_guides: torch.Tensor,
                           follower_weights: torch.Tensor, follower_ratios: torch.Tensor, *,
                           check: bool = True) -> torch.Tensor:
-    """Follower strands carried by their guides' frames (`hairwarp.kernels.guide_interpolation`).
+    """Follower strands carried by their guides' frames (`hairwarp.kernels.guide_interpolation`),
+    without the length projection or the body pass (`follow_guides` with neither).
 
     Args:
         guides_rest: (K, N, 3) guides at rest [m].
@@ -155,21 +157,85 @@ def interpolate_followers(guides_rest: torch.Tensor, guides_now: torch.Tensor, r
     Returns:
         (B, M, N, 3) follower positions [m], in the dtype of `guides_now`.
     """
+    x, _ = follow_guides(guides_rest, guides_now, rotations, followers_rest, follower_guides, follower_weights,
+                         follower_ratios, project=False, check=check)
+    return x.to(guides_now.dtype)
+
+
+def _no_body(device: torch.device) -> list:
+    """Empty stand-ins for a body's kernel arrays (`BodyMesh._kernel_arrays`) and counts."""
+    empty = torch.zeros(0, device=device)
+    ids = wp.empty(0, dtype=wp.uint64, device=_warp.warp_device(device))
+    return [ids, _warp.as_warp(torch.zeros(0, 3, device=device), vec3=True),
+            _warp.as_warp(torch.zeros(0, dtype=torch.int32, device=device)),
+            _warp.as_warp(torch.zeros(0, 3, device=device), vec3=True),
+            _warp.as_warp(torch.zeros(0, 3, device=device), vec3=True), ids, 0,
+            wp.empty(0, dtype=wp.vec4, device=_warp.warp_device(device)), 0, 0, 0], empty
+
+
+def follow_guides(guides_rest: torch.Tensor, guides_now: torch.Tensor, rotations: torch.Tensor,
+                  followers_rest: torch.Tensor, follower_guides: torch.Tensor, follower_weights: torch.Tensor,
+                  follower_ratios: torch.Tensor, *, guide_slot: torch.Tensor | None = None,
+                  project: bool = True, body=None, guide_signed_distance: torch.Tensor | None = None,
+                  margin: float = 1.0e-3, passes: int = 3, check: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+    """Every strand of a groom from its guides, in one pass (`follow_guides_kernel`, a thread per
+    strand): interpolated, projected onto its rest lengths, kept out of the body.
+
+    Args:
+        guides_rest, guides_now, rotations, followers_rest, follower_guides, follower_weights,
+            follower_ratios: as `interpolate_followers` (`followers_rest` is the whole groom).
+        guide_slot: (M,) int, the guide index of each strand that is a guide (its row is copied
+            from `guides_now`), -1 for the others; None: no strand is a guide.
+        project: place each vertex at its rest length from its predecessor (follow-the-leader).
+        body: the frames' `BodyMesh` (batch 1 or B) to keep the strands out of; None: no body pass
+            (needs `project`).
+        guide_signed_distance: (B, K, N) the guides' signed distances [m], with `body`.
+        margin: vertices inside or nearer the surface than this [m] are pushed to it.
+        passes: push-and-project rounds per vertex.
+        check: as in `guide_frame_rotations`.
+
+    Returns:
+        ((B, M, N, 3) float32 positions [m], (B, M) int32 vertices the body pass moved per strand).
+    """
+    from hairwarp.ops.hair_body_contact import _ZERO_DISTANCE, _body_stride, _check_body
+
     batch, num_guides, n = guides_now.shape[0], guides_rest.shape[0], guides_rest.shape[1]
     device = guides_rest.device
+    m, k = followers_rest.shape[0], follower_guides.shape[1]
     if check:
         _check_guides(guides_rest, guides_now)
         check_tensor("rotations", rotations, shape=(batch, num_guides, n - 1, 4), device=device)
         _check_followers(followers_rest, follower_guides, follower_weights, follower_ratios, num_guides, n, device)
-    m, k = followers_rest.shape[0], follower_guides.shape[1]
+        if guide_slot is not None:
+            check_tensor("guide_slot", guide_slot, shape=(m,), dtypes=INDEX_DTYPES, device=device)
+            if m and (int(guide_slot.min()) < -1 or int(guide_slot.max()) >= num_guides):
+                raise ValueError(f"guide_slot: expected -1 or a guide index in [0, {num_guides})")
+        if body is not None:
+            if not project:
+                raise ValueError("body: the body pass needs project=True (it keeps the rest lengths)")
+            _check_body(body)
+            check_tensor("guide_signed_distance", guide_signed_distance, shape=(batch, num_guides, n), device=device)
+    if guide_slot is None:
+        guide_slot = torch.full((m,), -1, dtype=torch.int32, device=device)
+    rest = followers_rest.detach().to(torch.float32).contiguous()
+    lengths = (rest[:, 1:] - rest[:, :-1]).norm(dim=-1).contiguous()
+    if body is None:
+        body_arrays, sd = _no_body(device)
+    else:
+        body_arrays = [*body._kernel_arrays(torch.float32), body.num_vertices, body.num_faces, _body_stride(body, batch)]
+        sd = guide_signed_distance.detach().to(torch.float32).contiguous()
     out = torch.empty(batch, m, n, 3, dtype=torch.float32, device=device)
+    pushed = torch.zeros(batch, m, dtype=torch.int32, device=device)
     inputs = [_warp.as_warp(guides_rest.detach().to(torch.float32).contiguous(), vec3=True),
               _warp.as_warp(guides_now.detach().to(torch.float32).contiguous(), vec3=True),
-              _quats(rotations.detach().to(torch.float32).contiguous()),
-              _warp.as_warp(followers_rest.detach().to(torch.float32).contiguous(), vec3=True),
-              *_follower_arrays(follower_guides, follower_weights, follower_ratios), num_guides, m, n, k]
-    _run_shared(kernels.interpolate_followers_kernel, batch * m * n, device, inputs, [_warp.as_warp(out, vec3=True)])
-    return out.to(guides_now.dtype)
+              _quats(rotations.detach().to(torch.float32).contiguous()), _warp.as_warp(rest, vec3=True),
+              *_follower_arrays(follower_guides, follower_weights, follower_ratios),
+              _warp.as_warp(guide_slot.to(torch.int32).contiguous()), _warp.as_warp(lengths), _warp.as_warp(sd),
+              *body_arrays, num_guides, m, n, k, int(project), int(body is not None), float(margin), int(passes),
+              float(_ZERO_DISTANCE[torch.float32])]
+    _run_shared(kernels.follow_guides_kernel, batch * m, device, inputs,
+                [_warp.as_warp(out, vec3=True), _warp.as_warp(pushed)])
+    return out, pushed
 
 
 def follower_distance_bound(guides_now: torch.Tensor, guide_signed_distance: torch.Tensor, followers: torch.Tensor,
@@ -204,40 +270,5 @@ def follower_distance_bound(guides_now: torch.Tensor, guide_signed_distance: tor
     return out
 
 
-def walk_followers_outside(x: torch.Tensor, bound: torch.Tensor, rest_lengths: torch.Tensor, body,
-                           margin: float, passes: int, *, check: bool = True) -> torch.Tensor:
-    """Keep strands out of the body, in place (`follower_body_walk_kernel`, one thread per strand).
-
-    Args:
-        x: (B, M, N, 3) float32 contiguous strands [m], changed in place.
-        bound: (B, M, N) float32 lower bounds on their signed distances [m] (inf: never walk).
-        rest_lengths: (M, N-1) rest segment lengths [m].
-        body: the frames' `BodyMesh` (batch 1 or B).
-        margin: the signed distance vertices are pushed to [m].
-        passes: push-and-project rounds per vertex.
-        check: as in `guide_frame_rotations`.
-
-    Returns:
-        (B, M) int32: the vertices each strand's walk moved.
-    """
-    from hairwarp.ops.hair_body_contact import _ZERO_DISTANCE, _body_stride, _check_body
-
-    _check_body(body)
-    batch, m, n = x.shape[:3]
-    if check:
-        check_tensor("x", x, shape=(None, None, None, 3), dtypes=(torch.float32,), device=body.device)
-        check_tensor("bound", bound, shape=(batch, m, n), dtypes=(torch.float32,), device=x.device, finite=False)
-        check_tensor("rest_lengths", rest_lengths, shape=(m, n - 1), device=x.device)
-    if not x.is_contiguous():
-        raise ValueError("x: expected a contiguous tensor (it is changed in place)")
-    pushed = torch.zeros(batch, m, dtype=torch.int32, device=x.device)
-    inputs = [_warp.as_warp(x, vec3=True), _warp.as_warp(bound.contiguous()),
-              _warp.as_warp(rest_lengths.detach().to(torch.float32).contiguous()),
-              *body._kernel_arrays(torch.float32), m, n, body.num_vertices, body.num_faces,
-              _body_stride(body, batch), float(margin), int(passes), float(_ZERO_DISTANCE[torch.float32])]
-    _run_shared(kernels.follower_body_walk_kernel, batch * m, x.device, inputs, [_warp.as_warp(pushed)])
-    return pushed
-
-
-__all__ = ["FRAME_WINDOW", "follower_distance_bound", "guide_frame_rotations", "interpolate_followers",
-           "rotation_quaternions", "walk_followers_outside"]
+__all__ = ["FRAME_WINDOW", "follow_guides", "follower_distance_bound", "guide_frame_rotations",
+           "interpolate_followers", "rotation_quaternions"]

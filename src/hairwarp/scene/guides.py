@@ -39,7 +39,6 @@ import numpy as np
 import torch
 
 from hairwarp._validate import check_tensor
-from hairwarp.config import NUM_FIXED_VERTICES
 
 # Quarters of a strand whose mean positions describe its shape in the guide choice.
 SHAPE_SAMPLES = 4
@@ -150,22 +149,6 @@ def nearest_guides(features: torch.Tensor, guide_features: torch.Tensor,
     return torch.from_numpy(index.astype(np.int64)), torch.from_numpy(distance)
 
 
-def _rest_lengths_kept(rest: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-    """`follow_the_leader(rest, x)` for (M, N, 3) strands; on the CPU the strands' halves on two
-    cores (the side thread of `hairwarp.runtime`).
-    """
-    from hairwarp.ops import follow_the_leader
-    from hairwarp.ops.guide_interpolation import CPU_SPLIT_THREADS
-    from hairwarp.runtime import cpu_side_executor
-
-    half = x.shape[0] // 2
-    if x.device.type != "cpu" or half < CPU_SPLIT_THREADS // 4 or torch.get_num_interop_threads() < 2:
-        return follow_the_leader(rest, x, check=False)
-    pending = cpu_side_executor().submit(follow_the_leader, rest[half:], x[half:].contiguous(), check=False)
-    first = follow_the_leader(rest[:half], x[:half].contiguous(), check=False)
-    return torch.cat([first, pending.result()])
-
-
 @dataclass(eq=False)
 class GuideSet:
     """A groom split into guides and followers.
@@ -245,7 +228,10 @@ class GuideSet:
         if key not in cache:
             rest = self.groom.strands.to(device=device, dtype=torch.float32).contiguous()
             index = self.guide_indices.to(device)
+            slot = torch.full((self.num_strands,), -1, dtype=torch.int32)
+            slot[self.guide_indices] = torch.arange(self.num_guides, dtype=torch.int32)
             cache[key] = {"rest": rest, "guide_indices": index, "guides_rest": rest[index].contiguous(),
+                          "guide_slot": slot.to(device),
                           "rest_lengths": (rest[:, 1:] - rest[:, :-1]).norm(dim=-1).contiguous(),
                           "link": [self.follower_guides.to(device=device, dtype=torch.int32).contiguous(),
                                    self.follower_weights.to(device).contiguous(),
@@ -275,7 +261,7 @@ class GuideSet:
             moved per strand, on the device: read it only when needed, it waits for the GPU).
         """
         from hairwarp.ops import hair_body_signed_distance
-        from hairwarp.ops.guide_interpolation import guide_frame_rotations, interpolate_followers
+        from hairwarp.ops.guide_interpolation import follow_guides, guide_frame_rotations
 
         device = guide_positions.device
         on = self._on(device)
@@ -286,16 +272,14 @@ class GuideSet:
         check_tensor("head_rotation", head_rotation, shape=(batch, 3, 3))
         # The groom's own tensors need no check; the guides' were checked once above.
         rotations = guide_frame_rotations(guides_rest, guides, head_rotation.to(device), check=False)
-        x = interpolate_followers(guides_rest, guides, rotations, rest, *link, check=False)
-        for b in range(batch):  # frame by frame: the rest strands are not copied B times
-            x[b] = _rest_lengths_kept(rest, x[b])
-        facts = {}
-        if body is not None and self.config.body_passes > 0:
-            if guide_signed_distance is None:
-                guide_signed_distance = hair_body_signed_distance(guides, body)
-            x = self._keep_outside(x, guides, guide_signed_distance.to(torch.float32), body, on, facts)
-        x[:, on["guide_indices"]] = guides
-        return x.to(guide_positions.dtype), facts
+        use_body = body is not None and self.config.body_passes > 0
+        if use_body and guide_signed_distance is None:
+            guide_signed_distance = hair_body_signed_distance(guides, body)
+        x, pushed = follow_guides(guides_rest, guides, rotations, rest, *link, guide_slot=on["guide_slot"],
+                                  body=body if use_body else None,
+                                  guide_signed_distance=guide_signed_distance if use_body else None,
+                                  margin=self.config.body_margin, passes=self.config.body_passes, check=False)
+        return x.to(guide_positions.dtype), ({"pushed": pushed} if use_body else {})
 
     @torch.no_grad()
     def signed_distance(self, x: torch.Tensor, guide_positions: torch.Tensor, guide_signed_distance: torch.Tensor,
@@ -327,23 +311,6 @@ class GuideSet:
             out[:, strand, vertex] = hair_body_signed_distance(points, body).squeeze(2)
         out[:, on["guide_indices"]] = guide_signed_distance.to(torch.float32)
         return out
-
-    def _keep_outside(self, x, guides, guide_sd, body, on, facts):
-        """The body pass (`hairwarp.kernels.guide_interpolation.follower_body_walk_kernel`):
-        every strand whose bound comes within the margin is walked from there to its tip, each
-        vertex keeping its rest offset from its predecessor unless it is inside (or within the
-        margin), then pushed out and back onto its rest length; the guides stay as they are.
-        """
-        from hairwarp.ops.guide_interpolation import follower_distance_bound, walk_followers_outside
-
-        bound = follower_distance_bound(guides, guide_sd, x, *on["link"], check=False)
-        bound[:, :, :NUM_FIXED_VERTICES] = float("inf")  # the root and its neighbour stay with the scalp
-        bound[:, on["guide_indices"]] = float("inf")  # the guides are the method's
-        x = x.to(torch.float32).contiguous()
-        pushed = walk_followers_outside(x, bound, on["rest_lengths"], body, self.config.body_margin,
-                                        self.config.body_passes, check=False)
-        facts["pushed"] = pushed
-        return x
 
 
 __all__ = ["GUIDE_WIDTH", "GuideConfig", "GuideSet", "strand_width", "nearest_guides", "select_guides", "strand_features"]
