@@ -200,6 +200,19 @@ def whole_groom(frames, label: str, positions, signed_distance, rigid_signed_dis
             "width": strand_width(m, guides.num_guides), "guides": guides.guide_indices}
 
 
+def with_whole_groom(groom: dict, scene, rows: list, fidelity: dict | None, record: dict, metrics: dict):
+    """The table rows, fidelity labels and record of a command once `whole_groom` ran: the whole
+    groom's rows first, the guides' tagged "(K guides)"; the record's figures over all strands,
+    the guides' beside them. Returns (rows, fidelity); `record` is updated in place.
+    """
+    tag = f" ({scene.guides.num_guides} guides)"
+    record.update(strands=scene.guides.num_strands, guides=scene.guides.num_guides, guides_rigid=metrics["rigid"],
+                  guides_result=metrics["method"], rigid=groom["metrics"]["rigid"], result=groom["metrics"]["method"],
+                  body_pass=groom["body_pass"])
+    return (groom["rows"] + [(name + tag, ms, m) for name, ms, m in rows],
+            None if fidelity is None else {k + tag: v for k, v in fidelity.items()})
+
+
 def picture_distances(sd):
     """Signed distances for the pictures: the fixed vertices 0 and 1 (on the scalp, |d| at
     float32 noise, often a hair below zero) shown as outside, so red marks only what a method

@@ -62,6 +62,7 @@ def run(args) -> int:
         static_beside,
         static_table,
         whole_groom,
+        with_whole_groom,
         write_metrics,
     )
     from hairwarp.io.hair_data import write_hair_data
@@ -94,10 +95,13 @@ def run(args) -> int:
                                        {label: sd, args.against: optimum_sd}, args.against, config)
         compared = [side]
     groom = whole_groom(frames, label, result.positions, sd, rigid_sd)
+    record = {"command": "drape", "scene": scene.name, "method": label, "method_info": result.info,
+              "ms_per_frame": result.time_ms, "device": str(device), "strands": scene.hairstyle.num_strands,
+              "vertices": int(scene.hairstyle.strands.shape[1]), "rigid": metrics["rigid"], "result": metrics["method"],
+              "against": args.against}
     if groom is not None:  # the rows above are the guides'; the whole groom's come first
-        rows = groom["rows"] + [(f"{name} ({scene.guides.num_guides} guides)", ms, m) for name, ms, m in rows]
-        fidelity = None if fidelity is None else {f"{k} ({scene.guides.num_guides} guides)": v
-                                                  for k, v in fidelity.items()}
+        rows, fidelity = with_whole_groom(groom, scene, rows, fidelity, record, metrics)
+    record["fidelity"] = fidelity
     table = static_table(rows, fidelity) if fidelity is not None else markdown_table(rows)
     print(table)
 
@@ -118,14 +122,6 @@ def run(args) -> int:
                                 body_v[0], faces, signed_distance=picture_distances(rigid_sd[0]).cpu(),
                                 title="rigid placement (Eq. 1) of the guides: red = inside the body"
                                 if groom is not None else "rigid placement (Eq. 1): red = inside the body"))
-    record = {"command": "drape", "scene": scene.name, "method": label, "method_info": result.info,
-              "ms_per_frame": result.time_ms, "device": str(device), "strands": scene.hairstyle.num_strands,
-              "vertices": int(scene.hairstyle.strands.shape[1]), "rigid": metrics["rigid"], "result": metrics["method"],
-              "against": args.against, "fidelity": fidelity}
-    if groom is not None:
-        record.update(strands=scene.guides.num_strands, guides=scene.guides.num_guides, guides_rigid=metrics["rigid"],
-                      guides_result=metrics["method"], rigid=groom["metrics"]["rigid"], result=groom["metrics"]["method"],
-                      body_pass=groom["body_pass"])
     written += compared + write_metrics(args.out, "drape", record, table)
     print(f"wrote {', '.join(os.path.basename(p) for p in written)} into {args.out} "
           f"({time.perf_counter() - t0:.0f} s)")

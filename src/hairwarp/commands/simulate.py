@@ -67,6 +67,7 @@ def run(args) -> int:
         run_and_score,
         set_threads,
         whole_groom,
+        with_whole_groom,
         write_animation,
         write_metrics,
     )
@@ -99,29 +100,20 @@ def run(args) -> int:
                                                 {label: result.positions, args.against: truth.positions},
                                                 {label: sd, args.against: truth_sd}, args.against, gif_frames)
     groom = whole_groom(frames, label, result.positions, sd, rigid_sd)
-    if groom is not None:  # the rows above are the guides'; the whole groom's come first
-        tag = f" ({scene.guides.num_guides} guides)"
-        rows = groom["rows"] + [(name + tag, ms, m) for name, ms, m in rows]
-        fidelity = None if fidelity is None else {k + tag: v for k, v in fidelity.items()}
-    table = markdown_table(rows, fidelity)
-    print(table)
-    if groom is None:
-        written = write_animation(args.out, "simulate", frames, result.positions, sd, label, gif_frames,
-                                  usd_format="usda" if args.usda else "usdc")
-    else:
-        written = write_animation(args.out, "simulate", frames, groom["positions"], groom["signed_distance"], label,
-                                  gif_frames, usd_format="usda" if args.usda else "usdc", guides=groom["guides"],
-                                  width=groom["width"])
-    written += compared
     record = {"command": "simulate", "scene": scene.name, "method": label, "method_info": result.info,
               "ms_per_frame": result.time_ms, "device": str(device), "fps": scene.motion.fps,
               "frames": scene.num_frames, "strands": scene.hairstyle.num_strands,
               "vertices": int(scene.hairstyle.strands.shape[1]), "rigid": metrics["rigid"], "result": metrics["method"],
-              "against": args.against, "fidelity": fidelity}
-    if groom is not None:
-        record.update(strands=scene.guides.num_strands, guides=scene.guides.num_guides, guides_rigid=metrics["rigid"],
-                      guides_result=metrics["method"], rigid=groom["metrics"]["rigid"], result=groom["metrics"]["method"],
-                      body_pass=groom["body_pass"])
+              "against": args.against}
+    if groom is not None:  # the rows above are the guides'; the whole groom's come first
+        rows, fidelity = with_whole_groom(groom, scene, rows, fidelity, record, metrics)
+    record["fidelity"] = fidelity
+    table = markdown_table(rows, fidelity)
+    print(table)
+    hair, hair_sd, drawn = (result.positions, sd, {}) if groom is None else \
+        (groom["positions"], groom["signed_distance"], {"guides": groom["guides"], "width": groom["width"]})
+    written = write_animation(args.out, "simulate", frames, hair, hair_sd, label, gif_frames,
+                              usd_format="usda" if args.usda else "usdc", **drawn) + compared
     usd = written[0]
     print(f"{os.path.basename(usd)}: {os.path.getsize(usd) / 2**20:.1f} MiB "
           f"({scene.num_frames} frames x {scene.num_strands} strands x {scene.hairstyle.strands.shape[1]} vertices)")

@@ -16,12 +16,12 @@ the scalp and no style (a fringe, a strand combed the other way) is left without
 Followers. Each strand follows its `neighbours` nearest guides in the same space (a guide follows
 only itself), blended by inverse squared distance, each guide carrying the follower's rest
 offset in its parallel-transported segment frames (`hairwarp.kernels.guide_interpolation`): a
-rigid motion of the guides moves the followers rigidly and a curl keeps its shape. Then the
-followers are projected onto their rest lengths (follow-the-leader), and a body pass walks each
-strand that comes within `body_margin` of the body from its root, pushing a vertex inside out
-along the signed distance's gradient and carrying the displacement down the strand
-(`GuideSet._keep_outside`). Only the vertices whose guides do not prove them outside (the signed
-distance is 1-Lipschitz) are queried.
+rigid motion of the guides moves the followers rigidly and a curl keeps its shape. In the same
+pass (`hairwarp.kernels.guide_interpolation.follow_guides_kernel`, a thread per strand) each
+vertex is placed at its rest length from its predecessor (follow-the-leader), and one inside the
+body or within `body_margin` of it is pushed out along the signed distance's gradient and back
+onto its rest length, so the strand slides over the body. Only the vertices whose guides do not
+prove them clear (the signed distance is 1-Lipschitz) are queried.
 
 Contact between guides. The energy's per-vertex constants (mass, stiffnesses, contact weights)
 stand for a whole bundle: scaling all of them by the same bundle size leaves the minimiser
