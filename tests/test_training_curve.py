@@ -56,7 +56,8 @@ def test_curve_record_holds_the_named_fields(tmp_path, config, sampler):
         assert len(train["rigid_penetration_percent"]) == len(train["penetration_percent"])
         for name in ("table1", "medium_poses"):
             scores = entry["held_out"][name]
-            for key in ("penetration_percent", "length_change_percent", "energy", "energy_gap"):
+            for key in ("penetration_percent", "length_change_percent", "energy", "energy_gap", "energy_ratio",
+                        "mean_distance_mm", "tip_height_difference_mm"):
                 assert torch.isfinite(torch.tensor(scores[key]))
             assert len(scores["displacement_by_vertex_mm"]) == n
     assert data["scenes"]["table1"]["rigid"]["penetration_percent"] > 10.0  # every tip starts inside

@@ -14,7 +14,9 @@ into `<out>/learning_curve.json` (and a figure `<out>/learning_curve.png`):
   penetration %, length change %, total static energy and, when a reference energy E* was
   computed at setup (`curve_reference_iterations` L-BFGS iterations over the free vertices
   from the rigid placement), the energy gap (E - E*) / (E0 - E*) (1: the rigid placement, 0: the
-  reference), plus the displacement by vertex index.
+  reference), the energy ratio E / E*, the mean / p95 distance to the reference's drape and how
+  much higher the tips hang than its tips [mm] (`hairwarp.metrics.static_fidelity`), plus the
+  displacement by vertex index.
 
 The record is a pure function of the weights and the step's batch, so a resumed run writes the
 same entries as an uninterrupted one (the file is read back on resume and entries past the
@@ -129,7 +131,7 @@ class HeldOutScenes:
         self.setup_s = time.perf_counter() - start
 
     def _scores(self, x, item, reference_energy) -> dict:
-        from hairwarp.metrics import length_change_percent, penetration_percent
+        from hairwarp.metrics import length_change_percent, penetration_percent, static_fidelity
 
         frames = item["frames"]
         with torch.no_grad():
@@ -143,6 +145,11 @@ class HeldOutScenes:
             if reference_energy is not None and e0 is not None:
                 gap = (energy - reference_energy) / (e0 - reference_energy).abs().clamp_min(1e-30)
                 out["energy_gap"] = float(gap.mean())
+            optimum = item.get("reference_positions")
+            if optimum is not None and reference_energy is not None:
+                # The shape against the reference drape (`hairwarp.metrics.static_fidelity`): E / E*,
+                # the distance to it and how much higher the tips hang [mm].
+                out.update(static_fidelity(x, optimum, energy.sum(), reference_energy.sum()))
             if "rigid_energy" not in item:
                 item["rigid_energy"] = energy.detach()
         return out
@@ -161,6 +168,7 @@ class HeldOutScenes:
         x = optimize_drape(rigid, frames.inputs, self.energy, solver).positions
         with torch.no_grad():
             e = total_energy(x, frames.inputs, self.energy).total.detach()
+        item["reference_positions"] = x.detach()
         return e, self._scores(x, item, e)
 
     def evaluate(self, model, clip=None) -> dict:
@@ -325,8 +333,10 @@ def plot_curve(data: dict, path: str) -> None:
         st = [e["step"] for e in entries if name in e.get("held_out", {})]
         ax[0].plot(st, [v["penetration_percent"] for v in vals], c, label=name)
         ax[1].plot(st, [v["length_change_percent"] for v in vals], c, label=name)
-        if "energy_gap" in vals[-1]:
-            ax[2].plot(st, [v.get("energy_gap", float("nan")) for v in vals], c, label=name)
+        ratio = "energy_ratio" in vals[-1]
+        if ratio or "energy_gap" in vals[-1]:
+            key = "energy_ratio" if ratio else "energy_gap"
+            ax[2].plot(st, [v.get(key, float("nan")) for v in vals], c, label=name)
         info = scenes.get(name, {})
         if info.get("rigid"):
             ax[0].axhline(info["rigid"]["penetration_percent"], color=c, ls="--", lw=0.8)
@@ -335,7 +345,9 @@ def plot_curve(data: dict, path: str) -> None:
         ax[5].plot(vals[-1]["displacement_by_vertex_mm"], c, label=f"{name} (held out)")
     ax[0].set(xlabel="step", ylabel="penetration [%]", title="held out (--: rigid, : L-BFGS map)")
     ax[1].set(xlabel="step", ylabel="length change [%]", title="held out")
-    ax[2].set(xlabel="step", ylabel="energy gap", title="held out: (E - E*) / (E0 - E*)")
+    with_ratio = any("energy_ratio" in v for v in entries[-1].get("held_out", {}).values())
+    ax[2].set(xlabel="step", ylabel="E / E*" if with_ratio else "energy gap",
+              title="held out: E / E* (the reference drape's)" if with_ratio else "held out: (E - E*) / (E0 - E*)")
     for term in entries[-1]["train"]["gradient"]["norm"]:
         ax[3].semilogy(steps, [max(e["train"]["gradient"]["norm"].get(term, 0.0), 1e-12) for e in entries],
                        label=term)
