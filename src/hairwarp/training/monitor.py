@@ -348,6 +348,8 @@ def plot_curve(data: dict, path: str) -> None:
     with_ratio = any("energy_ratio" in v for v in entries[-1].get("held_out", {}).values())
     ax[2].set(xlabel="step", ylabel="E / E*" if with_ratio else "energy gap",
               title="held out: E / E* (the reference drape's)" if with_ratio else "held out: (E - E*) / (E0 - E*)")
+    if with_ratio:  # an untrained network starts tens of times above E*: the trained end needs a log scale
+        ax[2].set_yscale("log")
     for term in entries[-1]["train"]["gradient"]["norm"]:
         ax[3].semilogy(steps, [max(e["train"]["gradient"]["norm"].get(term, 0.0), 1e-12) for e in entries],
                        label=term)
