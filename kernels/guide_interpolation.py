@@ -205,8 +205,6 @@ def follow_guides_kernel(
     guide_slot: wp.array(dtype=wp.int32),
     rest_lengths: wp.array(dtype=float),
     guide_signed_distance: wp.array(dtype=float),
-    prior: wp.array(dtype=wp.vec3),
-    clearance: wp.array(dtype=float),
     mesh_ids: wp.array(dtype=wp.uint64),
     body_vertices: wp.array(dtype=wp.vec3),
     faces: wp.array(dtype=wp.int32),
@@ -224,7 +222,6 @@ def follow_guides_kernel(
     neighbours: int,
     project: int,
     body_pass: int,
-    use_prior: int,
     margin: float,
     passes: int,
     zero_dist: float,
@@ -244,11 +241,6 @@ def follow_guides_kernel(
     its predecessor's side of the surface, outside (clear by its bound or placed at the margin),
     so a miss costs a shallow descent of the tree. The strand slides over the body; every
     segment keeps its rest length. out (B*M*N,), pushed (B*M,): vertices the body pass moved.
-
-    With `use_prior` the targets are `prior` (this kernel's projected strands without the body,
-    B*M*N) and a vertex's bound is its `clearance` (`vertex_clearance_kernel`) less how far the
-    walk moved it from its prior: on a GPU the queries then run one vertex a thread beforehand
-    and the walk queries only below a push, instead of 32 strands of a warp taking turns.
     """
     tid = wp.tid() + first_thread
     b = tid // num_followers
@@ -265,14 +257,9 @@ def follow_guides_kernel(
     leader = wp.vec3(0.0, 0.0, 0.0)
     count = int(0)
     for i in range(num_vertices):
-        target = wp.vec3(0.0, 0.0, 0.0)
-        if use_prior != 0:
-            target = prior[base + i]
-        else:
-            target = follower_target(guides_rest, guides_now, rotations, followers_rest[m * num_vertices + i],
-                                     follower_guides, follower_weights, follower_ratios, row, b, i, num_guides,
-                                     num_vertices, neighbours)
-        x = target
+        x = follower_target(guides_rest, guides_now, rotations, followers_rest[m * num_vertices + i],
+                            follower_guides, follower_weights, follower_ratios, row, b, i, num_guides,
+                            num_vertices, neighbours)
         if i >= FIXED_VERTICES and project != 0:
             rest = rest_lengths[m * (num_vertices - 1) + i - 1]
             step = x - leader
@@ -280,13 +267,8 @@ def follow_guides_kernel(
             if n > TANGENT_EPS:
                 x = leader + step * (rest / n)
             if body_pass != 0:
-                low = float(0.0)
-                if use_prior != 0:
-                    low = clearance[base + i] - wp.length(x - target)
-                else:
-                    low = distance_bound(guides_now, guide_signed_distance, x, follower_guides, follower_weights,
-                                         follower_ratios, row, b, i, num_guides, num_vertices, neighbours)
-                if low < margin:
+                if distance_bound(guides_now, guide_signed_distance, x, follower_guides, follower_weights,
+                                  follower_ratios, row, b, i, num_guides, num_vertices, neighbours) < margin:
                     for k in range(passes):
                         found, d, g = body_signed_distance(
                             mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece,
@@ -332,61 +314,3 @@ def follower_distance_bound_kernel(
     m = fm - b * num_followers
     bound[tid] = distance_bound(guides_now, guide_signed_distance, followers[tid], follower_guides, follower_weights,
                                 follower_ratios, m * neighbours, b, i, num_guides, num_vertices, neighbours)
-
-
-@wp.kernel
-def vertex_clearance_kernel(
-    prior: wp.array(dtype=wp.vec3),
-    guides_now: wp.array(dtype=wp.vec3),
-    guide_signed_distance: wp.array(dtype=float),
-    follower_guides: wp.array(dtype=wp.int32),
-    follower_weights: wp.array(dtype=float),
-    follower_ratios: wp.array(dtype=float),
-    guide_slot: wp.array(dtype=wp.int32),
-    mesh_ids: wp.array(dtype=wp.uint64),
-    body_vertices: wp.array(dtype=wp.vec3),
-    faces: wp.array(dtype=wp.int32),
-    vertex_normals: wp.array(dtype=wp.vec3),
-    edge_normals: wp.array(dtype=wp.vec3),
-    winding_ids: wp.array(dtype=wp.uint64),
-    first_piece: int,
-    seam_sides: wp.array(dtype=wp.vec4),
-    body_vertex_count: int,
-    body_face_count: int,
-    body_batch_stride: int,
-    num_guides: int,
-    num_followers: int,
-    num_vertices: int,
-    neighbours: int,
-    margin: float,
-    zero_dist: float,
-    clearance: wp.array(dtype=float),
-):
-    """A lower bound [m] on the signed distance of one vertex of `prior` (thread = (frame * M +
-    strand) * N + i), exact where it matters: the guides' `distance_bound` b, or where b is below
-    `margin` the signed distance queried within c = max(margin, -b) + 0.1 mm; a miss there means
-    |d| >= c, and since d >= b > -c, d >= c (outside).
-    """
-    tid = wp.tid()
-    i = tid % num_vertices
-    fm = tid // num_vertices
-    b = fm // num_followers
-    m = fm - b * num_followers
-    if guide_slot[m] >= 0 or i < FIXED_VERTICES:
-        clearance[tid] = float(1.0e30)
-        return
-    x = prior[tid]
-    low = distance_bound(guides_now, guide_signed_distance, x, follower_guides, follower_weights, follower_ratios,
-                         m * neighbours, b, i, num_guides, num_vertices, neighbours)
-    if low < margin:
-        cap = wp.max(margin, -low) + 1.0e-4
-        body = b * body_batch_stride
-        found, d, g = body_signed_distance(
-            mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides,
-            body * body_vertex_count, body * body_face_count * 3, x, cap, zero_dist,
-        )
-        d, g = winding_signed(winding_ids[body], x, found, d, g, zero_dist)
-        low = cap
-        if found != 0:
-            low = d
-    clearance[tid] = low

@@ -177,8 +177,7 @@ def follow_guides(guides_rest: torch.Tensor, guides_now: torch.Tensor, rotations
                   followers_rest: torch.Tensor, follower_guides: torch.Tensor, follower_weights: torch.Tensor,
                   follower_ratios: torch.Tensor, *, guide_slot: torch.Tensor | None = None,
                   project: bool = True, body=None, guide_signed_distance: torch.Tensor | None = None,
-                  margin: float = 1.0e-3, passes: int = 3, pre_query: bool | None = None,
-                  check: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+                  margin: float = 1.0e-3, passes: int = 3, check: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
     """Every strand of a groom from its guides, in one pass (`follow_guides_kernel`, a thread per
     strand): interpolated, projected onto its rest lengths, kept out of the body.
 
@@ -193,9 +192,6 @@ def follow_guides(guides_rest: torch.Tensor, guides_now: torch.Tensor, rotations
         guide_signed_distance: (B, K, N) the guides' signed distances [m], with `body`.
         margin: vertices inside or nearer the surface than this [m] are pushed to it.
         passes: push-and-project rounds per vertex.
-        pre_query: query the signed distances one vertex a thread before the walk (None: on a
-            GPU, where the walk's queries would leave a warp's threads taking turns; on the CPU
-            the walk's own capped queries cost less).
         check: as in `guide_frame_rotations`.
 
     Returns:
@@ -228,38 +224,18 @@ def follow_guides(guides_rest: torch.Tensor, guides_now: torch.Tensor, rotations
     else:
         body_arrays = [*body._kernel_arrays(torch.float32), body.num_vertices, body.num_faces, _body_stride(body, batch)]
         sd = guide_signed_distance.detach().to(torch.float32).contiguous()
-    now = _warp.as_warp(guides_now.detach().to(torch.float32).contiguous(), vec3=True)
-    links = _follower_arrays(follower_guides, follower_weights, follower_ratios)
-    slots = _warp.as_warp(guide_slot.to(torch.int32).contiguous())
-    zero = float(_ZERO_DISTANCE[torch.float32])
-
-    def walk(use_body: bool, prior, clearance):
-        out = torch.empty(batch, m, n, 3, dtype=torch.float32, device=device)
-        pushed = torch.zeros(batch, m, dtype=torch.int32, device=device)
-        arrays = body_arrays if use_body else no_body
-        inputs = [_warp.as_warp(guides_rest.detach().to(torch.float32).contiguous(), vec3=True), now,
-                  _quats(rotations.detach().to(torch.float32).contiguous()), _warp.as_warp(rest, vec3=True), *links,
-                  slots, _warp.as_warp(lengths), _warp.as_warp(sd), _warp.as_warp(prior, vec3=True),
-                  _warp.as_warp(clearance), *arrays, num_guides, m, n, k, int(project), int(use_body),
-                  int(clearance.numel() > 0), float(margin), int(passes), zero]
-        _run_shared(kernels.follow_guides_kernel, batch * m, device, inputs,
-                    [_warp.as_warp(out, vec3=True), _warp.as_warp(pushed)])
-        return out, pushed
-
-    no_body, _ = _no_body(device)
-    none = torch.zeros(0, device=device)
-    if pre_query is None:
-        pre_query = device.type != "cpu"
-    if body is None or not pre_query:
-        return walk(body is not None, torch.zeros(0, 3, device=device), none)
-    # On a GPU: the strands without the body, every vertex's clearance one thread a vertex, then
-    # the walk, which queries only below a push (`follow_guides_kernel`).
-    prior, _ = walk(False, torch.zeros(0, 3, device=device), none)
-    clearance = torch.empty(batch, m, n, dtype=torch.float32, device=device)
-    _run(kernels.vertex_clearance_kernel, batch * m * n, device,
-         [_warp.as_warp(prior, vec3=True), now, _warp.as_warp(sd), *links, slots, *body_arrays, num_guides, m, n, k,
-          float(margin), zero], [_warp.as_warp(clearance)])
-    return walk(True, prior, clearance)
+    out = torch.empty(batch, m, n, 3, dtype=torch.float32, device=device)
+    pushed = torch.zeros(batch, m, dtype=torch.int32, device=device)
+    inputs = [_warp.as_warp(guides_rest.detach().to(torch.float32).contiguous(), vec3=True),
+              _warp.as_warp(guides_now.detach().to(torch.float32).contiguous(), vec3=True),
+              _quats(rotations.detach().to(torch.float32).contiguous()), _warp.as_warp(rest, vec3=True),
+              *_follower_arrays(follower_guides, follower_weights, follower_ratios),
+              _warp.as_warp(guide_slot.to(torch.int32).contiguous()), _warp.as_warp(lengths), _warp.as_warp(sd),
+              *body_arrays, num_guides, m, n, k, int(project), int(body is not None), float(margin), int(passes),
+              float(_ZERO_DISTANCE[torch.float32])]
+    _run_shared(kernels.follow_guides_kernel, batch * m, device, inputs,
+                [_warp.as_warp(out, vec3=True), _warp.as_warp(pushed)])
+    return out, pushed
 
 
 def follower_distance_bound(guides_now: torch.Tensor, guide_signed_distance: torch.Tensor, followers: torch.Tensor,
