@@ -1,4 +1,5 @@
-"""Quick timing of the seven strand terms (Eq. 7-11, 15, 16), forward + backward.
+"""Quick timing of the seven strand terms (Eq. 7-11, 15, 16), forward + backward, and of the
+follow-the-leader projection (the physics solver's variables, forward + adjoint).
 
 Warp fused kernel (`hairwarp.ops.strand_energies`) against the plain-torch reference
 (`hairwarp.torch_reference.strand_energies`), on the test suite's own hair builder.
@@ -74,6 +75,28 @@ def kernel_times(cases, x, device, calls=20):
     return out
 
 
+def projection_kernel_times(x, rigid, device, calls=20):
+    """Device time [us] per call of the follow-the-leader forward and adjoint kernels (CUDA only)."""
+    from hairwarp.ops.strand_projection import follow_the_leader
+
+    target = x.detach().clone().requires_grad_(True)
+    for _ in range(3):
+        follow_the_leader(rigid, target, check=False).sum().backward()
+    _synchronize(device)
+    with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CUDA]) as prof:
+        for _ in range(calls):
+            target.grad = None
+            follow_the_leader(rigid, target, check=False).square().sum().backward()
+        _synchronize(device)
+    times = {"forward": 0.0, "adjoint": 0.0}
+    for e in prof.key_averages():
+        if "follow_the_leader_adjoint_kernel" in e.key:
+            times["adjoint"] += e.device_time_total / calls
+        elif "follow_the_leader_kernel" in e.key:
+            times["forward"] += e.device_time_total / calls
+    return times
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--strands", type=int, default=1024)
@@ -139,6 +162,10 @@ def main(argv=None):
         results["kernel_us"] = kernel_times(cases, x, device)
         for name, us in results["kernel_us"].items():
             print(f"{name:32s} device time of the Warp kernel {us:8.1f} us per call")
+        rigid = t["rigid"].expand_as(x).contiguous()
+        results["follow_the_leader_us"] = projection_kernel_times(x, rigid, device)
+        print("follow_the_leader                device time forward {forward:.1f} us, adjoint {adjoint:.1f} us "
+              "per call".format(**results["follow_the_leader_us"]))
     if args.json:
         args.json.write_text(json.dumps(results, indent=2))
     return results

@@ -82,6 +82,18 @@ def follow_the_leader_kernel(
         i += 1
 
 
+@wp.func
+def follow_the_leader_adjoint_step(g: Any, rest_edge: Any, target: Any, leader: Any, eps: Any):
+    """dL/dq_i from G_i (`g`), the rigid edge r_i - r_{i-1}, q_i and the projected leader x_{i-1}."""
+    d = target - leader
+    n = wp.length(d)
+    if n > eps:
+        u = d / n
+        du = g * wp.length(rest_edge)
+        return (du - u * wp.dot(u, du)) / n
+    return g * type(eps)(0.0)
+
+
 @wp.kernel
 def follow_the_leader_adjoint_kernel(
     rigid: wp.array(dtype=Any),
@@ -92,20 +104,50 @@ def follow_the_leader_adjoint_kernel(
     eps: Any,
     grad_target: wp.array(dtype=Any),
 ):
-    """dL/dq of one strand from dL/dx (`grad_out`) and the forward's output `projected`."""
+    """dL/dq of one strand from dL/dx (`grad_out`) and the forward's output `projected`.
+
+    Walked from the tip, four vertices at a time with their loads issued ahead of the stores
+    (as the forward: one memory round trip per vertex otherwise).
+    """
     base = wp.tid() * num_vertices
     carry = grad_out[base] * type(eps)(0.0)  # a zero of the vector type
     i = num_vertices - 1
+    while i - 3 >= FIRST_PROJECTED_VERTEX:
+        g0 = grad_out[base + i]
+        g1 = grad_out[base + i - 1]
+        g2 = grad_out[base + i - 2]
+        g3 = grad_out[base + i - 3]
+        r0 = rigid[base + i]
+        r1 = rigid[base + i - 1]
+        r2 = rigid[base + i - 2]
+        r3 = rigid[base + i - 3]
+        r4 = rigid[base + i - 4]
+        q0 = target[base + i]
+        q1 = target[base + i - 1]
+        q2 = target[base + i - 2]
+        q3 = target[base + i - 3]
+        p1 = projected[base + i - 1]
+        p2 = projected[base + i - 2]
+        p3 = projected[base + i - 3]
+        p4 = projected[base + i - 4]
+        G0 = g0 + carry
+        d0 = follow_the_leader_adjoint_step(G0, r0 - r1, q0, p1, eps)
+        G1 = g1 + G0 - d0
+        d1 = follow_the_leader_adjoint_step(G1, r1 - r2, q1, p2, eps)
+        G2 = g2 + G1 - d1
+        d2 = follow_the_leader_adjoint_step(G2, r2 - r3, q2, p3, eps)
+        G3 = g3 + G2 - d2
+        d3 = follow_the_leader_adjoint_step(G3, r3 - r4, q3, p4, eps)
+        carry = G3 - d3
+        grad_target[base + i] = d0
+        grad_target[base + i - 1] = d1
+        grad_target[base + i - 2] = d2
+        grad_target[base + i - 3] = d3
+        i = i - 4
     while i >= FIRST_PROJECTED_VERTEX:
         g = grad_out[base + i] + carry
-        rest = wp.length(rigid[base + i] - rigid[base + i - 1])
-        d = target[base + i] - projected[base + i - 1]
-        n = wp.length(d)
-        gd = g * type(eps)(0.0)
-        if n > eps:
-            u = d / n
-            du = g * rest
-            gd = (du - u * wp.dot(u, du)) / n
+        gd = follow_the_leader_adjoint_step(g, rigid[base + i] - rigid[base + i - 1], target[base + i],
+                                            projected[base + i - 1], eps)
         grad_target[base + i] = gd
         carry = g - gd
         i = i - 1
