@@ -244,6 +244,35 @@ def test_overlapping_boxes_are_signed_and_measured_as_their_union(rng, dtype):
     np.testing.assert_allclose(d.numpy()[outside], exact, atol=atol)
 
 
+def test_a_piece_budget_keeps_the_union_signed_exactly(rng, monkeypatch):
+    """A body whose parts cross along long seams (primitives overlapping everywhere) stops
+    cutting at `SELF_INTERSECTION_MAX_PIECES`: coarser pieces on the crossing, signed by the
+    winding number where their side is not known. The sign stays the winding number's, and
+    outside the union the distance stays exact (an outside point's closest point on the mesh
+    lies on the union's boundary, whatever the pieces).
+    """
+    import hairwarp.ops.hair_body_contact as hb
+
+    v, f = overlapping_boxes()
+    vt, ft = torch.as_tensor(v, dtype=torch.float64), torch.as_tensor(f)
+    fine = BodyMesh(vt, ft).self_intersections["pieces"]
+    monkeypatch.setattr(hb, "SELF_INTERSECTION_MAX_PIECES", 16)
+    body = BodyMesh(vt, ft)
+    cut = body.self_intersections
+    assert cut["crossing_faces"] == 10 and cut["inside_faces"] == 2
+    assert 0 < cut["pieces"] <= 16 < fine
+    points = rng.uniform([-0.5, -0.3, -0.3], [3.5, 1.3, 1.3], size=(3000, 3))
+    d = hair_body_signed_distance(torch.as_tensor(points)[None], body)[0].double()
+    inside = winding_numbers(torch.as_tensor(points), torch.as_tensor(v), ft) > 0.5
+    off = d.abs() > 1e-5
+    assert int(off.sum()) > 2900 and int(inside.sum()) > 300
+    assert bool(((d < 0) == inside)[off].all())
+    outside = (~inside).numpy()
+    exact = np.minimum(_box_distance(points[outside], [0, 0, 0], [2, 1, 1]),
+                       _box_distance(points[outside], [1, 0.25, 0.25], [3, 0.75, 0.75]))
+    np.testing.assert_allclose(d.numpy()[outside], exact, atol=1e-12)
+
+
 def _box_distance(points, lo, hi):
     """Distance from points outside the box [lo, hi] to it."""
     return np.linalg.norm(np.maximum(np.maximum(np.asarray(lo) - points, points - np.asarray(hi)), 0.0), axis=1)
