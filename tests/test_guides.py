@@ -11,6 +11,7 @@ import torch
 
 from hairwarp.ops import BodyMesh, hair_body_signed_distance
 from hairwarp.ops.guide_interpolation import (
+    follow_guides,
     follower_distance_bound,
     guide_frame_rotations,
     interpolate_followers,
@@ -128,6 +129,9 @@ def test_bad_inputs_name_the_argument():
         guide_frame_rotations(torch.full((3, 5, 3), float("nan")), torch.zeros(1, 3, 5, 3), torch.eye(3)[None])
     with pytest.raises(ValueError, match="num_guides"):
         GuideConfig(num_guides=0)
+    with pytest.raises(ValueError, match="reach_segments"):
+        follow_guides(rest, rest[None], rot, torch.zeros(2, 5, 3), torch.tensor([[0], [1]]), torch.ones(2, 1),
+                      torch.ones(2, 1), reach_segments=0.5)
 
 
 # ------------------------------------------------------------------ what followers do
@@ -193,8 +197,12 @@ def _hanging_groom(rng, count=40, n=24):
                      root_index=torch.arange(count), filtered=torch.zeros(0, dtype=torch.int64))
 
 
-@pytest.mark.parametrize("shape", ["sphere", "box"])
-def test_body_pass_leaves_no_follower_inside_and_keeps_rest_lengths(rng, shape):
+@pytest.mark.parametrize("shape, reach", [("sphere", 1.0), ("box", 1.0), ("sphere", 4.0), ("box", 4.0)])
+def test_body_pass_leaves_no_follower_inside_and_keeps_rest_lengths(rng, shape, reach, monkeypatch):
+    """Whatever the queries' reach (an empty ball clears the vertices after it without a query)."""
+    import hairwarp.ops.guide_interpolation as ops_guides
+
+    monkeypatch.setattr(ops_guides, "QUERY_REACH_SEGMENTS", reach)
     groom = _hanging_groom(rng)
     if shape == "sphere":
         v, f = icosphere(8, radius=0.05, center=(0.03, 0.0, 0.0))
