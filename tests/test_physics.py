@@ -130,6 +130,31 @@ def test_bad_config():
     assert math.isclose(PhysicsConfig().tight().tolerance, PhysicsConfig().tolerance / 100)
 
 
+def test_states_are_checked_once_and_a_non_finite_trial_is_rejected_not_passed_to_the_kernels():
+    """The energy's per-call NaN scans are off inside the solver (the buffers are checked when
+    written): a NaN state is one clear line, and a non-finite trial comes back as an infinite
+    loss with a zero gradient, which the line search rejects.
+    """
+    x = _horizontal_strands()
+    rest = (x[0, :, 1:] - x[0, :, :-1]).norm(dim=-1)
+    solver = PhysicsSolver(rest, x, None, None, EnergyConfig(hair_hair_weight=0.0), PhysicsConfig())
+    bad = x.clone()
+    bad[0, 1, 4, 0] = float("nan")
+    with pytest.raises(ValueError, match="x: contains NaN"):
+        solver.set_state(bad)
+    with pytest.raises(ValueError, match="x_prev: contains NaN"):
+        solver.set_state(x, bad)
+    with pytest.raises(ValueError, match="rigid: contains NaN"):
+        solver.set_frame(bad)
+    solver.set_state(x)
+    free = x[:, :, 2:].reshape(-1).clone()
+    f, g, _ = solver._energy(free, False)
+    assert math.isfinite(float(f)) and bool(torch.isfinite(g).all())
+    free[5] = float("inf")
+    f, g, _ = solver._energy(free, False)
+    assert float(f) == math.inf and not bool(g.any())
+
+
 def test_each_step_lowers_its_incremental_potential(whiplash):
     """A step's solution has no more incremental potential (Eq. 6) than its start, the warm start
     projected onto the rest lengths; the fixed vertices ride with the head."""
