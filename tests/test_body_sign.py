@@ -230,14 +230,20 @@ def test_overlapping_boxes_are_signed_and_measured_as_their_union(rng, dtype):
     d = hair_body_signed_distance(torch.as_tensor(UNION_POINTS, dtype=dtype)[None], body)[0]
     atol = 1e-12 if dtype == torch.float64 else 1e-6
     np.testing.assert_allclose(d.double().numpy(), UNION_DISTANCES, atol=atol)
-    # Random points: the sign is the float64 winding number's wherever the point is off the surface.
+    _check_union_of_boxes(rng, body, v, ft, dtype, atol)
+
+
+def _check_union_of_boxes(rng, body, v, ft, dtype, atol):
+    """Random points around `overlapping_boxes()`: the sign is the float64 winding number's
+    wherever the point is off the surface, and outside the union the distance is the exact one
+    (the nearer of the two boxes').
+    """
     points = rng.uniform([-0.5, -0.3, -0.3], [3.5, 1.3, 1.3], size=(3000, 3))
     d = hair_body_signed_distance(torch.as_tensor(points, dtype=dtype)[None], body)[0].double()
     inside = winding_numbers(torch.as_tensor(points), torch.as_tensor(v), ft) > 0.5
     off = d.abs() > 1e-5
     assert int(off.sum()) > 2900 and int(inside.sum()) > 300
     assert bool(((d < 0) == inside)[off].all())
-    # Outside the union the distance is the exact one: the nearer of the two boxes'.
     outside = (~inside).numpy()
     exact = np.minimum(_box_distance(points[outside], [0, 0, 0], [2, 1, 1]),
                        _box_distance(points[outside], [1, 0.25, 0.25], [3, 0.75, 0.75]))
@@ -261,16 +267,7 @@ def test_a_piece_budget_keeps_the_union_signed_exactly(rng, monkeypatch):
     cut = body.self_intersections
     assert cut["crossing_faces"] == 10 and cut["inside_faces"] == 2
     assert 0 < cut["pieces"] <= 16 < fine
-    points = rng.uniform([-0.5, -0.3, -0.3], [3.5, 1.3, 1.3], size=(3000, 3))
-    d = hair_body_signed_distance(torch.as_tensor(points)[None], body)[0].double()
-    inside = winding_numbers(torch.as_tensor(points), torch.as_tensor(v), ft) > 0.5
-    off = d.abs() > 1e-5
-    assert int(off.sum()) > 2900 and int(inside.sum()) > 300
-    assert bool(((d < 0) == inside)[off].all())
-    outside = (~inside).numpy()
-    exact = np.minimum(_box_distance(points[outside], [0, 0, 0], [2, 1, 1]),
-                       _box_distance(points[outside], [1, 0.25, 0.25], [3, 0.75, 0.75]))
-    np.testing.assert_allclose(d.numpy()[outside], exact, atol=1e-12)
+    _check_union_of_boxes(rng, body, v, ft, torch.float64, 1e-12)
 
 
 def _box_distance(points, lo, hi):
