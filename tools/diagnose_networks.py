@@ -960,6 +960,15 @@ def _footer(fig, data) -> None:
              f"{data['command']}", fontsize=6)
 
 
+def _save(fig, data, path: str, bottom: float = 0.03) -> None:
+    """The machine footer, then the figure (its axes above `bottom`) written to `path` and closed."""
+    _footer(fig, data)
+    fig.tight_layout(rect=(0, bottom, 1, 1))
+    fig.savefig(path, dpi=90)
+    _plt().close(fig)
+    print(f"wrote {path}")
+
+
 def plot_static(data: dict, path: str) -> None:
     """Six panels: E / E*, energy terms against the optimum's, tip lift over the scalp (network and the
     8 x 8 oracle), lift along the strand, the oracles' convergence.
@@ -1054,11 +1063,7 @@ def plot_static(data: dict, path: str) -> None:
     else:
         ax[0, 3].axis("off")
         ax[1, 3].axis("off")
-    _footer(fig, data)
-    fig.tight_layout(rect=(0, 0.02, 1, 1))
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    print(f"wrote {path}")
+    _save(fig, data, path, bottom=0.02)
 
 
 
@@ -1118,11 +1123,7 @@ def plot_motion(data: dict, path: str) -> None:
     a.set_ylabel("RMS over the training pool's procedural motions")
     a.legend(fontsize=7)
     a.set_title("d) the descriptors training shows grow with k (inference: k = 1)", fontsize=9)
-    _footer(fig, data)
-    fig.tight_layout(rect=(0, 0.02, 1, 1))
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    print(f"wrote {path}")
+    _save(fig, data, path, bottom=0.02)
 
 
 def plot_rollout(data: dict, path: str) -> None:
@@ -1167,11 +1168,7 @@ def plot_rollout(data: dict, path: str) -> None:
     a.set_xscale("log")
     a.legend(fontsize=7)
     a.set_title("c) |dE_term / dD| at the network's maps (own history)", fontsize=9)
-    _footer(fig, data)
-    fig.tight_layout(rect=(0, 0.03, 1, 1))
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    print(f"wrote {path}")
+    _save(fig, data, path)
 
 
 def plot_sizes(data: dict, path: str) -> None:
@@ -1217,11 +1214,7 @@ def plot_sizes(data: dict, path: str) -> None:
     a.set_xticks(np.arange(len(terms)) + 0.4, [t.replace("_", "\n") for t in terms], fontsize=7)
     a.legend(fontsize=7)
     a.set_title("c) |term| of the optimum: sums grow with the strand count, means do not", fontsize=9)
-    _footer(fig, data)
-    fig.tight_layout(rect=(0, 0.03, 1, 1))
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    print(f"wrote {path}")
+    _save(fig, data, path)
 
 
 def plot_training(data: dict, path: str) -> None:
@@ -1250,11 +1243,7 @@ def plot_training(data: dict, path: str) -> None:
     a.set_ylabel("[mm]")
     a.legend(fontsize=8)
     a.set_title("b) lift and splay on its own training samples", fontsize=9)
-    _footer(fig, data)
-    fig.tight_layout(rect=(0, 0.03, 1, 1))
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    print(f"wrote {path}")
+    _save(fig, data, path)
 
 
 def cmd_plot(args) -> None:
