@@ -665,17 +665,22 @@ def training_descriptor_rms(window: int = 10) -> dict:
     return out
 
 
+def _motion_frames(args):
+    """(scene, size, frames, T, tag) of a motion command: the scene's first `--frames` frames."""
+    scene, size = load_scene(args.scene, args.strand_stride)
+    frames = scene.frames(None if args.frames is None else list(range(args.frames)))
+    t = frames.rigid.positions.shape[0]
+    size["frames"] = t
+    return scene, size, frames, t, f"{args.scene}_s{args.strand_stride}_t{t}"
+
+
 def cmd_motion(args) -> None:
     """H-c on one motion scene (see the module docstring)."""
     from hairwarp.methods.networks import load_simulator
     from hairwarp.metrics import mean_tip_offset, motion_fidelity
     from hairwarp.scene.motion import DESCRIPTOR_DIM_NO_BETAS
 
-    scene, size = load_scene(args.scene, args.strand_stride)
-    frames = scene.frames(None if args.frames is None else list(range(args.frames)))
-    t = frames.rigid.positions.shape[0]
-    size["frames"] = t
-    tag = f"{args.scene}_s{args.strand_stride}_t{t}"
+    scene, size, frames, t, tag = _motion_frames(args)
     print(f"== {args.scene}: {size}")
     sim = load_simulator("dynamic", None, torch.device(args.device))
     rigid = frames.rigid.positions
@@ -842,11 +847,7 @@ def cmd_rollout(args) -> None:
     from hairwarp.metrics import mean_tip_offset, motion_fidelity
     from hairwarp.models.checkpoint import load_checkpoint
 
-    scene, size = load_scene(args.scene, args.strand_stride)
-    frames = scene.frames(None if args.frames is None else list(range(args.frames)))
-    t = frames.rigid.positions.shape[0]
-    size["frames"] = t
-    tag = f"{args.scene}_s{args.strand_stride}_t{t}"
+    scene, size, frames, t, tag = _motion_frames(args)
     config = energy_config(scene)
     sim = load_simulator("dynamic", None, torch.device(args.device))
     ckpt = load_checkpoint(shipped_checkpoint("hairformer_dynamic.pt"))
