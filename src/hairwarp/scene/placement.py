@@ -27,8 +27,12 @@ from hairwarp.scene.scalp import Scalp
 SEARCH_RADIUS = 0.05
 # ... and, for each posed root, the triangles around its this many nearest of them.
 _NEAR_VERTICES = 8
-# cdist elements (frames x roots x search vertices) evaluated at once.
-_CHUNK = 1 << 23
+# Elements of the largest temporary evaluated at once: root_search's cdist (roots x vertices),
+# the projection's cdist (frames x roots x search vertices) and its candidate triangles
+# (frames x roots x candidates x 3). Those hold ~33 MB of temporaries a frame at 600 roots on the
+# body of 49 primitives (192 candidates a root): 2^23 let 55 frames through at once (60 frames
+# placed: 2.14 GB peak), 2^21 lets 6 (0.61 GB; the same positions; docs/contact.md 18).
+_CHUNK = 1 << 21
 
 
 @dataclass(frozen=True)
@@ -108,7 +112,8 @@ def project_onto_body(points: torch.Tensor, vertices: torch.Tensor, faces: torch
     """
     batch, num_points = points.shape[0], points.shape[1]
     faces = faces.long()
-    per = max(1, _CHUNK // max(1, num_points * search.vertex_ids.numel()))
+    per_frame = num_points * max(search.vertex_ids.numel(), 3 * _NEAR_VERTICES * search.incident_faces.shape[1])
+    per = max(1, _CHUNK // max(1, per_frame))
     out_q, out_f, out_b = [], [], []
     for start in range(0, batch, per):
         p = points[start:start + per]
