@@ -96,12 +96,12 @@ def _against(frames, out, reference: str, options: MethodOptions, *, simulate: b
 
 
 def _run(scene, frames, method: str, options: MethodOptions, *, simulate: bool, reference: str | None = None) -> Result:
-    from hairwarp.metrics import frame_metrics
+    from hairwarp.metrics import frame_metrics_of
 
     m = make(method, options)
     out = m.simulate(frames) if simulate else m.drape(frames)
-    per_frame, sd = frame_metrics(out.positions, frames)
-    rigid, rigid_sd = frame_metrics(frames.rigid.positions, frames)
+    scored = frame_metrics_of({"method": out.positions, "rigid": frames.rigid.positions}, frames)
+    (per_frame, sd), (rigid, rigid_sd) = scored["method"], scored["rigid"]
     metrics = _summary(per_frame, rigid)
     positions, guides = out.positions, None
     if scene.guides is not None:

@@ -54,23 +54,52 @@ def frame_metrics(x: torch.Tensor, frames, energy_config=None) -> tuple[dict, to
         ({"penetration_percent": [B floats], "length_change_percent": [B floats],
         "energy": [B floats] when asked}, signed distances (B, M, N) [m]).
     """
+    return frame_metrics_of({"x": x}, frames, energy_config)["x"]
+
+
+def frame_metrics_of(positions: dict, frames, energy_config=None) -> dict:
+    """`frame_metrics` of several hair positions on the same frames, in one pass over
+    `frames.chunks()`: each chunk's body is built once for all of them and dropped before the
+    next (memory flat in the number of frames).
+
+    Args:
+        positions: label -> (B, M, N, 3) hair positions [m] of the B frames of `frames`.
+        frames: the frames (`Scene.frames(...)`).
+        energy_config: when given, the static total energy (Eq. 5) per frame is added.
+
+    Returns:
+        label -> (metrics per frame, signed distances (B, M, N) [m]), as `frame_metrics`.
+    """
     from hairwarp.ops import hair_body_signed_distance
 
-    x = _batched(x.detach())
-    sd = hair_body_signed_distance(x, frames.body_mesh)
-    out = {"penetration_percent": penetration_from_signed_distance(sd).tolist(),
-           "length_change_percent": length_change_percent(x, frames.inputs.rest_lengths).tolist()}
-    if energy_config is not None:
-        from hairwarp.energy import total_energy
+    xs = {label: _batched(x.detach()) for label, x in positions.items()}
+    parts = {label: [] for label in xs}
+    start = 0
+    for chunk in frames.chunks():
+        rows = slice(start, start + chunk.num_frames)
+        start = rows.stop
+        for label, x in xs.items():
+            sd = hair_body_signed_distance(x[rows], chunk.body_mesh)
+            found = {"penetration_percent": penetration_from_signed_distance(sd),
+                     "length_change_percent": length_change_percent(x[rows], chunk.inputs.rest_lengths)}
+            if energy_config is not None:
+                from hairwarp.energy import total_energy
 
-        with torch.no_grad():
-            out["energy"] = total_energy(x, frames.inputs, energy_config).total.tolist()
-    return out, sd
+                with torch.no_grad():
+                    found["energy"] = total_energy(x[rows], chunk.inputs, energy_config).total
+            parts[label].append((found, sd))
+    out = {}
+    for label, found in parts.items():
+        per_frame = {key: torch.cat([f[key] for f, _ in found]).tolist() for key in found[0][0]}
+        out[label] = (per_frame, torch.cat([sd for _, sd in found]))
+    return out
 
 
 def groom_metrics(frames, guide_positions: torch.Tensor, guide_signed_distance: torch.Tensor, *,
                   body_pass: bool = True) -> dict:
     """The whole groom of a scene simulated through guides, and Table 1's metrics over all its strands.
+
+    Runs over `frames.chunks()` (a few frames' bodies held at a time).
 
     Args:
         frames: the scene's frames (`Scene.frames`), the scene holding a `GuideSet`.
@@ -88,15 +117,25 @@ def groom_metrics(frames, guide_positions: torch.Tensor, guide_signed_distance: 
     scene = frames.scene
     if scene is None or scene.guides is None:
         raise ValueError("frames: expected frames of a scene simulated through guides (Scene.guides)")
+    xs, sds, pushes = [], [], []
+    start = 0
     with torch.no_grad():
-        x, facts = scene.full_groom(guide_positions.detach(), frames, body_pass=body_pass,
-                                    guide_signed_distance=guide_signed_distance)
-        sd = scene.guides.signed_distance(x, guide_positions.detach(), guide_signed_distance, frames.body_mesh)
+        for chunk in frames.chunks():
+            rows = slice(start, start + chunk.num_frames)
+            start = rows.stop
+            guides, guide_sd = guide_positions[rows].detach(), guide_signed_distance[rows]
+            x, facts = scene.full_groom(guides, chunk, body_pass=body_pass, guide_signed_distance=guide_sd)
+            xs.append(x)
+            sds.append(scene.guides.signed_distance(x, guides, guide_sd, chunk.body_mesh))
+            pushes.append(facts.get("pushed"))
+        x, sd = torch.cat(xs), torch.cat(sds)
         rest = scene.guides.groom.strands.to(x.device, x.dtype)
         per_frame = {"penetration_percent": penetration_from_signed_distance(sd).tolist(),
                      "length_change_percent": length_change_percent(x, (rest[:, 1:] - rest[:, :-1]).norm(dim=-1)).tolist()}
-    pushed = facts.get("pushed")
-    body = {} if pushed is None else {"pushed_vertices": int(pushed.sum()), "pushed_strands": int((pushed > 0).sum())}
+    body = {}
+    if pushes[0] is not None:
+        pushed = torch.cat(pushes)
+        body = {"pushed_vertices": int(pushed.sum()), "pushed_strands": int((pushed > 0).sum())}
     return {"positions": x, "signed_distance": sd, "per_frame": per_frame, "body_pass": body}
 
 

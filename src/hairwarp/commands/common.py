@@ -168,7 +168,7 @@ def describe(scene, frames) -> str:
         f"{scene.guides.num_strands} strands through {scene.guides.num_guides} guides"
     return (f"scene {scene.name}: {strands} x {scene.hairstyle.strands.shape[1]} vertices, "
             f"{scene.num_frames} frame(s) at {scene.motion.fps:g} fps, body {scene.body.num_vertices} vertices "
-            f"({frames.body_mesh.source_triangle_count} of {scene.body.num_faces} triangles within the hair's reach)")
+            f"({frames.triangles_within_reach()} of {scene.body.num_faces} triangles within the hair's reach)")
 
 
 def whole_groom(frames, label: str, positions, signed_distance, rigid_signed_distance):
@@ -351,11 +351,12 @@ def write_metrics(out: str, stem: str, record: dict, table: str) -> list[str]:
 
 def run_and_score(method, frames, config, *, simulate: bool):
     """Run `method` on `frames`; (result, metrics {"rigid", "method"} per frame, signed distances)."""
-    from hairwarp.metrics import frame_metrics
+    from hairwarp.metrics import frame_metrics_of
 
     result = method.simulate(frames) if simulate else method.drape(frames)
-    rigid, rigid_sd = frame_metrics(frames.rigid.positions, frames, None if simulate else config)
-    ours, sd = frame_metrics(result.positions, frames, None if simulate else config)
+    scored = frame_metrics_of({"rigid": frames.rigid.positions, "method": result.positions}, frames,
+                              None if simulate else config)
+    (rigid, rigid_sd), (ours, sd) = scored["rigid"], scored["method"]
     return result, {"rigid": rigid, "method": ours}, sd, rigid_sd
 
 

@@ -5,7 +5,8 @@ which carries its scene: the networks read the hairstyle and the motion from it)
 
 - `drape(frames) -> MethodResult`: each frame on its own (a static drape);
 - `simulate(frames) -> MethodResult`: the frames as one motion, in time order (the default
-  drapes every frame on its own; the dynamic network and the physics reference carry state).
+  drapes every frame on its own, a chunk of frames at a time; the dynamic network and the
+  physics reference carry state).
 
 Positions are (B, M, N, 3) [m], detached, on the frames' device; `time_ms` is the wall time
 per frame after a warm-up with the device synchronised (None for the rigid placement, which
@@ -108,9 +109,37 @@ class Method:
     def simulate(self, frames) -> MethodResult:
         """Hair positions over a motion: `frames` are consecutive frames in time order.
 
-        The default drapes every frame on its own (static methods have no dynamics).
+        The default drapes every frame on its own (static methods have no dynamics), a chunk
+        of frames at a time (`drape_in_chunks`).
         """
-        return self.drape(frames)
+        return drape_in_chunks(self.drape, frames)
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.name!r})"
+
+
+def drape_in_chunks(drape: Callable, frames) -> MethodResult:
+    """`drape` run on `frames.chunks()` one after the other, so that a few frames' bodies and
+    drapes are held at a time, not a whole motion's; the results joined in frame order.
+
+    A batch of at most `hairwarp.scene.scene.FRAME_CHUNK` frames is one chunk: `drape(frames)`
+    itself. Otherwise the time per frame is over all chunks, each chunk's info is listed under
+    `info["chunks"]` (with its "frames": [first, last] positions in the batch) and the history
+    records carry their "chunk". A drape that couples the frames of a batch (one L-BFGS line
+    search over their summed energy) couples those of a chunk only.
+    """
+    results, spans = [], []
+    start = 0
+    for chunk in frames.chunks():
+        results.append(drape(chunk))
+        spans.append((start, start + chunk.num_frames))
+        start += chunk.num_frames
+    if len(results) == 1:
+        return results[0]
+    times = [r.time_ms for r in results]
+    time_ms = None if all(t is None for t in times) else \
+        sum((t or 0.0) * (b - a) for t, (a, b) in zip(times, spans)) / start
+    history = [dict(h, chunk=i) for i, r in enumerate(results) for h in r.history]
+    info = {"chunks": [dict(r.info, frames=[a, b - 1]) for r, (a, b) in zip(results, spans)]}
+    return MethodResult(positions=torch.cat([r.positions for r in results]), time_ms=time_ms, history=history,
+                        info=info)

@@ -10,8 +10,10 @@
   refine, tens of seconds an iteration for a second of 1024 x 100 hair on a CPU; pass
   `refine=K` to ask for them). It never leaves a frame with more vertices inside the body, or a
   higher energy, than the rigid placement: such a frame is draped again by L-BFGS from the
-  rigid placement, and should that still be worse, the rigid placement is kept. Without a usable network (none
-  shipped, a body without SMPL pose parameters, another vertex count) it is L-BFGS alone.
+  rigid placement (together with the other such frames of its chunk, `SceneFrames.chunks`: a
+  motion's frames are checked and redone `FRAME_CHUNK` at a time), and should that still be
+  worse, the rigid placement is kept. Without a usable network (none shipped, a body without
+  SMPL pose parameters, another vertex count) it is L-BFGS alone (on a motion, a chunk at a time).
 """
 
 from __future__ import annotations
@@ -99,48 +101,59 @@ class AutoMethod(Method):
         return self._run(frames, "dynamic", None)
 
     def _run(self, frames, network_name: str, metrics) -> MethodResult:
-        from hairwarp.energy import total_energy
-        from hairwarp.metrics import penetration_percent
-
-        config = self.options.config()
-
-        def worse_than_rigid(x, sub_frames, pen_rigid, energy_rigid):
-            with torch.no_grad():
-                energy = total_energy(x, sub_frames.inputs, config).total
-            return (penetration_percent(x, sub_frames.body_mesh) > pen_rigid) | (energy > energy_rigid)
-
         refine = self.options.refine or (AUTO_REFINE_MOTION if network_name == "dynamic" else AUTO_REFINE)
         network = self._network(network_name, frames)
         if network is None:
             iterations = self.options.max_iterations or AUTO_LBFGS_ITERATIONS
-            result = OptimizerMethod("lbfgs", refine_options(self.options, iterations)).drape(frames, metrics=metrics)
+            lbfgs = OptimizerMethod("lbfgs", refine_options(self.options, iterations))
+            result = lbfgs.simulate(frames) if network_name == "dynamic" else lbfgs.drape(frames, metrics=metrics)
             chosen = f"lbfgs ({iterations} iterations; no usable network)"
         else:
             base = network.simulate(frames) if network_name == "dynamic" else network.drape(frames)
             result = _refine(base, frames, self.options, refine, metrics)
             chosen = f"{network_name} + {refine} L-BFGS iterations" if refine else network_name
-        rigid = frames.rigid.positions
-        pen_rigid = penetration_percent(rigid, frames.body_mesh)
-        with torch.no_grad():
-            energy_rigid = total_energy(rigid, frames.inputs, config).total
-        worse = worse_than_rigid(result.positions, frames, pen_rigid, energy_rigid)
-        fallback = []
-        if bool(worse.any()):
+        return self._never_worse_than_rigid(result, frames, max(refine, AUTO_FALLBACK_ITERATIONS), chosen)
+
+    def _never_worse_than_rigid(self, result: MethodResult, frames, iterations: int, chosen: str) -> MethodResult:
+        """`result` with every frame that has more vertices inside the body, or a higher energy,
+        than the rigid placement draped again by `iterations` L-BFGS iterations from the rigid
+        placement (the rigid placement kept where that is still worse). Runs over
+        `frames.chunks()`: the frames redone together are those of one chunk.
+        """
+        from hairwarp.energy import total_energy
+        from hairwarp.metrics import penetration_percent
+
+        config = self.options.config()
+        lbfgs = OptimizerMethod("lbfgs", refine_options(self.options, iterations))
+
+        def penetration_and_energy(x, sub_frames):
+            with torch.no_grad():
+                energy = total_energy(x, sub_frames.inputs, config).total
+            return penetration_percent(x, sub_frames.body_mesh), energy
+
+        positions, fallback, extra_ms = result.positions, [], 0.0
+        start = 0
+        for chunk in frames.chunks():
+            rows = slice(start, start + chunk.num_frames)
+            start = rows.stop
+            rigid = chunk.rigid.positions
+            pen_rigid, energy_rigid = penetration_and_energy(rigid, chunk)
+            pen, energy = penetration_and_energy(positions[rows], chunk)
+            worse = (pen > pen_rigid) | (energy > energy_rigid)
+            if not bool(worse.any()):
+                continue
             idx = torch.nonzero(worse)[:, 0]
-            sub = _select_frames(frames, idx)
-            again = OptimizerMethod("lbfgs", refine_options(self.options, max(refine, AUTO_FALLBACK_ITERATIONS))).drape(sub)
-            still = worse_than_rigid(again.positions, sub, pen_rigid[idx], energy_rigid[idx])
-            positions = result.positions.clone()
-            positions[idx] = torch.where(still[:, None, None, None], rigid[idx], again.positions)
-            fallback = idx.tolist()
-            extra_ms = (again.time_ms or 0.0) * len(idx) / rigid.shape[0]
-            result = MethodResult(positions=positions, time_ms=(result.time_ms or 0.0) + extra_ms,
-                                  history=result.history, info=dict(result.info))
-        result.info.update(chosen=chosen, fallback_frames=fallback)
-        return result
-
-
-def _select_frames(frames, idx: torch.Tensor):
-    """The frames `idx` of a batch (their own body meshes, inputs and rigid placement)."""
-    return frames.scene.frames(frames.frame_indices[idx.cpu()], device=frames.rigid.positions.device,
-                               dtype=frames.rigid.positions.dtype)
+            sub = chunk.select(idx.cpu())
+            again = lbfgs.drape(sub)
+            pen, energy = penetration_and_energy(again.positions, sub)
+            still = (pen > pen_rigid[idx]) | (energy > energy_rigid[idx])
+            if positions is result.positions:
+                positions = positions.clone()
+            positions[rows.start + idx] = torch.where(still[:, None, None, None], rigid[idx], again.positions)
+            fallback += (rows.start + idx).tolist()
+            extra_ms += (again.time_ms or 0.0) * len(idx)
+        info = dict(result.info, chosen=chosen, fallback_frames=fallback)
+        if not fallback:
+            return MethodResult(positions=positions, time_ms=result.time_ms, history=result.history, info=info)
+        return MethodResult(positions=positions, time_ms=(result.time_ms or 0.0) + extra_ms / start,
+                            history=result.history, info=info)

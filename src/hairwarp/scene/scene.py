@@ -4,11 +4,18 @@ Data flows one way: scene -> rigid placement (Eq. 1) -> a method proposes hair p
 the energy (Eq. 5/6) scores them. `Scene.frames(...)` does the first step for a batch of frames
 and returns everything a method or the energy needs, on one device, with the body cropped to
 the triangles the hair can reach (`BodyMesh.crop_for_hair`: provably the same contact result).
+
+The posed bodies' `BodyMesh` (cut where the body passes through itself, cropped, its trees) is
+what a frame costs in memory: it is built at its first use, and whatever runs over a motion
+frame by frame (metrics, the static methods, "auto"'s check) takes `SceneFrames.chunks()`:
+at most `FRAME_CHUNK` frames whose body is built for them alone and dropped after them, so
+memory stays flat in the motion's length.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field, replace
 
 import torch
 
@@ -20,6 +27,41 @@ from hairwarp.scene.motion import Motion, procedural_motion
 from hairwarp.scene.placement import RigidHair, rigid_placement, root_search
 from hairwarp.scene.scalp import Scalp, build_scalp
 
+# Frames per chunk of `SceneFrames.chunks`: the bodies of this many frames are held at once. On
+# the issue's body of 49 overlapping primitives (600 strands x 100) a frame's body and L-BFGS
+# drape hold about 60 MB while they last (docs/contact.md 18); a motion of at most this many
+# frames is one chunk, evaluated exactly as before.
+FRAME_CHUNK = 16
+
+
+class _LazyBody:
+    """The `BodyMesh` of a batch of frames, built at its first use by `recipe(vertices, roots)`
+    (None: frames without a body), and the frames' `EnergyInputs` around it. A `SceneFrames`
+    and its copies (`dataclasses.replace`) share one, so the body is built once.
+    """
+
+    def __init__(self, recipe: Callable | None, vertices: torch.Tensor, roots: torch.Tensor, inputs: EnergyInputs):
+        self.recipe, self.vertices, self.roots, self.bare_inputs = recipe, vertices, roots, inputs
+        self._body, self._inputs = None, None
+
+    def body(self):
+        if self._body is None and self.recipe is not None:
+            self._body = self.recipe(self.vertices, self.roots)
+        return self._body
+
+    def inputs(self) -> EnergyInputs:
+        if self._inputs is None:
+            self._inputs = replace(self.bare_inputs, body=self.body())
+        return self._inputs
+
+    @property
+    def built(self) -> bool:
+        return self._body is not None
+
+    def select(self, rows, inputs: EnergyInputs) -> _LazyBody:
+        """The same recipe for the frames `rows` (a slice or indices) alone: their own body, not built yet."""
+        return _LazyBody(self.recipe, self.vertices[rows], self.roots[rows], inputs)
+
 
 @dataclass(eq=False)
 class SceneFrames:
@@ -29,20 +71,85 @@ class SceneFrames:
         frame_indices: (B,) the motion frames.
         posed: the posed bodies (vertices (B, V, 3), M_head (B, 4, 4)).
         rigid: the rigid placement (positions (B, M, N, 3), normals (B, M, 3)).
-        body_mesh: `hairwarp.ops.BodyMesh` of the B posed bodies, cropped to the hair's reach.
-        inputs: the `EnergyInputs` of these frames (no previous states).
         betas: (B, 16) body shapes; poses: (B, 66) body poses (the networks' inputs).
         scene: the `Scene` these frames come from (methods read its hairstyle and motion).
+        body_mesh: `hairwarp.ops.BodyMesh` of the B posed bodies, cropped to the hair's reach;
+            built at the first use (None for frames made with `build_body=False`). For many
+            frames, go through `chunks()` instead: it holds a few frames' bodies at a time.
+        inputs: the `EnergyInputs` of these frames (no previous states; its body `body_mesh`).
     """
 
     frame_indices: torch.Tensor
     posed: PosedBody
     rigid: RigidHair
-    body_mesh: object
-    inputs: EnergyInputs
     betas: torch.Tensor
     poses: torch.Tensor
     scene: Scene | None = None
+    _body: _LazyBody = field(kw_only=True, repr=False)
+
+    @property
+    def body_mesh(self):
+        return self._body.body()
+
+    @property
+    def inputs(self) -> EnergyInputs:
+        return self._body.inputs()
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.frame_indices.numel())
+
+    def select(self, rows) -> SceneFrames:
+        """The frames at positions `rows` of this batch (a slice, or indices in increasing
+        order), with a body of their own built at its first use; these frames themselves when
+        `rows` takes them all in order.
+        """
+        if not isinstance(rows, slice):
+            rows = torch.as_tensor(rows, dtype=torch.long).reshape(-1).cpu()
+        positions = torch.arange(self.num_frames)[rows]
+        if positions.numel() == 0:
+            raise ValueError("rows: expected at least one frame")
+        if torch.equal(positions, torch.arange(self.num_frames)):
+            return self
+        # A slice takes views; indices go to the tensors' device.
+        on = rows if isinstance(rows, slice) else rows.to(self.rigid.positions.device)
+        posed = PosedBody(vertices=self.posed.vertices[on],
+                          joints=None if self.posed.joints is None else self.posed.joints[on],
+                          head_transform=self.posed.head_transform[on])
+        rigid = RigidHair(*(t[on] for t in (self.rigid.positions, self.rigid.normals, self.rigid.align,
+                                             self.rigid.root_offsets)))
+        bare = replace(self._body.bare_inputs, rigid=rigid.positions, scalp_normals=rigid.normals)
+        return SceneFrames(self.frame_indices[positions], posed, rigid, self.betas[on], self.poses[on],
+                           scene=self.scene, _body=self._body.select(on, bare))
+
+    def triangles_within_reach(self) -> int:
+        """How many of the body's triangles the hair can reach in some of these frames: those
+        `BodyMesh.crop_for_hair` keeps of the uncut posed bodies (what the commands' scene line
+        counts; no self-intersection search and no tree is built for it).
+        """
+        from hairwarp.ops import BodyMesh
+
+        vertices = self.posed.vertices
+        body = BodyMesh(vertices, self.scene.body.faces.to(device=vertices.device, dtype=torch.int32),
+                        split_self_intersections=False)
+        reach = self.scene.strand_lengths.to(device=vertices.device, dtype=vertices.dtype)
+        return body.crop_for_hair(self.rigid.positions[:, :, 0], reach).source_triangle_count
+
+    def chunks(self, size: int | None = None) -> Iterator[SceneFrames]:
+        """These frames in consecutive groups of at most `size` (default `FRAME_CHUNK`), each
+        with a body of its own built at its first use, to be dropped before the next: what runs
+        over many frames one frame at a time holds a few frames' bodies, not all. A batch of at
+        most `size` frames, or one whose body is built already (and held anyway), is one group:
+        these frames themselves.
+        """
+        size = FRAME_CHUNK if size is None else int(size)
+        if size < 1:
+            raise ValueError(f"size: expected a positive number of frames, got {size}")
+        if self._body.built:
+            yield self
+            return
+        for start in range(0, self.num_frames, size):
+            yield self.select(slice(start, start + size))
 
 
 @dataclass(eq=False)
@@ -147,15 +254,13 @@ class Scene:
                 armpits, and the uncut surface calls points up to 9 cm inside the chest outside).
                 The search costs ~55 ms per pose on a 2-core CPU (the head turn's 241 frames:
                 20-23 s against 6-7 s uncut; docs/contact.md 16); False keeps the uncut surface.
-            build_body: build the posed bodies' `BodyMesh`; False leaves `body_mesh` and
-                `inputs.body` None (a caller that moves one body of its own, as the physics
-                solver does, needs only `posed.vertices`).
+            build_body: give the frames a `BodyMesh` (built at its first use, `SceneFrames`);
+                False leaves `body_mesh` and `inputs.body` None (a caller that moves one body
+                of its own, as the physics solver does, needs only `posed.vertices`).
 
         Returns:
             SceneFrames.
         """
-        from hairwarp.ops import BodyMesh
-
         device = torch.device(device)
         if indices is None:
             indices = torch.arange(self.num_frames)
@@ -182,25 +287,23 @@ class Scene:
             cache["search"] = root_search(self.body, cache["strands"][:, 0])
         rigid = rigid_placement(cache["strands"], posed, self.body, scalp=self.scalp,
                                 root_uv=cache["root_uv"], search=cache["search"])
-        if not build_body:
-            inputs = EnergyInputs(rest_lengths=cache["rest_lengths"], rigid=rigid.positions,
-                                  scalp_normals=rigid.normals, body=None)
-            return SceneFrames(indices, posed, rigid, None, inputs, betas, poses, scene=self)
-        faces = self.body.faces.to(device=device, dtype=torch.int32)
-        # The full body is only cropped (its tree, built at a first query, is never built), the
-        # crop is queried (the better tree).
-        body_mesh = BodyMesh(posed.vertices.to(dtype), faces, bvh="lbvh" if crop else "sah",
-                             split_self_intersections=split_self_intersections)
-        if crop:
-            body_mesh = body_mesh.crop_for_hair(rigid.positions[:, :, 0], cache["strand_lengths"], bvh="sah")
-        inputs = EnergyInputs(
-            rest_lengths=cache["rest_lengths"],
-            rigid=rigid.positions,
-            scalp_normals=rigid.normals,
-            body=body_mesh,
-        )
-        return SceneFrames(indices, posed, rigid, body_mesh, inputs, betas, poses, scene=self)
+        inputs = EnergyInputs(rest_lengths=cache["rest_lengths"], rigid=rigid.positions,
+                              scalp_normals=rigid.normals, body=None)
+        recipe = None
+        if build_body:
+            faces = self.body.faces.to(device=device, dtype=torch.int32)
 
+            def recipe(vertices: torch.Tensor, roots: torch.Tensor):
+                from hairwarp.ops import BodyMesh
+
+                # The full body is only cropped (its tree, built at a first query, is never
+                # built), the crop is queried (the better tree).
+                body = BodyMesh(vertices.to(dtype), faces, bvh="lbvh" if crop else "sah",
+                                split_self_intersections=split_self_intersections)
+                return body.crop_for_hair(roots, cache["strand_lengths"], bvh="sah") if crop else body
+
+        body = _LazyBody(recipe, posed.vertices, rigid.positions[:, :, 0], inputs)
+        return SceneFrames(indices, posed, rigid, betas, poses, scene=self, _body=body)
 
 def static_motion(poses: torch.Tensor | None = None, betas: torch.Tensor | None = None, name: str = "rest") -> Motion:
     """A one-frame 'motion' holding a single pose (rest pose by default)."""
