@@ -27,7 +27,7 @@ GAP_FLOOR = 1e-6
 
 _STYLE = {"rigid": ("0.4", "--"), "adam": ("tab:orange", "-"), "lbfgs": ("tab:blue", "-"),
           "reference": ("tab:green", "-"), "static": ("tab:red", None), "dynamic": ("tab:purple", None),
-          "quaffure": ("tab:brown", None)}
+          "quaffure": ("tab:brown", None), "inertial": ("tab:cyan", None)}
 
 
 def _color(name: str, index: int) -> str:

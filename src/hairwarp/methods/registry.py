@@ -11,6 +11,7 @@ from collections.abc import Callable
 
 from hairwarp.methods.base import Method, MethodOptions
 from hairwarp.methods.composed import AutoMethod, RefinedMethod
+from hairwarp.methods.inertial import InertialMethod
 from hairwarp.methods.networks import NetworkMethod
 from hairwarp.methods.optimizers import OptimizerMethod, PhysicsMethod, ReferenceMethod, RigidMethod
 
@@ -26,6 +27,7 @@ _BUILT_IN: dict[str, Callable[[MethodOptions], Method]] = {
     "static": lambda options: NetworkMethod("static", options),
     "dynamic": lambda options: NetworkMethod("dynamic", options),
     "quaffure": lambda options: NetworkMethod("quaffure", options),
+    "inertial": InertialMethod,
 }
 _REGISTRY: dict[str, Callable[[MethodOptions], Method]] = dict(_BUILT_IN)
 

@@ -26,6 +26,7 @@ from hairwarp.models.deformation import (
     taper_weights,
 )
 from hairwarp.models.dynamic import DynamicNetwork, DynamicOutput
+from hairwarp.models.inertial import InertialConfig, InertialStep
 from hairwarp.models.quaffure import QuaffureNetwork
 from hairwarp.models.static import StaticNetwork
 
@@ -35,6 +36,8 @@ __all__ = [
     "DynamicNetwork",
     "DynamicOutput",
     "FUSIONS",
+    "InertialConfig",
+    "InertialStep",
     "FUSION_CROSS_ATTENTION",
     "FUSION_LAYERNORM_CONCAT",
     "FUSION_LORA",

@@ -1,6 +1,6 @@
 """Save and load HairFormer networks: self-describing files that rebuild the model.
 
-A checkpoint stores the network's kind ("static", "dynamic", "quaffure"), its config as a plain
+A checkpoint stores the network's kind ("static", "dynamic", "quaffure", "inertial"), its config as a plain
 dict, its weights (float32, or float16 for shipping: half the size, loaded back to float32), and
 optionally the optimizer state, the step and user data for resuming training. Files are read
 with `torch.load(weights_only=True)`: no code runs at load, so `extra` must be plain data
@@ -18,6 +18,7 @@ from torch import nn
 
 from hairwarp.models.config import DynamicConfig, QuaffureConfig, StaticConfig
 from hairwarp.models.dynamic import DynamicNetwork
+from hairwarp.models.inertial import InertialConfig, InertialStep
 from hairwarp.models.quaffure import QuaffureNetwork
 from hairwarp.models.static import StaticNetwork
 
@@ -29,6 +30,7 @@ _KINDS = {
     "static": (StaticNetwork, StaticConfig),
     "dynamic": (DynamicNetwork, DynamicConfig),
     "quaffure": (QuaffureNetwork, QuaffureConfig),
+    "inertial": (InertialStep, InertialConfig),
 }
 
 
@@ -64,7 +66,8 @@ def _kind_of(model: nn.Module) -> str:
     for kind, (cls, _) in _KINDS.items():
         if type(model) is cls:
             return kind
-    raise ValueError(f"model: expected one of StaticNetwork, DynamicNetwork, QuaffureNetwork, got {type(model).__name__}")
+    names = ", ".join(cls.__name__ for cls, _ in _KINDS.values())
+    raise ValueError(f"model: expected one of {names}, got {type(model).__name__}")
 
 
 def save_checkpoint(

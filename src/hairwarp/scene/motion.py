@@ -266,6 +266,55 @@ _PROCEDURAL = {
 }
 
 
+def random_head_moves(seed: int, duration: float = 1.5, fps: float = DEFAULT_FPS) -> Motion:
+    """Random quick head and neck moves with holds between them: training clips for dynamics.
+
+    From the rest pose, moves follow one another: each turns the head (yaw up to +-70 deg, pitch
+    and roll up to +-30 deg, drawn anew per move) over 0.12-0.5 s, either eased (smoothstep) or at
+    constant angular acceleration with an abrupt stop, then holds for 0.1-0.6 s; every third move
+    or so also leans the upper body by up to 20 deg. The hair's secondary motion comes from the
+    starts and stops. Not one of `list_motions()`: the networks' default training data keeps its
+    motions.
+
+    Args:
+        seed: the draw (any int).
+        duration: length [s].
+        fps: frame rate [1/s].
+
+    Returns:
+        A `Motion` of round(duration * fps) + 1 frames named "head_moves<seed>".
+    """
+    duration = check_positive("duration", duration)
+    fps = check_positive("fps", fps)
+    rng = np.random.default_rng(int(seed))
+    t = np.arange(int(round(duration * fps)) + 1) / fps
+    limits = np.radians([30.0, 70.0, 30.0, 20.0])  # pitch (x), yaw (y), roll (z), lean (x)
+    keys, now, start = [np.zeros(4)], 0.1 * rng.random(), []
+    while now < duration:
+        target = rng.uniform(-1.0, 1.0, 4) * limits
+        target[3] = target[3] if rng.random() < 0.35 else keys[-1][3]
+        move = rng.uniform(0.12, 0.5)
+        start.append((now, move, rng.random() < 0.5))
+        keys.append(target)
+        now += move + rng.uniform(0.1, 0.6)
+    angles = np.zeros((len(t), 4))
+    for (t0, move, abrupt), a, b in zip(start, keys[:-1], keys[1:]):
+        u = np.clip((t - t0) / move, 0.0, 1.0)
+        # Abrupt: constant acceleration to full speed, then an instant stop (as `whiplash`).
+        w = u**2 if abrupt else _smoothstep(u)
+        angles = np.where((t >= t0)[:, None], a + (b - a) * w[:, None], angles)
+    pose = _rest_pose(t)
+    neck = compose_axis_angles(_rot("x", 0.35 * angles[:, 0]),
+                               compose_axis_angles(_rot("y", 0.35 * angles[:, 1]), _rot("z", 0.35 * angles[:, 2])))
+    head = compose_axis_angles(_rot("x", 0.65 * angles[:, 0]),
+                               compose_axis_angles(_rot("y", 0.65 * angles[:, 1]), _rot("z", 0.65 * angles[:, 2])))
+    pose[:, JOINT["neck"]] = neck
+    pose[:, JOINT["head"]] = head
+    for joint, share in (("spine1", 0.4), ("spine2", 0.35), ("spine3", 0.25)):
+        pose[:, JOINT[joint]] = _rot("x", share * angles[:, 3])
+    return _motion(pose.reshape(len(t), POSE_DIM), np.zeros((len(t), 3)), fps=fps, name=f"head_moves{int(seed)}")
+
+
 def list_motions() -> list[str]:
     """Names of the procedural motions."""
     return list(_PROCEDURAL)

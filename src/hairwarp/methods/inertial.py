@@ -1,0 +1,149 @@
+"""The method "inertial": the static network's drape of every frame, carried in time by the learned
+inertial step (`hairwarp.models.inertial`), so that the hair keeps a state of its own and swings.
+
+- On a motion: E(t) = the static network's drape of frame t; x(t) = the step from x(t-1), x(t-2),
+  starting at rest on the first frame's drape. The time per frame is the static network's plus
+  the step's.
+- Then each frame is kept out of the body (`keep_out_of_body`: vertices inside or within
+  `KEEP_OUT_MARGIN` of the surface pushed out along the distance's gradient, the rest lengths
+  restored by follow-the-leader), a chunk of frames at a time (`SceneFrames.chunks`). The step's
+  state is not pushed: the pass is what is shown, the state swings on.
+- On independent poses (a drape): the step at rest is its equilibrium, so this is the static
+  network's drape.
+
+The step's checkpoint is `MethodOptions.checkpoint` (a file written by `InertialTrainer`), else
+the shipped `hairformer_inertial.pt`; the static network is the shipped one. The step is trained
+at one frame rate (`InertialConfig.fps`, 60 1/s): a motion at another rate is refused with the
+resampling to use.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+
+import torch
+
+from hairwarp.methods.base import Method, MethodOptions, MethodResult
+from hairwarp.methods.networks import NetworkMethod, shipped_checkpoint
+from hairwarp.runtime import timed
+
+INERTIAL_CHECKPOINT = "hairformer_inertial.pt"
+# Relative difference of frame rates the step accepts as its own.
+FPS_TOLERANCE = 1e-3
+
+# The body pass: vertices nearer the body than this [m] are pushed to it, in at most this many
+# rounds (it stops at the first round that finds none).
+KEEP_OUT_MARGIN = 1.0e-3
+KEEP_OUT_PASSES = 8
+# Distances queried exactly up to this [m]; farther vertices are left alone.
+_KEEP_OUT_QUERY = 1.0e-2
+
+_LOADED: dict[tuple, object] = {}
+
+
+def keep_out_of_body(x: torch.Tensor, rigid: torch.Tensor, body, *, margin: float = KEEP_OUT_MARGIN,
+                     passes: int = KEEP_OUT_PASSES) -> torch.Tensor:
+    """Hair pushed out of the body with its rest lengths kept.
+
+    Each round pushes every moving vertex (index >= 2) that lies inside the body or nearer its
+    surface than `margin` along the signed distance's gradient to `margin`, then projects the
+    strands back onto the rigid placement's segment lengths (follow-the-leader), which can move
+    later vertices in again: hence a few rounds.
+
+    Args:
+        x: (B, M, N, 3) hair positions [m].
+        rigid: (B, M, N, 3) the rigid placement of the same frames (its rest lengths) [m].
+        body: the frames' `BodyMesh` (batch 1 or B).
+        margin: [m] >= 0.
+        passes: at most this many rounds (>= 1); the pass stops at a round that moves nothing.
+
+    Returns:
+        (B, M, N, 3) positions [m] (no autograd).
+    """
+    from hairwarp.config import NUM_FIXED_VERTICES
+    from hairwarp.ops import follow_the_leader, hair_body_signed_distance_and_normal
+
+    for _ in range(passes):
+        distance, direction = hair_body_signed_distance_and_normal(x, body, max_distance=_KEEP_OUT_QUERY)
+        push = (margin - distance).clamp_min(0.0)
+        push[..., :NUM_FIXED_VERTICES] = 0.0
+        if not bool((push > 0).any()):
+            break
+        x = follow_the_leader(rigid, x + push[..., None] * direction, check=False)
+    return x
+
+
+def load_inertial_step(checkpoint: str | None, device: torch.device):
+    """The `InertialStep` of `checkpoint` (None: the shipped file), cached per device.
+
+    Raises:
+        ValueError: no file shipped, an unreadable file, or one holding another kind of model.
+    """
+    from hairwarp.models.checkpoint import load_checkpoint
+    from hairwarp.models.inertial import InertialStep
+
+    path = checkpoint if checkpoint is not None else shipped_checkpoint(INERTIAL_CHECKPOINT)
+    if path is None:
+        raise ValueError("checkpoint: no inertial step is shipped with this build; train one "
+                         "(`python tools/train_inertial.py`) and pass it as the checkpoint")
+    if not os.path.isfile(path):
+        raise ValueError(f"checkpoint: no such file {path!r}")
+    key = (os.path.abspath(path), str(device))
+    if key not in _LOADED:
+        try:
+            model = load_checkpoint(path, device=device).model
+        except Exception as exc:  # a foreign or truncated file: one line saying which and why
+            first = (str(exc).strip() or type(exc).__name__).splitlines()[0]
+            raise ValueError(f"checkpoint: cannot load {path!r} ({first})") from None
+        if not isinstance(model, InertialStep):
+            raise ValueError(f"checkpoint: {path} holds a {type(model).__name__}, not an inertial step")
+        _LOADED[key] = model
+    return _LOADED[key]
+
+
+class InertialMethod(Method):
+    """The static network plus the learned inertial step (module docstring)."""
+
+    name = "inertial"
+    kind = "network"
+
+    def __init__(self, options: MethodOptions | None = None):
+        super().__init__(options)
+        # The equilibrium: the shipped static network (the checkpoint option is the step's).
+        self.equilibrium = NetworkMethod("static", MethodOptions())
+
+    def drape(self, frames, *, metrics: Callable | None = None) -> MethodResult:
+        out = self.equilibrium.drape(frames)
+        out.info["equilibrium"] = "static"
+        return out
+
+    def simulate(self, frames) -> MethodResult:
+        device = frames.rigid.positions.device
+        step = load_inertial_step(self.options.checkpoint, device)
+        fps = float(frames.scene.motion.fps)
+        if abs(fps - step.config.fps) > FPS_TOLERANCE * step.config.fps:
+            raise ValueError(f"scene: the inertial step is trained at {step.config.fps:g} frames/s and this motion "
+                             f"runs at {fps:g}; resample it (hairwarp.scene.motion.resample_motion(motion, "
+                             f"{step.config.fps:g}))")
+        equilibrium = self.equilibrium.simulate(frames)
+        rigid = frames.rigid.positions
+        def run():
+            x = step.rollout(equilibrium.positions.to(rigid.dtype), rigid)
+            start = 0
+            for chunk in frames.chunks():
+                stop = start + chunk.num_frames
+                x[start:stop] = keep_out_of_body(x[start:stop], rigid[start:stop], chunk.body_mesh)
+                start = stop
+            return x
+
+        with torch.no_grad():
+            positions, seconds = timed(run, device)
+        frames_count = positions.shape[0]
+        time_ms = seconds * 1e3 / frames_count + (equilibrium.time_ms or 0.0)
+        return MethodResult(positions=positions.detach(), time_ms=time_ms,
+                            info={**equilibrium.info, "equilibrium": "static",
+                                  "step_ms": seconds * 1e3 / frames_count})
+
+
+__all__ = ["INERTIAL_CHECKPOINT", "InertialMethod", "KEEP_OUT_MARGIN", "keep_out_of_body", "load_inertial_step"]

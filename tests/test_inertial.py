@@ -1,0 +1,257 @@
+"""The inertial step (hairwarp.models.inertial), its training on physics clips, and the method "inertial"."""
+
+import math
+import os
+
+import numpy as np
+import pytest
+import torch
+
+from hairwarp.metrics import motion_fidelity
+from hairwarp.models.checkpoint import load_checkpoint, save_checkpoint
+from hairwarp.models.inertial import InertialConfig, InertialStep, vertex_features
+from hairwarp.ops import BodyMesh, follow_the_leader, hair_body_signed_distance
+from meshes import icosphere
+
+# The toy clip of the training tests: 16 strands x 12 vertices of medium wavy hair, 0.8 s of random
+# head moves (49 frames at 60 fps), simulated by the physics on this CPU once per module.
+TOY = {"strand_stride": 64, "num_vertices": 12}
+
+
+def _hanging(m=3, n=6, dtype=torch.float64):
+    """m vertical strands of n vertices, 2 cm segments, roots on a row along x."""
+    x = torch.zeros(m, n, 3, dtype=dtype)
+    x[:, :, 0] = torch.arange(m, dtype=dtype)[:, None] * 0.05
+    x[:, :, 1] = -0.02 * torch.arange(n, dtype=dtype)[None, :]
+    return x
+
+
+def _segment_lengths(x):
+    return (x[..., 1:, :] - x[..., :-1, :]).norm(dim=-1)
+
+
+def test_a_still_equilibrium_is_its_own_rollout():
+    rest = _hanging()
+    frames = rest.expand(5, -1, -1, -1).clone()
+    step = InertialStep().double()
+    out = step.rollout(frames, frames)
+    torch.testing.assert_close(out, frames, atol=1e-12, rtol=0)
+
+
+def test_a_moving_head_keeps_rest_lengths_and_fixed_vertices():
+    rest = _hanging()
+    t = torch.arange(8, dtype=torch.float64)
+    rigid = rest[None] + torch.stack([0.03 * t, 0 * t, 0 * t], dim=-1)[:, None, None, :]  # the head moves along x
+    step = InertialStep().double()
+    with torch.no_grad():
+        out = step.rollout(rigid.clone(), rigid)
+    torch.testing.assert_close(_segment_lengths(out), _segment_lengths(rigid), atol=1e-9, rtol=0)
+    torch.testing.assert_close(out[:, :, :2], rigid[:, :, :2], atol=0, rtol=0)
+    # The tips lag behind the moving roots: inertia, which the equilibrium (the rigid placement) has not.
+    assert float((out[-1, :, -1, 0] - rigid[-1, :, -1, 0]).max()) < -1e-3
+
+
+def test_coefficients_read_arc_length_for_any_vertex_count():
+    step = InertialStep()
+    for n in (4, 7, 100):
+        rest = _hanging(2, n, torch.float32)
+        with torch.no_grad():
+            gate, retention = step.coefficients(rest)
+        assert gate.shape == retention.shape == (2, n, 1)
+        assert float(gate[:, :2].abs().max()) == 0.0 and float(retention[:, :2].abs().max()) == 0.0
+        assert math.isclose(float(gate[0, -1]), InertialConfig().gate_init, rel_tol=1e-5)
+        assert math.isclose(float(retention[0, -1]), InertialConfig().retention_init, rel_tol=1e-5)
+    feats = vertex_features(_hanging(1, 5))
+    torch.testing.assert_close(feats[0, :, 0], torch.linspace(0, 1, 5, dtype=torch.float64))
+    torch.testing.assert_close(feats[0, :, 2], torch.full((5,), 0.08, dtype=torch.float64))
+
+
+def test_rollout_gradient_matches_finite_differences():
+    rest = _hanging(2, 5)
+    t = torch.arange(4, dtype=torch.float64)
+    rigid = rest[None] + torch.stack([0.02 * t**2, 0.01 * t, 0 * t], dim=-1)[:, None, None, :]
+    torch.manual_seed(0)
+    step = InertialStep(InertialConfig(hidden_dim=4)).double()
+    with torch.no_grad():
+        step.net[-1].weight.normal_(0, 0.3)
+    target = rigid + 0.01
+
+    def loss_of(bias):
+        step.net[-1].bias.data.copy_(bias)
+        return (step.rollout(rigid.clone(), rigid) - target).square().sum()
+
+    bias = step.net[-1].bias.detach().clone()
+    step.net[-1].bias.grad = None
+    step.net[-1].bias.data.copy_(bias)
+    (step.rollout(rigid.clone(), rigid) - target).square().sum().backward()
+    analytic = step.net[-1].bias.grad.clone()
+    for i in range(2):
+        e = torch.zeros_like(bias)
+        e[i] = 1e-6
+        with torch.no_grad():
+            fd = (loss_of(bias + e) - loss_of(bias - e)) / 2e-6
+        assert math.isclose(float(analytic[i]), float(fd), rel_tol=1e-5, abs_tol=1e-10)
+
+
+def test_bad_inputs_name_the_argument():
+    step = InertialStep()
+    rigid = _hanging(2, 5, torch.float32)[None].expand(3, -1, -1, -1)
+    with pytest.raises(ValueError, match="equilibrium"):
+        step.rollout(rigid[:2], rigid)
+    bad = rigid.clone()
+    bad[1, 0, 3, 0] = float("nan")
+    with pytest.raises(ValueError, match="rigid"):
+        step.rollout(rigid.clone(), bad)
+    with pytest.raises(ValueError, match="gate_init"):
+        InertialConfig(gate_init=1.0)
+    with pytest.raises(ValueError, match="rigid"):
+        step.rollout(rigid[:, :, :2].contiguous(), rigid[:, :, :2].contiguous())
+
+
+def test_checkpoint_round_trip(tmp_path):
+    step = InertialStep(InertialConfig(hidden_dim=8, gate_init=0.9))
+    with torch.no_grad():
+        step.net[0].weight.mul_(1.5)
+    save_checkpoint(tmp_path / "step.pt", step)
+    back = load_checkpoint(tmp_path / "step.pt")
+    assert isinstance(back.model, InertialStep) and back.config == step.config
+    rest = _hanging(2, 6, torch.float32)
+    torch.testing.assert_close(back.model.coefficients(rest)[0], step.coefficients(rest)[0])
+
+
+def test_keep_out_of_body_leaves_no_vertex_inside_and_keeps_rest_lengths():
+    from hairwarp.methods.inertial import KEEP_OUT_MARGIN, keep_out_of_body
+
+    v, f = icosphere(8, radius=0.1)
+    body = BodyMesh(torch.tensor(v, dtype=torch.float32), torch.tensor(f, dtype=torch.int32))
+    # Strands rooted above the sphere, hanging straight through it.
+    m, n = 5, 16
+    x = torch.zeros(1, m, n, 3)
+    x[0, :, :, 0] = torch.linspace(-0.04, 0.04, m)[:, None]
+    x[0, :, :, 1] = 0.14 - 0.02 * torch.arange(n)[None, :]
+    rigid = x.clone()
+    assert float(hair_body_signed_distance(x, body).min()) < -0.05
+    out = keep_out_of_body(x, rigid, body)
+    assert float(hair_body_signed_distance(out, body).min()) > -1e-5
+    torch.testing.assert_close(_segment_lengths(out), _segment_lengths(rigid), atol=1e-5, rtol=0)
+    torch.testing.assert_close(out[:, :, :2], rigid[:, :, :2])
+    assert KEEP_OUT_MARGIN > 0
+
+
+def test_random_head_moves_are_seeded_and_bounded():
+    from hairwarp.scene.motion import random_head_moves
+
+    a, b, c = random_head_moves(3), random_head_moves(3), random_head_moves(4)
+    assert a.num_frames == 91 and a.name == "head_moves3"
+    torch.testing.assert_close(a.poses, b.poses)
+    assert not torch.equal(a.poses, c.poses)
+    assert float(a.poses.abs().max()) < math.radians(75)
+    speed = np.abs(np.diff(a.poses.numpy(), axis=0)).max() * a.fps
+    assert speed > 1.0  # quick moves, not a still pose
+
+
+# --------------------------------------------------------------------------- training on the physics
+@pytest.fixture(scope="module")
+def toy_run(tmp_path_factory):
+    """A trainer on the one-clip toy (the clip also its held-out curve), trained 60 steps, saved."""
+    from hairwarp.training.inertial import ClipSpec, InertialTrainer, InertialTrainingConfig
+
+    torch.set_num_threads(1)
+    out = tmp_path_factory.mktemp("inertial_run")
+    clip = ClipSpec("medium_wavy", "head_moves", 2, 0.0, 0.8)
+    config = InertialTrainingConfig(clips=[clip], held_out=[clip], steps=60, eval_every=30, learning_rate=2e-2,
+                                    **TOY)
+    trainer = InertialTrainer(config, out=out, progress=False)
+    untrained = trainer.evaluate()
+    trainer.train()
+    return out, trainer, untrained
+
+
+def test_a_rollout_trained_step_swings_where_the_static_network_cannot(toy_run):
+    _, trainer, untrained = toy_run
+    clip = trainer.held_out_clips[0]
+    with torch.no_grad():
+        x = trainer.model.rollout(clip["equilibrium"], clip["rigid"])
+    ours = motion_fidelity(x, clip["physics"], clip["rigid"])
+    static = motion_fidelity(clip["equilibrium"], clip["physics"], clip["rigid"])
+    assert ours["swing_correlation"] > static["swing_correlation"] + 0.3, (ours, static)
+    assert ours["swing_correlation"] > 0.6
+    key = clip["spec"].key
+    assert trainer.evaluate()[key]["swing_correlation"] >= untrained[key]["swing_correlation"] - 1e-6
+
+
+def test_the_learning_curve_holds_the_motion_metrics_and_resume_continues(toy_run):
+    from hairwarp.training.inertial import InertialTrainer, read_log
+
+    out, trainer, _ = toy_run
+    log = read_log(out)
+    assert [r["step"] for r in log] == list(range(1, 61))
+    points = [r for r in log if "held_out" in r]
+    assert [r["step"] for r in points] == [30, 60]
+    metrics = next(iter(points[-1]["held_out"].values()))
+    for name in ("mean_distance_mm", "swing_correlation", "swing_amplitude_ratio", "equilibrium_swing_correlation"):
+        assert name in metrics
+    clips = os.listdir(os.path.join(out, "clips"))
+    stamp = {c: os.path.getmtime(os.path.join(out, "clips", c)) for c in clips}
+
+    resumed = InertialTrainer(out=out, resume=out, progress=False)
+    assert resumed.step_count == 60
+    torch.testing.assert_close(resumed.model.net[0].weight, trainer.model.net[0].weight)
+    resumed.config.steps = 65
+    resumed.train()
+    log = read_log(out)
+    assert [r["step"] for r in log][-5:] == [61, 62, 63, 64, 65]
+    assert {c: os.path.getmtime(os.path.join(out, "clips", c)) for c in clips} == stamp  # not simulated again
+    with pytest.raises(ValueError, match="resume"):
+        InertialTrainer(resume=os.path.join(out, "nothing_here"))
+
+
+def test_the_method_runs_a_motion_and_refuses_another_frame_rate(toy_run, tmp_path):
+    import hairwarp as hw
+    from hairwarp.methods import MethodOptions, make
+    from hairwarp.scene.motion import resample_motion
+
+    out, trainer, _ = toy_run
+    scene = hw.default_scene("bob", "nod", strand_stride=64, num_vertices=12)
+    scene = type(scene)(body=scene.body, scalp=scene.scalp, hairstyle=scene.hairstyle,
+                        motion=scene.motion.replace(poses=scene.motion.poses[:20], trans=scene.motion.trans[:20]))
+    ckpt = os.path.join(out, "checkpoint.pt")
+    result = hw.simulate(scene, method="inertial", checkpoint=ckpt)
+    assert result.positions.shape == (20, scene.hairstyle.num_strands, 12, 3)
+    assert result.metrics["penetration_percent"] == 0.0
+    assert result.metrics["length_change_percent"] < 0.01
+    slow = type(scene)(body=scene.body, scalp=scene.scalp, hairstyle=scene.hairstyle,
+                       motion=resample_motion(scene.motion, 30.0))
+    with pytest.raises(ValueError, match="resample"):
+        make("inertial", MethodOptions(checkpoint=ckpt)).simulate(slow.frames())
+    with pytest.raises(ValueError, match="no such file"):
+        make("inertial", MethodOptions(checkpoint=str(tmp_path / "missing.pt"))).simulate(scene.frames())
+    other = tmp_path / "static.pt"
+    from hairwarp.models import StaticConfig, StaticNetwork
+
+    save_checkpoint(other, StaticNetwork(StaticConfig(latent_dim=8, model_dim=16, num_heads=2, ffn_dim=16,
+                                                      num_vertices=12)))
+    with pytest.raises(ValueError, match="not an inertial step"):
+        make("inertial", MethodOptions(checkpoint=str(other))).simulate(scene.frames())
+
+
+def test_the_step_at_rest_keeps_a_still_hairstyle_still():
+    rest = _hanging(2, 8, torch.float32)
+    rigid = rest.expand(4, -1, -1, -1).clone()
+    x = follow_the_leader(rigid, rigid + 0.001)
+    step = InertialStep()
+    out = step.rollout(x, rigid)
+    torch.testing.assert_close(out, x, atol=1e-6, rtol=0)
+
+
+def test_relative_damping_carries_hair_at_a_steady_speed_without_drag():
+    rest = _hanging(2, 6)
+    t = torch.arange(240, dtype=torch.float64)
+    rigid = rest[None] + torch.stack([0.01 * t, 0 * t, 0 * t], dim=-1)[:, None, None, :]  # 0.6 m/s along x
+    lag = {}
+    for damping in ("relative", "absolute"):
+        step = InertialStep(InertialConfig(damping=damping)).double()
+        with torch.no_grad():
+            out = step.rollout(rigid.clone(), rigid)
+        lag[damping] = float((out[-1, :, -1] - rigid[-1, :, -1]).norm(dim=-1).max())
+    assert lag["relative"] < 1e-4 < 1e-3 < lag["absolute"], lag

@@ -1,0 +1,212 @@
+"""Train the inertial step on physics clips, then judge it on held-out motions at full size.
+
+    python tools/train_inertial.py train --device cuda --out OUT                 # clips + training
+    python tools/train_inertial.py train --device cuda --out OUT --resume OUT    # more steps, same run
+    python tools/train_inertial.py evaluate --device cuda --checkpoint OUT/hairformer_inertial.pt --out OUT
+
+`train`: the training clips are grown preset hairstyles under random head moves
+(`hairwarp.scene.motion.random_head_moves`, 1.5 s each), simulated by the physics at 256 strands;
+the learning curve follows the comparison scenes whiplash and torso_bend at the same size (never
+trained on). Writes OUT/run/ (clips/, checkpoint.pt, log.jsonl), OUT/hairformer_inertial.pt (the
+step to ship) and OUT/curve_inertial.png.
+
+`evaluate`: held-out motions at full size (1 024 strands x 100 vertices unless --strand-stride):
+the comparison scenes whiplash and torso_bend, and scenes unlike the training clips (procedural
+nod, sway walk and arm raise on other hairstyles, and an AMASS-format file written by
+tools/foreign_scenes.py). Per scene: the physics once, then rigid, static, dynamic (the paper's
+network) and inertial against it: distance to the physics, tip swing, its amplitude ratio and
+correlation, penetration, length change, ms/frame. Writes OUT/evaluate_inertial.json and .md and
+one swing plot per scene.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+
+import torch
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+STYLES = ("long_straight", "medium_wavy", "long_curly", "bob")
+HELD_OUT_CURVE = (("whiplash", "scene", 0, 0.0, None), ("torso_bend", "scene", 0, 0.0, None))
+# Held-out motions of `evaluate`: (label, hairstyle, pose, start, duration); pose "scene" is the
+# comparison scene of that name; "amass" the AMASS-format file of tools/foreign_scenes.py.
+EVALUATION = (
+    ("whiplash", "whiplash", "scene", None, None),
+    ("torso_bend", "torso_bend", "scene", None, None),
+    ("bob_nod", "bob", "nod", 0.0, 2.0),
+    ("curly_sway_walk", "long_curly", "sway_walk", 0.0, 2.0),
+    ("long_arm_raise", "long_straight", "arm_raise", 0.5, 1.5),
+    ("wavy_amass", "medium_wavy", "amass", 0.0, None),
+)
+METHODS = ("rigid", "static", "dynamic", "inertial")
+
+
+def train(args) -> int:
+    from hairwarp.models.checkpoint import save_checkpoint
+    from hairwarp.training.inertial import ClipSpec, InertialTrainer, InertialTrainingConfig, read_log
+
+    run = os.path.join(args.out, "run")
+    if args.resume:
+        trainer = InertialTrainer(out=run, device=args.device, resume=args.resume)
+        if args.steps:
+            trainer.config.steps = args.steps
+    else:
+        clips = [ClipSpec(style, "head_moves", 100 * i + j, 0.0, 1.5)
+                 for i, style in enumerate(args.styles.split(",")) for j in range(args.clips_per_style)]
+        config = InertialTrainingConfig(clips=clips, held_out=[ClipSpec(*c) for c in HELD_OUT_CURVE],
+                                        strand_stride=args.strand_stride, steps=args.steps,
+                                        learning_rate=args.lr, eval_every=args.eval_every)
+        trainer = InertialTrainer(config, out=run, device=args.device, seed=args.seed)
+    start = time.perf_counter()
+    trainer.train()
+    seconds = time.perf_counter() - start
+    save_checkpoint(os.path.join(args.out, "hairformer_inertial.pt"), trainer.model.cpu().float())
+    log = read_log(run)
+    last = next(r for r in reversed(log) if "held_out" in r)
+    print(json.dumps({"steps": trainer.step_count, "train_seconds": seconds, "held_out": last["held_out"]}, indent=1))
+    _plot_curve(log, os.path.join(args.out, "curve_inertial.png"))
+    return 0
+
+
+def _plot_curve(log: list[dict], path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
+    axes[0].semilogy([r["step"] for r in log], [r["loss"] for r in log])
+    axes[0].set(title="training loss (swing + 0.3 position) [m^2]", xlabel="step")
+    points = [r for r in log if "held_out" in r]
+    for key in points[0]["held_out"]:
+        steps = [r["step"] for r in points]
+        label = key.split("_scene")[0]
+        axes[1].plot(steps, [r["held_out"][key]["swing_correlation"] for r in points], "o-", label=label)
+        axes[1].axhline(points[0]["held_out"][key]["equilibrium_swing_correlation"], ls=":", lw=1)
+        axes[2].plot(steps, [r["held_out"][key]["mean_distance_mm"] for r in points], "o-", label=label)
+    axes[1].set(title="held out: tip swing correlation with the physics", xlabel="step")
+    axes[2].set(title="held out: mean distance to the physics [mm]", xlabel="step")
+    axes[1].legend()
+    fig.text(0.01, 0.01, "dotted: the static network alone; python tools/train_inertial.py train", fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _evaluation_scene(label, style, pose, start, duration, stride, out):
+    import hairwarp as hw
+    from hairwarp.evaluation.scenes import comparison_scene
+
+    if pose == "scene":
+        return comparison_scene(style, strand_stride=stride).scene
+    if pose == "amass":
+        from foreign_scenes import build_motion
+
+        pose = build_motion(out, seed=3)
+    frames = None if duration is None else int(round(duration * 60)) + 1
+    return hw.build_scene(style, pose=pose, strand_stride=stride, start=start, num_frames=frames)
+
+
+def evaluate(args) -> int:
+    from hairwarp.evaluation.charts import swing_plot
+    from hairwarp.methods import MethodOptions, make
+    from hairwarp.metrics import frame_metrics_of, mean_tip_offset, motion_fidelity
+
+    device = torch.device(args.device)
+    records = []
+    labels = args.scenes.split(",") if args.scenes else [e[0] for e in EVALUATION]
+    for label, style, pose, start, duration in EVALUATION:
+        if label not in labels:
+            continue
+        scene = _evaluation_scene(label, style, pose, start, duration, args.strand_stride, args.out)
+        frames = scene.frames(device=device)
+        t0 = time.perf_counter()
+        physics = make("physics").simulate(frames)
+        physics_s = time.perf_counter() - t0
+        rigid = frames.rigid.positions
+        positions, rows = {"physics": physics.positions}, {}
+        for name in METHODS:
+            checkpoint = {"inertial": args.checkpoint, "static": args.static_checkpoint}.get(name)
+            method = make(name, MethodOptions(checkpoint=checkpoint))
+            if name == "inertial" and args.static_checkpoint:
+                method.equilibrium = make("static", MethodOptions(checkpoint=args.static_checkpoint))
+            result = method.simulate(frames)
+            positions[name] = result.positions
+            fid = motion_fidelity(result.positions, physics.positions, rigid)
+            rows[name] = {k: fid[k] for k in ("mean_distance_mm", "max_distance_mm", "swing_mm", "physics_swing_mm",
+                                              "swing_amplitude_ratio", "swing_correlation")}
+            rows[name]["ms_per_frame"] = result.time_ms
+        per_frame = frame_metrics_of(positions, frames)
+        for name, (metrics, _) in per_frame.items():
+            row = rows.setdefault(name, {"ms_per_frame": physics.time_ms})
+            row["penetration_percent_mean"] = sum(metrics["penetration_percent"]) / len(metrics["penetration_percent"])
+            row["penetration_percent_max"] = max(metrics["penetration_percent"])
+            row["length_change_percent_max"] = max(metrics["length_change_percent"])
+        rows["physics"]["seconds"] = physics_s
+        size = {"strands": int(rigid.shape[1]), "vertices": int(rigid.shape[2]), "frames": int(rigid.shape[0])}
+        records.append({"scene": label, "hairstyle": style, "pose": pose, "size": size, "rows": rows})
+        curves = {n: mean_tip_offset(p, rigid).cpu() for n, p in positions.items() if n != "rigid"}
+        machine = torch.cuda.get_device_name() if device.type == "cuda" else "CPU"
+        swing_plot(curves, os.path.join(args.out, f"swing_inertial_{label}.png"), fps=float(scene.motion.fps),
+                   title=f"{label}: {size['strands']} strands x {size['vertices']}, {machine}")
+        print(label, json.dumps(rows, indent=None, default=float), flush=True)
+    with open(os.path.join(args.out, "evaluate_inertial.json"), "w") as f:
+        json.dump({"device": str(device), "records": records, "command": " ".join(sys.argv)}, f, indent=1)
+    with open(os.path.join(args.out, "evaluate_inertial.md"), "w") as f:
+        f.write(_markdown(records))
+    print(_markdown(records))
+    return 0
+
+
+def _fmt(v, spec=".1f"):
+    return "-" if v is None else format(v, spec)
+
+
+def _markdown(records) -> str:
+    lines = ["| scene | method | to physics mean / max [mm] | swing [mm] (physics) | amplitude ratio | correlation | "
+             "inside % mean / max | length change % max | ms/frame |", "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for rec in records:
+        for name, row in rec["rows"].items():
+            lines.append(
+                f"| {rec['scene']} | {name} | {_fmt(row.get('mean_distance_mm'))} / {_fmt(row.get('max_distance_mm'))} | "
+                f"{_fmt(row.get('swing_mm'))} ({_fmt(row.get('physics_swing_mm'))}) | "
+                f"{_fmt(row.get('swing_amplitude_ratio'), '.2f')} | {_fmt(row.get('swing_correlation'), '.3f')} | "
+                f"{_fmt(row['penetration_percent_mean'], '.3f')} / {_fmt(row['penetration_percent_max'], '.3f')} | "
+                f"{_fmt(row['length_change_percent_max'], '.3f')} | {_fmt(row.get('ms_per_frame'), '.2f')} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    t = sub.add_parser("train", help="simulate the clips and train the step")
+    t.add_argument("--styles", default=",".join(STYLES), help="hairstyle presets of the training clips")
+    t.add_argument("--clips-per-style", type=int, default=4)
+    t.add_argument("--strand-stride", type=int, default=4, help="every k-th scalp root (4: 256 strands)")
+    t.add_argument("--steps", type=int, default=300)
+    t.add_argument("--lr", type=float, default=3e-3)
+    t.add_argument("--eval-every", type=int, default=50)
+    t.add_argument("--resume", default=None, help="a run folder or checkpoint.pt to continue")
+    e = sub.add_parser("evaluate", help="held-out motions against the physics")
+    e.add_argument("--checkpoint", default=None, help="the step (None: the shipped one)")
+    e.add_argument("--static-checkpoint", default=None,
+                   help="a static network for the rows static and inertial (None: the shipped one)")
+    e.add_argument("--strand-stride", type=int, default=1)
+    e.add_argument("--scenes", default=None, help="comma-separated labels (default: all)")
+    for p in (t, e):
+        p.add_argument("--device", default="cpu")
+        p.add_argument("--seed", type=int, default=0)
+        p.add_argument("--out", required=True)
+    args = parser.parse_args(argv)
+    os.makedirs(args.out, exist_ok=True)
+    torch.manual_seed(args.seed)
+    return train(args) if args.command == "train" else evaluate(args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
