@@ -220,6 +220,8 @@ def test_the_method_runs_a_motion_and_refuses_another_frame_rate(toy_run, tmp_pa
     assert result.positions.shape == (20, scene.hairstyle.num_strands, 12, 3)
     assert result.metrics["penetration_percent"] == 0.0
     assert result.metrics["length_change_percent"] < 0.01
+    shipped = hw.simulate(scene, method="inertial")  # the step shipped in hairwarp/assets
+    assert shipped.positions.shape == result.positions.shape and shipped.metrics["penetration_percent"] == 0.0
     slow = type(scene)(body=scene.body, scalp=scene.scalp, hairstyle=scene.hairstyle,
                        motion=resample_motion(scene.motion, 30.0))
     with pytest.raises(ValueError, match="resample"):

@@ -50,26 +50,28 @@ def train(args) -> int:
     from hairwarp.models.checkpoint import save_checkpoint
     from hairwarp.training.inertial import ClipSpec, InertialTrainer, InertialTrainingConfig, read_log
 
-    run = os.path.join(args.out, "run")
+    run = os.path.join(args.out, args.run_name)
+    cache = os.path.join(args.out, "clips")
     if args.resume:
-        trainer = InertialTrainer(out=run, device=args.device, resume=args.resume)
+        trainer = InertialTrainer(out=run, device=args.device, resume=args.resume, clip_cache=cache)
         if args.steps:
             trainer.config.steps = args.steps
     else:
         clips = [ClipSpec(style, "head_moves", 100 * i + j, 0.0, 1.5)
                  for i, style in enumerate(args.styles.split(",")) for j in range(args.clips_per_style)]
+        model = dict(item.split("=", 1) for item in args.model.split(",")) if args.model else {}
         config = InertialTrainingConfig(clips=clips, held_out=[ClipSpec(*c) for c in HELD_OUT_CURVE],
                                         strand_stride=args.strand_stride, steps=args.steps,
-                                        learning_rate=args.lr, eval_every=args.eval_every)
-        trainer = InertialTrainer(config, out=run, device=args.device, seed=args.seed)
+                                        learning_rate=args.lr, eval_every=args.eval_every, model=model)
+        trainer = InertialTrainer(config, out=run, device=args.device, seed=args.seed, clip_cache=cache)
     start = time.perf_counter()
     trainer.train()
     seconds = time.perf_counter() - start
-    save_checkpoint(os.path.join(args.out, "hairformer_inertial.pt"), trainer.model.cpu().float())
+    save_checkpoint(os.path.join(args.out, f"{args.run_name}_inertial.pt"), trainer.model.cpu().float())
     log = read_log(run)
     last = next(r for r in reversed(log) if "held_out" in r)
     print(json.dumps({"steps": trainer.step_count, "train_seconds": seconds, "held_out": last["held_out"]}, indent=1))
-    _plot_curve(log, os.path.join(args.out, "curve_inertial.png"))
+    _plot_curve(log, os.path.join(args.out, f"{args.run_name}_curve.png"))
     return 0
 
 
@@ -107,7 +109,8 @@ def _evaluation_scene(label, style, pose, start, duration, stride, out):
     if pose == "amass":
         from foreign_scenes import build_motion
 
-        pose = build_motion(out, seed=3)
+        os.makedirs(os.path.join(out, "files"), exist_ok=True)
+        pose = build_motion(os.path.join(out, "files"), seed=3)
     frames = None if duration is None else int(round(duration * 60)) + 1
     return hw.build_scene(style, pose=pose, strand_stride=stride, start=start, num_frames=frames)
 
@@ -130,10 +133,11 @@ def evaluate(args) -> int:
         physics_s = time.perf_counter() - t0
         rigid = frames.rigid.positions
         positions, rows = {"physics": physics.positions}, {}
-        for name in METHODS:
-            checkpoint = {"inertial": args.checkpoint, "static": args.static_checkpoint}.get(name)
-            method = make(name, MethodOptions(checkpoint=checkpoint))
-            if name == "inertial" and args.static_checkpoint:
+        variants = dict(item.split("=", 1) for item in args.variants.split(",")) if args.variants else {}
+        for name in (*METHODS, *variants):
+            checkpoint = {"inertial": args.checkpoint, "static": args.static_checkpoint, **variants}.get(name)
+            method = make("inertial" if name in variants else name, MethodOptions(checkpoint=checkpoint))
+            if (name == "inertial" or name in variants) and args.static_checkpoint:
                 method.equilibrium = make("static", MethodOptions(checkpoint=args.static_checkpoint))
             result = method.simulate(frames)
             positions[name] = result.positions
@@ -192,12 +196,15 @@ def main(argv=None) -> int:
     t.add_argument("--lr", type=float, default=3e-3)
     t.add_argument("--eval-every", type=int, default=50)
     t.add_argument("--resume", default=None, help="a run folder or checkpoint.pt to continue")
+    t.add_argument("--run-name", default="run", help="OUT/<name>/ holds the run, OUT/<name>_inertial.pt the step")
+    t.add_argument("--model", default="", help="InertialConfig fields, e.g. damping=absolute")
     e = sub.add_parser("evaluate", help="held-out motions against the physics")
     e.add_argument("--checkpoint", default=None, help="the step (None: the shipped one)")
     e.add_argument("--static-checkpoint", default=None,
                    help="a static network for the rows static and inertial (None: the shipped one)")
     e.add_argument("--strand-stride", type=int, default=1)
     e.add_argument("--scenes", default=None, help="comma-separated labels (default: all)")
+    e.add_argument("--variants", default="", help="more inertial steps as rows: name=checkpoint,...")
     for p in (t, e):
         p.add_argument("--device", default="cpu")
         p.add_argument("--seed", type=int, default=0)

@@ -30,13 +30,17 @@ _STYLE = {"rigid": ("0.4", "--"), "adam": ("tab:orange", "-"), "lbfgs": ("tab:bl
           "quaffure": ("tab:brown", None), "inertial": ("tab:cyan", None)}
 
 
+# Colours of methods without a style of their own: none of the styled methods' colours.
+_OTHER_COLORS = ("tab:olive", "tab:pink", "navy", "teal", "gold", "tab:gray")
+
+
 def _color(name: str, index: int) -> str:
     if name in _STYLE:
         return _STYLE[name][0]
     base = name.split("+")[0]
     if base in _STYLE:  # a composed method ("static+refine") in its network's colour
         return _STYLE[base][0]
-    return f"C{index % 10}"
+    return _OTHER_COLORS[index % len(_OTHER_COLORS)]
 
 
 def speed_accuracy_chart(record: dict, path: str, *, scenes: list[str] | None = None) -> str:

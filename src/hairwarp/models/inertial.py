@@ -8,20 +8,21 @@ gives it one: the last two drapes x(t-1), x(t-2), as the implicit-Euler step of 
 Per frame t, with E(t) the equilibrium drape of the frame (the static network's, or any method's)
 and P_rigid(t) the rigid placement (Eq. 1):
 
-    v(t)  = x(t-1) - x(t-2),   u(t) = P_rigid(t-1) - P_rigid(t-2)
-    y(t)  = x(t-1) + u(t) + beta * (v(t) - u(t))      inertial prediction
-    p(t)  = E(t) + G * (y(t) - E(t))                  pulled toward the equilibrium by 1 - G
-    x(t)  = follow_the_leader(P_rigid(t), p(t))       rest lengths kept, vertices 0 and 1 fixed
+    y(t) = x(t-1) + beta * (x(t-1) - x(t-2))          inertial prediction, beta the velocity kept
+    p(t) = E(t) + G * (y(t) - E(t))                   pulled toward the equilibrium by 1 - G
+    x(t) = follow_the_leader(P_rigid(t), p(t))        rest lengths kept, vertices 0 and 1 fixed
 
 For a quadratic energy of stiffness k, one implicit-Euler step of Eq. 16 is exactly this blend with
 G = 1 / (1 + h^2 k) and beta = 1: the step is implicit Euler with a learned, per-vertex stiffness
 (G) and damping (beta), and follow-the-leader is the inextensibility constraint of position-based
-hair (the projection of the static drape, `StaticConfig.length_projection`). beta damps the
-velocity relative to the head's (u: how the rigid placement moved over the last frame), as the
-strands' internal friction does: hair carried at a steady speed (a walk) is not dragged behind,
-while a head that starts or stops moving (u changes) leaves the hair behind or swinging on. G and beta are read
-from each vertex's rest arc length (the distance from the root s, the strand's length L, s / L) by
-a small MLP, so that one step serves any hairstyle, strand count and vertex count.
+hair (the projection of the static drape, `StaticConfig.length_projection`). beta < 1 damps the
+velocity itself, a drag: hair carried at a steady speed (a walk) trails its equilibrium. The
+option `damping="relative"` damps only the velocity relative to the head's instead,
+y(t) = x(t-1) + u + beta * (x(t-1) - x(t-2) - u) with u = P_rigid(t-1) - P_rigid(t-2), which
+removes that drag; trained the same way it swung less and later than the physics on every
+held-out motion (docs/network_diagnosis.md, "The hair's own state"), so the drag stays the default.
+G and beta are read from each vertex's rest arc length (the distance from the root s, the strand's
+length L, s / L) by a small MLP, so that one step serves any hairstyle, strand count and vertex count.
 
 Trained on physics trajectories (`hairwarp.training.inertial`): rollouts from the first frame, on
 the step's own predictions, back-propagated through the whole clip.
@@ -57,16 +58,15 @@ class InertialConfig(_DictConfig):
         retention_init: beta at initialisation (the share of the last frame's velocity kept).
         fps: the frame rate the step is trained for [1/s]; a motion at another rate is
             resampled to it by the caller (`hairwarp.scene.motion.resample_motion`).
-        damping: what beta damps: "relative", the velocity relative to the head's (the module
-            docstring), or "absolute", the velocity itself (u = 0: a drag that holds hair
-            carried at a steady speed behind its equilibrium; the first shipped step's form).
+        damping: what beta damps: "absolute", the velocity itself (a drag), or "relative", the
+            velocity relative to the head's (the module docstring; measured worse).
     """
 
     hidden_dim: int = 32
     gate_init: float = 0.98
     retention_init: float = 0.9
     fps: float = 60.0
-    damping: str = "relative"
+    damping: str = "absolute"
 
     def __post_init__(self):
         if not isinstance(self.hidden_dim, int) or isinstance(self.hidden_dim, bool) or self.hidden_dim <= 0:
@@ -143,7 +143,8 @@ class InertialStep(nn.Module):
             equilibrium: (B, M, N, 3) E(t) [m].
             rigid: (B, M, N, 3) P_rigid(t) [m].
             prev, prev2: (B, M, N, 3) x(t-1), x(t-2) [m].
-            head_velocity: (B, M, N, 3) u(t) = P_rigid(t-1) - P_rigid(t-2) [m per frame].
+            head_velocity: (B, M, N, 3) u(t) [m per frame]: P_rigid(t-1) - P_rigid(t-2) for
+                `damping="relative"`, zeros for "absolute".
             coefficients: `coefficients(rigid)`, to reuse over a sequence.
 
         Returns:

@@ -159,12 +159,16 @@ class InertialTrainer:
         seed: seeds the step's initialisation.
         resume: a checkpoint.pt (or its folder) of this kind of run to continue.
         progress: progress bars.
+        clip_cache: the folder of the simulated clips (None: out/clips); runs that share it
+            simulate each clip once.
     """
 
     def __init__(self, config: InertialTrainingConfig | None = None, *, out=None, device="cpu", seed: int = 0,
-                 resume=None, progress: bool = True):
+                 resume=None, progress: bool = True, clip_cache=None):
         self.device = torch.device(device)
         self.out = None if out is None else os.fspath(out)
+        self.clip_cache = os.fspath(clip_cache) if clip_cache is not None else (
+            None if self.out is None else os.path.join(self.out, "clips"))
         self.progress = progress
         self.step_count = 0
         ckpt = None
@@ -193,8 +197,9 @@ class InertialTrainer:
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.learning_rate)
         if ckpt is not None and ckpt.optimizer_state is not None:
             ckpt.restore_optimizer(self.optimizer)
-        if self.out is not None:
-            os.makedirs(os.path.join(self.out, "clips"), exist_ok=True)
+        for folder in (self.out, self.clip_cache):
+            if folder is not None:
+                os.makedirs(folder, exist_ok=True)
         self.train_clips = [self._clip(c) for c in config.clips]
         self.held_out_clips = [self._clip(c) for c in config.held_out]
         # All training clips rolled out as one: strands are independent in the step, so clips of
@@ -203,8 +208,8 @@ class InertialTrainer:
 
     def _clip(self, spec: ClipSpec) -> dict:
         cfg = self.config
-        path = None if self.out is None else os.path.join(self.out, "clips", f"{spec.key}_s{cfg.strand_stride}"
-                                                           f"_n{cfg.num_vertices}_{cfg.equilibrium}.pt")
+        name = f"{spec.key}_s{cfg.strand_stride}_n{cfg.num_vertices}_{cfg.equilibrium}.pt"
+        path = None if self.clip_cache is None else os.path.join(self.clip_cache, name)
         if path is not None and os.path.isfile(path):
             data = torch.load(path, weights_only=True)
         else:
