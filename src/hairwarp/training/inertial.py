@@ -25,6 +25,7 @@ the step, its optimizer and the step count: `resume=` continues the same run.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import os
 import time
@@ -44,24 +45,24 @@ class ClipSpec:
     """One clip: a preset hairstyle grown around the rest body, a motion window, a size.
 
     Attributes:
-        hairstyle: preset name (`hairwarp.scene.hairstyles.list_hairstyle_presets()`), or a
-            comparison scene's name (`hairwarp.evaluation.scenes.SCENE_NAMES`, a motion scene)
-            with `motion` "scene".
-        motion: "head_moves" (`hairwarp.scene.motion.random_head_moves`), a procedural motion's
-            name (`list_motions()`), or "scene".
-        seed: the motion's draw (jitter of a procedural motion, the moves of "head_moves").
+        hairstyle: preset name (`hairwarp.scene.hairstyles.list_hairstyle_presets()`), grown
+            around the default body at rest (hairstyle seed 0, as the comparison scenes').
+        motion: "head_moves" (`hairwarp.scene.motion.random_head_moves`) or a procedural
+            motion's name (`list_motions()`).
+        seed: the motion's draw (the moves of "head_moves"; the jitter of a procedural motion,
+            None for its nominal form).
         start, end: the window kept [s] (end None: the motion's end; "head_moves" lasts `end`).
     """
 
     hairstyle: str
     motion: str
-    seed: int = 0
+    seed: int | None = 0
     start: float = 0.0
     end: float | None = 1.5
 
     @property
     def key(self) -> str:
-        return f"{self.hairstyle}_{self.motion}{self.seed}_{self.start:g}_{self.end}"
+        return f"{self.hairstyle}_{self.motion}{'' if self.seed is None else self.seed}_{self.start:g}_{self.end}"
 
 
 @dataclass
@@ -82,7 +83,7 @@ class InertialTrainingConfig:
     """
 
     clips: list = field(default_factory=lambda: [ClipSpec("medium_wavy", "head_moves", s) for s in range(4)])
-    held_out: list = field(default_factory=lambda: [ClipSpec("whiplash", "scene", 0, 0.0, None)])
+    held_out: list = field(default_factory=lambda: [ClipSpec("medium_wavy", "whiplash", None, 0.35, 1.0)])
     strand_stride: int = 4
     num_vertices: int = 100
     equilibrium: str = "static"
@@ -112,17 +113,29 @@ class InertialTrainingConfig:
         return dataclasses.asdict(self)
 
 
+@functools.lru_cache(maxsize=8)
+def _grown(hairstyle: str):
+    """The default scene of a preset and the preset grown around its rest body (full size)."""
+    from hairwarp.scene.hairstyles import generate_hairstyle, hairstyle_preset
+    from hairwarp.scene.scene import default_scene
+
+    base = default_scene(hairstyle, seed=0)
+    style = generate_hairstyle(base.scalp, hairstyle_preset(hairstyle, seed=0), num_vertices=100,
+                               body=(base.body.rest_vertices, base.body.faces))
+    return base, style
+
+
 def clip_scene(spec: ClipSpec, strand_stride: int, num_vertices: int):
-    """The `Scene` of a clip (see `ClipSpec`)."""
-    from hairwarp.evaluation.scenes import _grown_hairstyle, comparison_scene
+    """The `Scene` of a clip (see `ClipSpec`): every `strand_stride`-th strand, resampled to
+    `num_vertices`. ClipSpec("medium_wavy", "whiplash", None, 0.35, 1.0) is the comparison scene
+    whiplash, ClipSpec("long_straight", "torso_bend", None, 0.3, 1.3) torso_bend.
+    """
     from hairwarp.scene.motion import procedural_motion, random_head_moves
     from hairwarp.scene.scene import Scene
 
-    if spec.motion == "scene":
-        return comparison_scene(spec.hairstyle, strand_stride=strand_stride, num_vertices=num_vertices).scene
-    base, style = _grown_hairstyle(spec.hairstyle)
+    base, style = _grown(spec.hairstyle)
     if spec.motion == "head_moves":
-        motion = random_head_moves(spec.seed, duration=spec.end or 1.5)
+        motion = random_head_moves(spec.seed or 0, duration=spec.end or 1.5)
     else:
         motion = procedural_motion(spec.motion, seed=spec.seed)
         a = int(round(spec.start * motion.fps))
