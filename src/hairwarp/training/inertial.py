@@ -116,13 +116,10 @@ class InertialTrainingConfig:
 @functools.lru_cache(maxsize=8)
 def _grown(hairstyle: str):
     """The default scene of a preset and the preset grown around its rest body (full size)."""
-    from hairwarp.scene.hairstyles import generate_hairstyle, hairstyle_preset
-    from hairwarp.scene.scene import default_scene
+    from hairwarp.scene.scene import default_scene, preset_hairstyle
 
     base = default_scene(hairstyle, seed=0)
-    style = generate_hairstyle(base.scalp, hairstyle_preset(hairstyle, seed=0), num_vertices=100,
-                               body=(base.body.rest_vertices, base.body.faces))
-    return base, style
+    return base, preset_hairstyle(hairstyle, base.body, base.scalp, seed=0, grow_around_body=True)
 
 
 def clip_scene(spec: ClipSpec, strand_stride: int, num_vertices: int):
