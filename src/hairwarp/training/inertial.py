@@ -279,7 +279,7 @@ class InertialTrainer:
             self._log(record)
             if bar is not None:
                 bar.update(1)
-                bar.set_postfix(loss=f"{float(loss):.3e}")
+                bar.set_postfix(loss=f"{float(loss.detach()):.3e}")
         if bar is not None:
             bar.close()
         return self.model
