@@ -128,6 +128,7 @@ class InertialMethod(Method):
                              f"{step.config.fps:g}))")
         equilibrium = self.equilibrium.simulate(frames)
         rigid = frames.rigid.positions
+
         def run():
             x = step.rollout(equilibrium.positions.to(rigid.dtype), rigid)
             start = 0

@@ -29,7 +29,7 @@ from collections.abc import Callable
 
 import torch
 
-from hairwarp.methods.base import Method, MethodOptions, MethodResult
+from hairwarp.methods.base import Method, MethodOptions, MethodResult, drape_in_chunks
 from hairwarp.runtime import CapturedCall, synchronize, timed
 
 STATIC_CHECKPOINT = "hairformer_static.pt"
@@ -371,7 +371,8 @@ class NetworkMethod(Method):
 
     def simulate(self, frames) -> MethodResult:
         if self.name != "dynamic":
-            return self.drape(frames)
+            # One drape per frame, a chunk of frames (and their bodies) at a time.
+            return drape_in_chunks(self.drape, frames)
         sim = self.simulator(frames)
         ours = at_network_resolution(frames, sim.num_vertices)
         device = frames.rigid.positions.device
