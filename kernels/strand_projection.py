@@ -16,6 +16,7 @@ gradient reaching x_i (its own plus what x_{i+1} passed back),
     dL/dq_i = l_i J G_i,   G_{i-1} = g_{i-1} + G_i - dL/dq_i.
 """
 
+import functools
 from typing import Any
 
 import warp as wp
@@ -154,3 +155,67 @@ def follow_the_leader_adjoint_kernel(
     for k in range(FIRST_PROJECTED_VERTEX):
         grad_target[base + k] = grad_out[base + k]
     grad_target[base + FIRST_PROJECTED_VERTEX - 1] = grad_out[base + FIRST_PROJECTED_VERTEX - 1] + carry
+
+
+# A tile kernel holds its strand in shared memory: 5 arrays of N vectors (the adjoint's four inputs
+# and its output). Strands longer than this many bytes of it run the one-thread kernels above.
+TILED_MAX_SHARED_BYTES = 40 * 1024
+# Threads a block of the tile kernels: they load and store the strand together; the walk itself is
+# one chain that every thread of the block runs in step (shared-memory reads, no divergence).
+TILED_BLOCK_DIM = 32
+
+
+@functools.lru_cache(maxsize=None)
+def follow_the_leader_tiled_kernels(num_vertices: int, vec_type):
+    """(forward, adjoint) tile kernels of the projection for strands of `num_vertices` vertices
+    of `vec_type` (wp.vec3f or wp.vec3d): a block per strand, launched with
+    `block_dim=TILED_BLOCK_DIM`, arrays (B*M*N,) vec3 as in the kernels above.
+
+    The one-thread kernels walk a strand with a memory round trip every few vertices (latency
+    bound: 1 024 threads on a GPU of 132 SMs): on one H100, 1 024 x 100 hair, 116 us forward and
+    160 us adjoint. Here the block loads the strand into shared memory in one coalesced pass, the
+    walk reads it there and the block stores the result: 18 us and 34 us
+    (docs/physics.md, section 1). Compiled once per vertex count and type.
+    """
+    n = int(num_vertices)
+    scalar = vec_type._wp_scalar_type_
+
+    def forward(rigid: wp.array(dtype=vec_type), target: wp.array(dtype=vec_type), eps: scalar,
+                out: wp.array(dtype=vec_type)):
+        strand, _lane = wp.tid()
+        base = strand * n
+        r = wp.tile_load(rigid, shape=n, offset=base, storage="shared")
+        q = wp.tile_load(target, shape=n, offset=base, storage="shared")
+        x = wp.tile_zeros(shape=n, dtype=vec_type, storage="shared")
+        for k in range(FIRST_PROJECTED_VERTEX):
+            x[k] = q[k]
+        leader = q[FIRST_PROJECTED_VERTEX - 1]
+        for i in range(FIRST_PROJECTED_VERTEX, n):
+            leader = follow_the_leader_step(leader, q[i], r[i] - r[i - 1], eps)
+            x[i] = leader
+        wp.tile_store(out, x, offset=base)
+
+    def adjoint(rigid: wp.array(dtype=vec_type), target: wp.array(dtype=vec_type),
+                projected: wp.array(dtype=vec_type), grad_out: wp.array(dtype=vec_type), eps: scalar,
+                grad_target: wp.array(dtype=vec_type)):
+        strand, _lane = wp.tid()
+        base = strand * n
+        r = wp.tile_load(rigid, shape=n, offset=base, storage="shared")
+        q = wp.tile_load(target, shape=n, offset=base, storage="shared")
+        p = wp.tile_load(projected, shape=n, offset=base, storage="shared")
+        g = wp.tile_load(grad_out, shape=n, offset=base, storage="shared")
+        dq = wp.tile_zeros(shape=n, dtype=vec_type, storage="shared")
+        carry = vec_type()
+        for j in range(n - FIRST_PROJECTED_VERTEX):
+            i = n - 1 - j
+            total = g[i] + carry
+            d = follow_the_leader_adjoint_step(total, r[i] - r[i - 1], q[i], p[i - 1], eps)
+            dq[i] = d
+            carry = total - d
+        for k in range(FIRST_PROJECTED_VERTEX):
+            dq[k] = g[k]
+        dq[FIRST_PROJECTED_VERTEX - 1] = g[FIRST_PROJECTED_VERTEX - 1] + carry
+        wp.tile_store(grad_target, dq, offset=base)
+
+    kernel = functools.partial(wp.kernel, enable_backward=False, module="unique")
+    return kernel()(forward), kernel()(adjoint)

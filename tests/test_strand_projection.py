@@ -28,10 +28,13 @@ def make_pair(seed: int, batch=2, strands=5, vertices=9, dtype=torch.float64):
     return torch.tensor(rigid, dtype=dtype), torch.tensor(target, dtype=dtype)
 
 
+@pytest.mark.parametrize("tiled", [False, True])
 @pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
-def test_matches_float64_reference_and_keeps_rest_lengths(dtype, tol):
+def test_matches_float64_reference_and_keeps_rest_lengths(dtype, tol, tiled):
+    """Both kernels: a thread per strand, and a block per strand with the strand in shared memory
+    (the CUDA default; on the CPU a block is one thread)."""
     rigid, target = make_pair(0, dtype=dtype)
-    x = follow_the_leader(rigid, target)
+    x = follow_the_leader(rigid, target, tiled=tiled)
     expected = reference_follow_the_leader(rigid.double().numpy(), target.double().numpy())
     assert np.abs(x.double().numpy() - expected).max() < tol
     seg = (x[..., 1:, :] - x[..., :-1, :]).norm(dim=-1)
@@ -40,11 +43,29 @@ def test_matches_float64_reference_and_keeps_rest_lengths(dtype, tol):
     assert torch.equal(x[..., :2, :], target[..., :2, :])
 
 
+@pytest.mark.parametrize("tiled", [False, True])
 @pytest.mark.parametrize("vertices", [3, 6, 7, 12])  # the adjoint's four-vertex chunks and what is left
-def test_gradient_matches_central_differences(vertices):
+def test_gradient_matches_central_differences(vertices, tiled):
     rigid, target = make_pair(1, batch=1, strands=3, vertices=vertices)
     target.requires_grad_(True)
-    assert torch.autograd.gradcheck(lambda t: follow_the_leader(rigid, t), (target,), eps=1e-7, atol=1e-7)
+    assert torch.autograd.gradcheck(lambda t: follow_the_leader(rigid, t, tiled=tiled), (target,), eps=1e-7, atol=1e-7)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="the tile kernels' blocks of 32 threads need a CUDA device")
+def test_cuda_tile_kernels_match_the_one_thread_kernels():
+    rigid, target = make_pair(4, batch=2, strands=64, vertices=100, dtype=torch.float32)
+    rigid, target = rigid.cuda(), target.cuda().requires_grad_(True)
+    weights = torch.randn_like(target)
+    results = []
+    for tiled in (False, True):
+        x = follow_the_leader(rigid, target, tiled=tiled)
+        (g,) = torch.autograd.grad((x * weights).sum(), target)
+        results.append((x, g))
+    assert torch.allclose(results[0][0], results[1][0], atol=1e-6)
+    # float32 rounding in another order along a 100-vertex carry: measured 1.8e-5 of the largest
+    # gradient on an H100.
+    scale = float(results[0][1].abs().max())
+    assert torch.allclose(results[0][1], results[1][1], rtol=0, atol=1e-4 * scale)
 
 
 def test_a_rigid_target_is_left_where_it_is():

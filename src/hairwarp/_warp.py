@@ -206,8 +206,11 @@ def _concrete_kernel(kernel, arguments):
 _launches: dict = {}
 
 
-def launch(kernel, dim, inputs=(), outputs=(), device=None, stream=None) -> None:
+def launch(kernel, dim, inputs=(), outputs=(), device=None, stream=None, block_dim: int | None = None) -> None:
     """`wp.launch` with the host work an eager call repeats done once.
+
+    With `block_dim` the kernel is a tile kernel (`wp.launch_tiled`): `dim` blocks of
+    `block_dim` threads on CUDA (one thread each on the CPU), `wp.tid()` giving (block, lane).
 
     - A generic kernel's instance is looked up per argument types: `wp.launch` infers the types
       and the overload's signature on every call (~70 us per launch on an H100's host).
@@ -219,13 +222,21 @@ def launch(kernel, dim, inputs=(), outputs=(), device=None, stream=None) -> None
     arguments = [*inputs, *outputs]
     kernel = _concrete_kernel(kernel, arguments)
     target = wp.get_device(device) if stream is None else stream.device
+    tiled = {}
+    if block_dim is not None:
+        block_dim = block_dim if target.is_cuda else 1
+        tiled = {"block_dim": block_dim}
     if not isinstance(dim, int) or dim <= 0:
-        wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=target, stream=stream)
+        if tiled and isinstance(dim, int) and dim <= 0:
+            return
+        wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=target, stream=stream, **tiled)
         return
+    if tiled:
+        dim = (dim, block_dim)
     record_key = (kernel, target.alias, threading.get_ident())
     record = _launches.get(record_key)
     if record is None:
-        command = wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=target, record_cmd=True)
+        command = wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=target, record_cmd=True, **tiled)
         command.fwd_args = None  # retain no argument (they would keep their tensors alive)
         record = _launches[record_key] = [command, [_parameter_key(value) for value in arguments], dim]
     else:

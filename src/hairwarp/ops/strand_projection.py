@@ -10,6 +10,7 @@ terms in training (`StaticConfig.length_projection = "follow_the_leader"`).
 from __future__ import annotations
 
 import torch
+import warp as wp
 from torch.autograd.function import once_differentiable
 
 from hairwarp import _warp
@@ -21,25 +22,47 @@ from hairwarp.kernels import strand_projection as kernels
 FOLLOW_THE_LEADER_EPS = 1e-9
 
 
-def _launch(kernel, target: torch.Tensor, arrays, outputs) -> None:
-    """One thread per strand of `target` (..., M, N, 3): `kernel`(*arrays, N, eps, *outputs)."""
+def _tiled(target: torch.Tensor, tiled: bool | None) -> bool:
+    """Whether the tile kernels (a block per strand) run: on CUDA, for strands that fit their
+    shared memory (`kernels.TILED_MAX_SHARED_BYTES`); `tiled` forces the choice (tests).
+    """
+    if tiled is not None:
+        return tiled
+    fits = 5 * target.shape[-2] * 3 * target.element_size() <= kernels.TILED_MAX_SHARED_BYTES
+    return target.is_cuda and fits
+
+
+def _launch(direction: str, target: torch.Tensor, arrays, outputs, tiled: bool | None = None) -> None:
+    """The projection's `direction` ("forward" or "adjoint") over the strands of `target`
+    (..., M, N, 3): `kernel`(*arrays, [N,] eps, *outputs), one thread or one block per strand.
+    """
     n = target.shape[-2]
     strands = target.numel() // (3 * n)
     if strands == 0:
         return
-    inputs = [_warp.as_warp(a, vec3=True) for a in arrays] + [n, _warp.scalar(FOLLOW_THE_LEADER_EPS, target.dtype)]
+    eps = _warp.scalar(FOLLOW_THE_LEADER_EPS, target.dtype)
+    inputs = [_warp.as_warp(a, vec3=True) for a in arrays]
+    outputs = [_warp.as_warp(o, vec3=True) for o in outputs]
+    device = _warp.warp_device(target.device)
     with _warp.launch_scope(target.device):
-        _warp.launch(kernel, dim=strands, inputs=inputs, outputs=[_warp.as_warp(o, vec3=True) for o in outputs],
-                     device=_warp.warp_device(target.device))
+        if _tiled(target, tiled):
+            vec = wp.vec3d if target.dtype == torch.float64 else wp.vec3f
+            forward, adjoint = kernels.follow_the_leader_tiled_kernels(n, vec)
+            _warp.launch(forward if direction == "forward" else adjoint, dim=strands, inputs=inputs + [eps],
+                         outputs=outputs, device=device, block_dim=kernels.TILED_BLOCK_DIM)
+        else:
+            kernel = kernels.follow_the_leader_kernel if direction == "forward" else kernels.follow_the_leader_adjoint_kernel
+            _warp.launch(kernel, dim=strands, inputs=inputs + [n, eps], outputs=outputs, device=device)
 
 
 class _FollowTheLeader(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, rigid, target):
+    def forward(ctx, rigid, target, tiled):
         rigid, target = rigid.contiguous(), target.contiguous()
         out = torch.empty_like(target)
-        _launch(kernels.follow_the_leader_kernel, target, (rigid, target), (out,))
+        _launch("forward", target, (rigid, target), (out,), tiled)
         ctx.save_for_backward(rigid, target, out)
+        ctx.tiled = tiled
         return out
 
     @staticmethod
@@ -47,12 +70,12 @@ class _FollowTheLeader(torch.autograd.Function):
     def backward(ctx, grad_out):
         rigid, target, out = ctx.saved_tensors
         grad_target = torch.empty_like(target)
-        _launch(kernels.follow_the_leader_adjoint_kernel, target, (rigid, target, out, grad_out.contiguous()),
-                (grad_target,))
-        return None, grad_target
+        _launch("adjoint", target, (rigid, target, out, grad_out.contiguous()), (grad_target,), ctx.tiled)
+        return None, grad_target, None
 
 
-def follow_the_leader(rigid: torch.Tensor, target: torch.Tensor, *, check: bool = True) -> torch.Tensor:
+def follow_the_leader(rigid: torch.Tensor, target: torch.Tensor, *, check: bool = True,
+                      tiled: bool | None = None) -> torch.Tensor:
     """Project target strands onto the rest segment lengths of the rigid placement.
 
     x_k = target_k for the fixed vertices k < 2; then x_i = x_{i-1} + l_i * unit(target_i -
@@ -65,6 +88,8 @@ def follow_the_leader(rigid: torch.Tensor, target: torch.Tensor, *, check: bool 
         target: (..., M, N, 3) wanted positions [m], same shape, dtype and device.
         check: validate the arguments (False: a caller that built them; each check of a
             tensor's values waits for a GPU).
+        tiled: run the tile kernels (a block per strand, the strand in shared memory) or the
+            one-thread kernels; default: the tile kernels on CUDA where the strand fits.
 
     Returns:
         (..., M, N, 3) projected positions [m], differentiable w.r.t. `target`.
@@ -79,7 +104,7 @@ def follow_the_leader(rigid: torch.Tensor, target: torch.Tensor, *, check: bool 
             raise ValueError(f"target: expected shape {tuple(rigid.shape)} like rigid, got {tuple(target.shape)}")
         if rigid.dim() < 3 or rigid.shape[-2] <= NUM_FIXED_VERTICES:
             raise ValueError(f"rigid: expected (..., M, N, 3) with N > {NUM_FIXED_VERTICES}, got {tuple(rigid.shape)}")
-    return _FollowTheLeader.apply(rigid.detach(), target)
+    return _FollowTheLeader.apply(rigid.detach(), target, tiled)
 
 
 __all__ = ["FOLLOW_THE_LEADER_EPS", "follow_the_leader"]
