@@ -36,6 +36,8 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--tolerance", type=float, default=None,
                         help="the fast setting's tolerance [m] (default: PhysicsConfig's)")
     parser.add_argument("--max-iterations", type=int, default=None, help="the fast setting's iteration cap per step")
+    parser.add_argument("--stiffness-scaling", type=float, default=None,
+                        help="the fast setting's PhysicsConfig.stiffness_scaling (0: unscaled variables)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default="hairwarp-out")
     return parser
@@ -56,7 +58,8 @@ def main(argv=None) -> dict:
     torch.manual_seed(args.seed)
     device = torch.device(args.device)
     tight_config = PhysicsConfig().tight()  # the default's tight setting, whatever the fast one
-    changes = {"tolerance": args.tolerance, "max_iterations": args.max_iterations}
+    changes = {"tolerance": args.tolerance, "max_iterations": args.max_iterations,
+               "stiffness_scaling": args.stiffness_scaling}
     fast_config = replace(PhysicsConfig(), **{k: v for k, v in changes.items() if v is not None})
     record = {"machine": machine_description(device), "physics": fast_config.__dict__,
               "tight": tight_config.__dict__, "motions": {}}

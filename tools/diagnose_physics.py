@@ -3,7 +3,7 @@
     python3 tools/diagnose_physics.py --device cuda --motion whiplash --steps 6,12,18 --out OUT
 
 From the tight trajectory's states (the `reference` setting) at the chosen frames, one step of
-each variant (plain L-BFGS or scaled by the diagonal stiffness per vertex; history sizes) for
+each variant (L-BFGS unscaled or on variables scaled by the diagonal stiffness per vertex; history sizes) for
 several iteration caps, against the tight step: mean vertex distance [mm] and wall time per step.
 Writes OUT/physics_diagnosis.json.
 """
@@ -44,11 +44,9 @@ def main(argv=None):
     body = BodyMesh(posed.posed.vertices[:1], scene.body.faces.to(device=device, dtype=torch.int32), bvh="lbvh")
     energy_config = EnergyConfig().replace(time_step=1.0 / float(scene.motion.fps))
     rest = scene.rest_lengths.to(device)
-    variants = {"plain": PhysicsConfig(), "plain h16": PhysicsConfig(history=16),
-                "diag": PhysicsConfig(precondition=True),
-                "plain head 5cm": PhysicsConfig(head_follow_length=0.05),
-                "plain head 1m": PhysicsConfig(head_follow_length=1.0),
-                "diag head 5cm": PhysicsConfig(precondition=True, head_follow_length=0.05)}
+    variants = {"unscaled": PhysicsConfig(stiffness_scaling=0.0), "scaled 1/16": PhysicsConfig(stiffness_scaling=0.0625),
+                "scaled 1/8": PhysicsConfig(stiffness_scaling=0.125), "scaled 1/4": PhysicsConfig(stiffness_scaling=0.25),
+                "scaled 1/8 h16": PhysicsConfig(stiffness_scaling=0.125, history=16)}
     rows = []
     for name, base in variants.items():
         for its in [int(i) for i in args.iterations.split(",")]:

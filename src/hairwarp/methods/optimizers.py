@@ -81,7 +81,7 @@ class OptimizerMethod(Method):
 
 class PhysicsMethod(Method):
     """The physics simulation (`hairwarp.solvers.physics`): a motion by implicit-Euler steps on
-    the preconditioned device L-BFGS, a single frame draped as the static optimum, each solve
+    the device L-BFGS (variables scaled by the stiffness), a single frame draped as the static optimum, each solve
     stopped at `PhysicsConfig.tolerance`.
     """
 

@@ -117,16 +117,15 @@ class DeviceLBFGS:
         point_size: components per point of x (3: a step moves no point of x farther than
             `lbfgs_max_step`).
         graph_safe: evaluate with `graph_safe=True` in the iterations (CUDA graphs).
-        preconditioner: optional `apply(v) -> H0 v` (graph-safe, v and the result (n,)), an
-            approximate inverse Hessian (symmetric positive definite) that replaces the scaled
-            identity gamma I of the two-loop recursion, and -g's scale when the memory is empty
-            (`hairwarp.solvers.strand_preconditioner`; the physics solver's strand Hessian).
+
+    A caller that knows its problem's scales passes scaled variables instead of a preconditioner
+    (`hairwarp.solvers.physics`: x = S z): L-BFGS on z is L-BFGS with H0 = gamma S^2, gamma still
+    fitted to the newest pair.
     """
 
     def __init__(self, energy, x0: torch.Tensor, solver, *, chunk: int, point_size: int = 3,
-                 graph_safe: bool = False, preconditioner=None):
+                 graph_safe: bool = False):
         self.energy, self.solver, self.point_size, self.graph_safe = energy, solver, point_size, graph_safe
-        self.preconditioner = preconditioner
         self.device, self.dtype = x0.device, x0.dtype
         x = x0.detach().reshape(-1).clone()
         n, m = x.numel(), solver.lbfgs_history
@@ -142,7 +141,7 @@ class DeviceLBFGS:
         self.head = torch.full((1,), m - 1, **index)  # the newest row
         self.steps_back = torch.arange(m, **index)
         self.gamma = self._first_scale(self.g)
-        self.d = -self._precondition(self.g) if preconditioner is not None else -self.gamma * self.g
+        self.d = -self.gamma * self.g
         self.t = torch.ones((), **zeros)
         self.rejections = torch.zeros((), device=self.device, dtype=torch.int32)
         self.trace = torch.zeros(chunk, **zeros)
@@ -158,17 +157,10 @@ class DeviceLBFGS:
         self.a_rows = torch.zeros(m, **zeros)
         self.c_rows = torch.zeros(m, **zeros)
         self.fallback = torch.zeros_like(self.g)  # the direction's fallback, before its sign and scale
-        # With a preconditioner the fallback is H0 g itself: the first loop's scale min(1, 1 / |g|_1)
-        # is fed a 1 (and gamma is unused).
-        self.unit = torch.ones((), **zeros)
         # Warp views of the state and scratch, made once (the tensors keep their addresses).
         self._warp = {name: _warp.as_warp(getattr(self, name)) for name in (
             "x", "f", "g", "d", "t", "S", "Y", "rho", "SY", "gamma", "head", "rejections", "trace", "position",
             "t_trial", "first", "flags", "a", "c", "a_rows", "c_rows", "fallback")}
-
-    def _precondition(self, v: torch.Tensor) -> torch.Tensor:
-        """H0 v as a tensor of its own (the preconditioner's buffer is reused)."""
-        return self.preconditioner(v).reshape(-1).clone()
 
     def restart_at(self, x: torch.Tensor, *, keep_memory: bool = False) -> None:
         """Start again from `x` (n,), in place and graph-safe: evaluates the energy there (f, g),
@@ -185,11 +177,8 @@ class DeviceLBFGS:
             self.rho.zero_()
         self.t.fill_(1.0)
         self.rejections.zero_()
-        if self.preconditioner is not None:
-            self.d.copy_(self.preconditioner(self.g).reshape(-1)).neg_()
-        else:
-            self.gamma.copy_(self._first_scale(self.g))
-            self.d.copy_(self.g).mul_(-self.gamma)
+        self.gamma.copy_(self._first_scale(self.g))
+        self.d.copy_(self.g).mul_(-self.gamma)
         torch.linalg.vector_norm(self.g, float("inf"), out=self.gmax)
 
     @staticmethod
@@ -244,18 +233,14 @@ class DeviceLBFGS:
                                  _warp.as_warp(g_t), w["head"], n, w["x"], w["g"], w["S"], w["Y"]], device=device)
             # The stored row's products with every pair, then the direction from the new g.
             Yd, Sy, Sg = self.Y @ self.d, self.S @ y, self.S @ self.g
-            g_norm1 = self.unit if self.preconditioner is not None else torch.linalg.vector_norm(self.g, 1)
+            g_norm1 = torch.linalg.vector_norm(self.g, 1)
             _warp.launch(lbfgs_kernels.lbfgs_first_loop_kernel, dim=1,
                          inputs=[w["flags"], w["t_trial"], _warp.as_warp(Yd), _warp.as_warp(Sy), _warp.as_warp(Sg),
                                  _warp.as_warp(g_norm1), w["rho"], w["head"], m, w["SY"], w["gamma"]],
                          outputs=[w["first"], w["a"], w["a_rows"]], device=device)
             r = torch.addmv(self.g, self.Y.T, self.a_rows, alpha=-1.0)
-            if self.preconditioner is not None:
-                r = self._precondition(r)
-                self.fallback.copy_(self.preconditioner(self.g).reshape(-1))
-            else:
-                r.mul_(self.gamma)
-                self.fallback.copy_(self.g)
+            r.mul_(self.gamma)
+            self.fallback.copy_(self.g)
             Yr = self.Y @ r
             _warp.launch(lbfgs_kernels.lbfgs_second_loop_kernel, dim=1,
                          inputs=[w["a"], _warp.as_warp(Yr), w["rho"], w["SY"], w["head"], m],

@@ -18,12 +18,14 @@ What makes it fast:
   (energy, first direction) and one iteration are two CUDA graphs captured once and
   replayed for every frame (`hairwarp.solvers.device_lbfgs.DeviceLBFGS`); on the CPU the same
   calls run eagerly with the hair-hair pair cache;
+- variables scaled by the stiffness (`PhysicsConfig.stiffness_scaling`): root alignment (Eq. 15)
+  turns the first millimetre-long segments three orders of magnitude stiffer than a vertex's
+  inertia, which doubled the iterations a step takes; the solver's variable of each vertex is
+  its target divided by (k_min / k)^a, so L-BFGS starts from H0 = gamma diag((k_min / k)^2a);
 - a stopping rule stated as a tolerance [m], read once per `chunk` iterations: a step ends when
-  the diagonal model's Newton step from the current gradient (g / k: the move still to come)
-  moves no vertex farther than `tolerance` (with `precondition`); otherwise, and for a static
-  drape, when its last chunk moved none farther (after two chunks at least: a step whose first
-  trials the line search rejects would otherwise stop at the inertial prediction, a free
-  flight, and a released strand then gained energy, swinging above its root).
+  its last chunk moved no vertex farther than `tolerance` (after two chunks at least: a step
+  whose first trials the line search rejects would otherwise stop at the inertial prediction, a
+  free flight, and a released strand then gained energy, swinging above its root).
 """
 
 from __future__ import annotations
@@ -44,8 +46,8 @@ class PhysicsConfig:
     """Settings of the physics solver.
 
     Attributes:
-        tolerance: a step ends when its next preconditioned direction moves no vertex farther
-            than this [m]; a static drape when its last chunk moved none farther.
+        tolerance: a step (or a static drape) ends when its last chunk of iterations moved no
+            vertex farther than this [m].
         max_iterations: cap of L-BFGS iterations (energy evaluations) per time step.
         static_max_iterations: cap for a static drape (the optimum of one frame, from far).
         static_chunk: `chunk` of a static drape (from a rigid placement the hair travels far
@@ -65,9 +67,13 @@ class PhysicsConfig:
             creeps along the curved valley (a released strand fell in ~2 s instead of ~0.3 s).
         head_follow_length: the warm start adds the head's unpredicted move, fading along the
             strand over this arc length [m] (0: the inertial prediction alone).
-        precondition: the implicit-Euler steps scale L-BFGS by the diagonal of the step's
-            Hessian per vertex (`vertex_stiffness`) in place of its scaled identity. Static
-            drapes never do (no inertia to scale by).
+        stiffness_scaling: the implicit-Euler steps solve for z = target / S with
+            S = (k_min / k)^a per vertex, k the diagonal stiffness (`vertex_stiffness`), a this
+            exponent (0: unscaled): L-BFGS with H0 = gamma S^2. Root alignment makes the first
+            vertices ~10^3 times stiffer than the rest; the full diagonal scaling (a = 1/2)
+            overshoots what follow-the-leader leaves of that stiffness, a quarter of it
+            (a = 1/8) measured best (docs/physics.md, section 1). Static drapes are unscaled
+            (no inertia to scale by).
     """
 
     tolerance: float = 1.0e-5
@@ -79,15 +85,17 @@ class PhysicsConfig:
     keep_memory: bool = False
     max_step: float = 0.02
     cuda_graph: bool = True
-    precondition: bool = False
     inextensible: bool = True
     head_follow_length: float = 0.05
+    stiffness_scaling: float = 0.125
 
     def __post_init__(self):
         for name in ("tolerance", "max_step"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name}: expected a finite positive length [m], got {value}")
+        if not (math.isfinite(self.stiffness_scaling) and self.stiffness_scaling >= 0):
+            raise ValueError(f"stiffness_scaling: expected a finite exponent >= 0, got {self.stiffness_scaling}")
         for name in ("max_iterations", "static_max_iterations", "static_chunk", "history", "chunk"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name}: expected >= 1, got {getattr(self, name)}")
@@ -198,11 +206,13 @@ class PhysicsSolver:
 
             self.pair_cache = HairHairPairCache()
         self.chunk = config.chunk if dynamic else config.static_chunk
-        self.inverse_stiffness = None
-        if config.precondition and dynamic:
+        # The solver's variables z = free targets / scale (`PhysicsConfig.stiffness_scaling`).
+        self.scale = None
+        if config.stiffness_scaling > 0 and dynamic:
             stiffness = vertex_stiffness(energy_config, rest_lengths, inextensible=config.inextensible)
-            self.inverse_stiffness = (1.0 / stiffness).to(rigid.dtype)[None, :, :, None].expand(self.free_shape)
-            self.inverse_stiffness = self.inverse_stiffness.contiguous()
+            scale = (stiffness.min() / stiffness) ** config.stiffness_scaling
+            self.scale = scale.to(device=self.device, dtype=rigid.dtype)[None, :, :, None].expand(self.free_shape)
+            self.scale = self.scale.contiguous()
         self.solver = DirectOptimizationConfig(method="lbfgs", lbfgs_history=config.history,
                                                lbfgs_max_step=config.max_step, lbfgs_chunk=self.chunk,
                                                lbfgs_restart=5)
@@ -211,8 +221,12 @@ class PhysicsSolver:
         self.residual = torch.zeros((), device=self.device, dtype=rigid.dtype)
 
     # -- the energy and the solver's calls over the fixed buffers --------------------------------
-    def _assemble(self, free: torch.Tensor) -> torch.Tensor:
-        x = torch.cat([self.rigid[:, :, :NUM_FIXED_VERTICES], free.reshape(self.free_shape)], dim=2)
+    def _assemble(self, z: torch.Tensor) -> torch.Tensor:
+        """Positions (B, M, N, 3) from the solver's variables z (the free targets / `scale`)."""
+        free = z.reshape(self.free_shape)
+        if self.scale is not None:
+            free = free * self.scale
+        x = torch.cat([self.rigid[:, :, :NUM_FIXED_VERTICES], free], dim=2)
         if self.config.inextensible:
             from hairwarp.ops.strand_projection import follow_the_leader
 
@@ -248,19 +262,19 @@ class PhysicsSolver:
     def _make_solver(self) -> None:
         from hairwarp.solvers.device_lbfgs import DeviceLBFGS
 
-        apply = None if self.inverse_stiffness is None else self._precondition
-        free = self.start[:, :, NUM_FIXED_VERTICES:]
-        self.lbfgs = DeviceLBFGS(self._energy, free, self.solver, chunk=self.chunk,
-                                 graph_safe=self.use_graphs, preconditioner=apply)
+        self.lbfgs = DeviceLBFGS(self._energy, self._variables(self.start), self.solver, chunk=self.chunk,
+                                 graph_safe=self.use_graphs)
         self.chunk_start = self.lbfgs.x.clone()
 
     def _begin(self) -> None:
         """A step's start: evaluate at the start point, first direction."""
-        self.lbfgs.restart_at(self.start[:, :, NUM_FIXED_VERTICES:], keep_memory=self.config.keep_memory)
-        if self.inverse_stiffness is not None:
-            self._residual()
-        else:
-            self.residual.fill_(math.inf)
+        self.lbfgs.restart_at(self._variables(self.start), keep_memory=self.config.keep_memory)
+        self.residual.fill_(math.inf)
+
+    def _variables(self, x: torch.Tensor) -> torch.Tensor:
+        """The solver's variables z of positions x (B, M, N, 3): the free vertices / `scale`."""
+        free = x[:, :, NUM_FIXED_VERTICES:]
+        return free if self.scale is None else free / self.scale
 
     def _iterate(self, k: int) -> None:
         self.lbfgs.start_chunk()
@@ -269,22 +283,13 @@ class PhysicsSolver:
             self.lbfgs.iterate()
         self._residual()
 
-    def _precondition(self, v: torch.Tensor) -> torch.Tensor:
-        """H0 v: each moving vertex's value divided by its diagonal stiffness (`vertex_stiffness`)."""
-        return v.reshape(-1) * self.inverse_stiffness.reshape(-1)
-
     def _residual(self) -> None:
-        """The stopping rule's measure into `self.residual` [m] (graph-safe): with the
-        preconditioner, the largest vertex move of the diagonal model's Newton step g / k at the
-        current iterate (the move still to come; not the L-BFGS direction, whose memory can
-        call a soft direction stiff and stop a step early); without it, the largest move over
-        the last chunk (a plain L-BFGS's scaled-gradient steps say nothing of the distance
-        left).
+        """The stopping rule's measure into `self.residual` [m] (graph-safe): the largest vertex
+        move over the last chunk (a scaled-gradient step says nothing of the distance left).
         """
-        if self.inverse_stiffness is not None:
-            moves = self._precondition(self.lbfgs.g)
-        else:
-            moves = self.lbfgs.x - self.chunk_start
+        moves = self.lbfgs.x - self.chunk_start
+        if self.scale is not None:
+            moves = moves * self.scale.reshape(-1)
         self.residual.copy_(torch.linalg.vector_norm(moves.view(-1, 3), dim=1).max())
 
     def _run(self, name: str, fn) -> None:
