@@ -232,6 +232,21 @@ def test_auto_is_never_worse_than_the_rigid_placement(checkpoints):
     assert "chosen" in result.info
 
 
+def test_auto_runs_the_physics_on_a_motion_where_the_physics_meets_its_speed_goal(checkpoints, monkeypatch):
+    """On the CPU up to 256 x 100 hair the physics meets its goal (1.5 s a frame), so auto's
+    motion is the physics itself; above that size (here: a limit of 0) the network path runs."""
+    from hairwarp.methods import composed
+
+    frames = comparison_scene("whiplash", strand_stride=64, num_vertices=TINY_N).scene.frames(list(range(4)))
+    result = _make("auto", checkpoints).simulate(frames)
+    assert result.info["chosen"].startswith("physics")
+    physics = make("physics").simulate(frames)
+    assert torch.allclose(result.positions, physics.positions, atol=1e-4)
+    monkeypatch.setitem(composed.PHYSICS_INTERACTIVE_VERTICES, "cpu", 0)
+    network = _make("auto", checkpoints).simulate(frames)
+    assert not network.info["chosen"].startswith("physics")
+
+
 # ------------------------------------------------------------------ the public face
 
 

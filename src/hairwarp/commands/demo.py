@@ -1,16 +1,15 @@
 """`hairwarp demo`: the embedded default, end to end, offline.
 
 Default body, a procedural hairstyle grown around the rest body (it falls over the shoulders
-and back), a one-second head turn, simulated by one method of the registry (default auto: the
-shipped dynamic network, finished by a few L-BFGS iterations a frame and never leaving more
-vertices inside the body than the rigid placement); writes the animation as USD (binary .usdc;
---usda for text), preview
-pictures, a GIF, and prints the metrics table; then the physics simulation of the same frames
-(`physics`; on the CPU capped at --physics-iterations a frame), shown beside the method (side-by-side
-pictures and GIF, the tips' swing plotted over time) with the distance to it and the swing's
-amplitude ratio and correlation in the table. About 170-200 s on a 2-core CPU. The demo's energy
-leaves hair-hair contact out unless --hair-hair is given (on the CPU its broad phase makes
-each L-BFGS iteration over the 61 frames about 10x slower).
+and back), a one-second head turn, simulated by one method of the registry; writes the
+animation as USD (binary .usdc; --usda for text), preview pictures, a GIF, and prints the
+metrics table. The default, auto, runs the physics simulation where it meets its speed goal (on
+a CPU up to 256 x 100 hair: the demo's default size), else the shipped dynamic network, never
+leaving more vertices inside the body than the rigid placement. The method is shown beside the
+physics simulation of the same frames (side-by-side pictures and GIF, the tips' swing plotted
+over time) with the distance to it and the swing's amplitude ratio and correlation in the table;
+when auto ran the physics itself, the dynamic network is run and shown beside it instead. The
+demo's energy leaves hair-hair contact out unless --hair-hair is given.
 """
 
 from __future__ import annotations
@@ -23,14 +22,11 @@ from hairwarp.commands.common import add_common_arguments, add_threads_argument,
 # L-BFGS iterations after the network over the whole motion (each costs about 3 s for 61 frames
 # of 512 x 100 hair on the 2-core CPU without hair-hair).
 DEMO_REFINE = 5
-# The physics beside the method on the CPU: iterations a frame (the method `physics` runs up to 200
-# at its tolerance, ~2.5 s a frame of 256 x 100 on the 2-core CPU; this keeps the demo near three
-# minutes). 24 left flyaway strands in the picture (under-converged steps keep too much momentum).
-DEMO_CPU_PHYSICS = 64
 
 
 def add_parser(subparsers) -> None:
     from hairwarp.methods import AUTO_REFINE
+    from hairwarp.solvers.physics import PhysicsConfig
 
     p = subparsers.add_parser("demo", help="simulate the embedded default scene with one method; write USD, "
                                            "pictures, a GIF, metrics",
@@ -45,8 +41,8 @@ def add_parser(subparsers) -> None:
                    help=f"L-BFGS iterations after a network (default: {DEMO_REFINE}; the API's auto: {AUTO_REFINE})")
     p.add_argument("--hair-hair", action="store_true", help="keep hair-hair contact in the energy (slow on a CPU)")
     p.add_argument("--physics-iterations", type=int, default=None, metavar="K",
-                   help=f"L-BFGS iterations a frame of the physics beside the method (default: {DEMO_CPU_PHYSICS} "
-                        "on the CPU, the physics method's own on CUDA; 0: no physics)")
+                   help="L-BFGS iterations a frame at most of the physics beside the method (default: the physics "
+                        f"method's own, {PhysicsConfig().max_iterations} at its tolerance; 0: no physics)")
     p.add_argument("--usda", action="store_true", help="write text USD (demo.usda) instead of binary demo.usdc")
     p.add_argument("--max-iterations", type=int, default=40, help="adam/lbfgs iteration cap (default: 40)")
     p.add_argument("--strand-stride", type=int, default=4,
@@ -111,25 +107,38 @@ def run(args) -> int:
     phase("scene", f"simulating {scene.hairstyle.num_strands} strands x {num_vertices} vertices over "
                    f"{scene.num_frames} frames with {method.name}")
     result, metrics, sd, sd_rigid = run_and_score(method, frames, options.config(), simulate=True)
-    physics_iterations = args.physics_iterations
-    if physics_iterations is None:
-        physics_iterations = DEMO_CPU_PHYSICS if device.type == "cpu" else PhysicsConfig().max_iterations
-    physics_iterations = positive_int("--physics-iterations", physics_iterations, minimum=0)
+    chose_physics = str(result.info.get("chosen", "")).startswith("physics")
+    physics_iterations = positive_int("--physics-iterations", PhysicsConfig().max_iterations
+                                      if args.physics_iterations is None else args.physics_iterations, minimum=0)
     physics = physics_metrics = physics_sd = None
-    if physics_iterations:
+    beside = None  # (label, result, metrics, signed distances) of the other method when auto ran the physics
+    if chose_physics:
+        # Auto ran the physics itself: it is the yardstick; the dynamic network goes beside it.
+        physics, physics_metrics, physics_sd = result, metrics, sd
+        phase("method", "the dynamic network beside it")
+        network = make("dynamic", options)
+        net_result, net_metrics, net_sd, _ = run_and_score(network, frames, options.config(), simulate=True)
+        beside = ("dynamic", net_result, net_metrics, net_sd)
+    elif physics_iterations:
         phase("method", f"the physics beside it: {physics_iterations} iterations a frame at most")
-        physics_method = PhysicsMethod(options, PhysicsConfig(max_iterations=physics_iterations,
-                                                              static_max_iterations=10 * physics_iterations))
+        physics_method = PhysicsMethod(options, PhysicsConfig(max_iterations=physics_iterations))
         physics, physics_metrics, physics_sd, _ = run_and_score(physics_method, frames, options.config(),
                                                                simulate=True)
-    phase("physics" if physics_iterations else "method", "writing USD and drawing the pictures")
+    phase("physics" if physics is not None else "method", "writing USD and drawing the pictures")
 
     def ms(r):
         return "-" if r.time_ms is None else f"{r.time_ms:.1f}"
 
     rows = [("rigid", "-", metrics["rigid"]), (method.name, ms(result), metrics["method"])]
     fidelity, compared = None, []
-    if physics is not None:
+    if beside is not None:
+        label, other, other_metrics, other_sd = beside
+        rows.append((label, ms(other), other_metrics["method"]))
+        fidelity, compared = beside_the_physics(args.out, "demo", frames, {label: other.positions,
+                                                                           "physics": physics.positions},
+                                                {label: other_sd, "physics": physics_sd}, "physics")
+        fidelity[method.name] = fidelity["physics"]  # auto's row: the physics itself
+    elif physics is not None:
         rows.append(("physics", ms(physics), physics_metrics["method"]))
         fidelity, compared = beside_the_physics(args.out, "demo", frames, {method.name: result.positions,
                                                                            "physics": physics.positions},
@@ -152,6 +161,8 @@ def run(args) -> int:
     record = {"scene": scene.name, "method": method.name, "method_info": result.info, "ms_per_frame": result.time_ms,
               "strands": scene.hairstyle.num_strands, "vertices": num_vertices, "frames": scene.num_frames,
               "fps": scene.motion.fps, "device": str(device), "rigid": metrics["rigid"], "result": metrics["method"],
+              "beside": None if beside is None else {"method": beside[0], "ms_per_frame": beside[1].time_ms,
+                                                     "info": beside[1].info, "metrics": beside[2]["method"]},
               "physics": None if physics is None else {"iterations_cap": physics_iterations,
                                                        "ms_per_frame": physics.time_ms, "info": physics.info,
                                                        "metrics": physics_metrics["method"]},

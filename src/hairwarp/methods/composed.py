@@ -5,9 +5,13 @@
   finish). With `refine` 0 it is the network alone; L-BFGS keeps its best iterate, so the
   refined energy is never above the network's.
 - "auto" (`AutoMethod`): what the command line and `hairwarp.drape` use by default. A drape
-  runs the static network with `AUTO_REFINE` refine iterations; a motion the dynamic network
-  with `AUTO_REFINE_MOTION` (none by default: every frame of a motion is one more drape to
-  refine, tens of seconds an iteration for a second of 1024 x 100 hair on a CPU; pass
+  runs the static network with `AUTO_REFINE` refine iterations. A motion runs the physics
+  simulation (`physics`) where it meets its speed goal (`physics_is_interactive`: on a CPU up to
+  256 x 100 vertices, 1.5 s a frame, measured 1.49 s on whiplash and 1.89 s on torso_bend on the
+  2-core CPU; no GPU size meets its 30 ms yet): no network meets the fidelity goals on motions (docs/network_diagnosis.md),
+  the physics is what the others are measured against. Elsewhere a motion runs the dynamic
+  network with `AUTO_REFINE_MOTION` (none by default: every frame of a motion is one more drape
+  to refine, tens of seconds an iteration for a second of 1024 x 100 hair on a CPU; pass
   `refine=K` to ask for them). It never leaves a frame with more vertices inside the body, or a
   higher energy, than the rigid placement: such a frame is draped again by L-BFGS from the
   rigid placement (together with the other such frames of its chunk, `SceneFrames.chunks`: a
@@ -35,6 +39,21 @@ AUTO_REFINE_MOTION = 0
 AUTO_FALLBACK_ITERATIONS = 50
 # L-BFGS iterations "auto" gives a drape without a network (when `options.max_iterations` is None).
 AUTO_LBFGS_ITERATIONS = 200
+# Hair vertices (strands x vertices) up to which the physics simulation meets its speed goal, per
+# device type: 1.5 s a frame at 256 x 100 on the 2-core CPU (measured on 12 frames, 1.49 s on
+# whiplash, 1.89 s on torso_bend: `benchmarks/bm_physics.py --device cpu --strand-stride 4
+# --frames 12`, docs/physics.md section 2). The H100's goal, 30 ms a frame at 1024 x 100, is not
+# met (152 ms), so no CUDA entry.
+PHYSICS_INTERACTIVE_VERTICES = {"cpu": 256 * 100}
+
+
+def physics_is_interactive(frames) -> bool:
+    """Whether the physics simulation of `frames`' hair meets its speed goal on their device
+    (`PHYSICS_INTERACTIVE_VERTICES`).
+    """
+    _, strands, vertices, _ = frames.rigid.positions.shape
+    limit = PHYSICS_INTERACTIVE_VERTICES.get(frames.rigid.positions.device.type, 0)
+    return strands * vertices <= limit
 
 
 def refine_options(options: MethodOptions, iterations: int) -> MethodOptions:
@@ -98,6 +117,14 @@ class AutoMethod(Method):
         return self._run(frames, "static", metrics)
 
     def simulate(self, frames) -> MethodResult:
+        if frames.scene is not None and physics_is_interactive(frames):
+            from hairwarp.methods.optimizers import PhysicsMethod
+
+            result = PhysicsMethod(self.options).simulate(frames)
+            strands, vertices = frames.rigid.positions.shape[1:3]
+            chosen = f"physics ({strands} x {vertices} hair meets its speed goal on this device)"
+            return MethodResult(positions=result.positions, time_ms=result.time_ms, history=result.history,
+                                info=dict(result.info, chosen=chosen, fallback_frames=[]))
         return self._run(frames, "dynamic", None)
 
     def _run(self, frames, network_name: str, metrics) -> MethodResult:
