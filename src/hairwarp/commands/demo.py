@@ -124,7 +124,8 @@ def run(args) -> int:
         physics_method = PhysicsMethod(options, PhysicsConfig(max_iterations=physics_iterations))
         physics, physics_metrics, physics_sd, _ = run_and_score(physics_method, frames, options.config(),
                                                                simulate=True)
-    phase("physics" if physics is not None else "method", "writing USD and drawing the pictures")
+    phase("network beside" if beside is not None else "physics" if physics is not None else "method",
+          "writing USD and drawing the pictures")
 
     def ms(r):
         return "-" if r.time_ms is None else f"{r.time_ms:.1f}"
