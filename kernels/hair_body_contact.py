@@ -410,6 +410,14 @@ def hair_body_energy_strand_kernel(
     query_count_out[s] = queries
 
 
+# Margin [m] of the distance cache's proof of a miss (`hair_body_energy_vertex_kernel`): float32
+# query points and distances.
+CACHE_SLACK = wp.constant(1.0e-5)
+# How far [m] a query that fills the distance cache looks: its miss proves this much clearance,
+# which a vertex then spends over the next evaluations before it is queried again.
+CACHE_REACH = wp.constant(1.0e-2)
+
+
 @wp.func
 def chain_query_radius(x: wp.array(dtype=Any), i: int, v: int, stride: int, floor: Any):
     """Query radius of point i, index v along its polyline (its predecessor at i - stride):
@@ -476,6 +484,10 @@ def hair_body_energy_vertex_kernel(
     weight: Any,
     variant: int,
     zero_dist: Any,
+    use_cache: int,
+    # In and out:
+    cache_points: wp.array(dtype=wp.vec3),
+    cache_distance: wp.array(dtype=float),
     # Out:
     vertex_energy_out: wp.array(dtype=Any),
     gradient_out: wp.array(dtype=Any),
@@ -501,12 +513,39 @@ def hair_body_energy_vertex_kernel(
     zero = xi * type(xi)(0.0)
     p = x[i]
     body = (i // (num_strands * num_vertices)) * body_batch_stride
-    found, d, g = body_signed_distance(
-        mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides,
-        body * body_vertex_count, body * body_face_count * 3, p, chain_query_radius(x, i, v, 1, xi + dhat),
-        zero_dist
-    )
+    radius = chain_query_radius(x, i, v, 1, xi + dhat)
+    p32 = wp.vec3(wp.float32(p[0]), wp.float32(p[1]), wp.float32(p[2]))
     queries = int(1)
+    found = int(0)
+    d = zero
+    g = p * zero
+    if use_cache != 0 and v > 0 and cache_distance[i] - wp.length(p32 - cache_points[i]) > radius + CACHE_SLACK:
+        # The distance cache proves the capped query a miss: the surface is farther than the
+        # last query's distance less the move since (the distance is 1-Lipschitz), and the
+        # body has not moved since it was written (`HairBodyDistanceCache`).
+        queries = 0
+    elif use_cache != 0:
+        # Queried out to CACHE_REACH, so that a miss proves a bound that lasts: a hit beyond the
+        # radius is the capped query's miss, its distance kept for the next evaluations.
+        reach = wp.max(radius, CACHE_REACH)
+        found, d, g = body_signed_distance(
+            mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides,
+            body * body_vertex_count, body * body_face_count * 3, p, reach, zero_dist
+        )
+        known = reach  # no face strictly within the reach
+        if found != 0:
+            known = wp.float32(wp.abs(d))
+            if known >= radius:
+                found = 0
+                d = zero
+                g = p * zero
+        cache_points[i] = p32
+        cache_distance[i] = known
+    else:
+        found, d, g = body_signed_distance(
+            mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides,
+            body * body_vertex_count, body * body_face_count * 3, p, radius, zero_dist
+        )
     if found == 0 and v == 0:
         # The root anchors the strand's sides: measured at any distance (roots lie on the scalp,
         # so this is rare).

@@ -644,3 +644,43 @@ def test_bad_points_and_hair_raise_naming_the_argument():
         body.crop(_t([[10.0, 0.0, 0.0]]), _t([0.1]))
     with pytest.raises(ValueError, match="margin"):
         body.crop_for_hair(vt[:2], _t([0.1, 0.1]), margin=-1.0)
+
+
+def test_the_distance_cache_skips_queries_and_changes_nothing(rng):
+    """`HairBodyDistanceCache`: over a sequence of small moves (an optimizer's evaluations) the
+    energy and gradient equal the uncached ones while most queries are skipped; after the body
+    moves, a reset makes it exact again (a stale cache would not be)."""
+    from hairwarp.ops.hair_body_contact import HairBodyDistanceCache
+
+    v, f, vt, ft = _sphere()
+    body = BodyMesh(vt, ft)
+    # Hair-like strands: 3 mm segments from roots just under the surface, leaving it at
+    # shallow angles (most vertices outside and a few millimetres to centimetres away, some
+    # grazing or dipping inside).
+    m, n = 32, 40
+    roots = _random_directions(rng, m)
+    tangent = np.cross(roots, _random_directions(rng, m))
+    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+    tilt = rng.uniform(-0.1, 0.4, size=(m, 1))
+    direction = tangent + tilt * roots
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    hair = roots[:, None] * (1.0 - 5e-4) + 3e-3 * np.arange(n)[None, :, None] * direction[:, None]
+    variant_id = barrier_variant_id("quadratic")
+    cache = HairBodyDistanceCache()
+    skipped = 0
+    for step in range(6):
+        moved = hair + rng.normal(scale=2e-4, size=hair.shape) * (step > 0)
+        x = _t(moved)[None]
+        e0, g0, q0 = _energy_forward(x, body, XI, DHAT, BP, 1.0, variant_id, "vertex")
+        e1, g1, q1 = _energy_forward(x, body, XI, DHAT, BP, 1.0, variant_id, "vertex", cache)
+        assert torch.equal(e0, e1) and torch.equal(g0, g1)
+        assert int(q1.sum()) <= int(q0.sum())
+        skipped += int(q0.sum() - q1.sum())
+    assert skipped > 2 * m * n  # most vertices skip, step after step
+    # The body moves 5 cm: the cache's bounds no longer hold until it is reset.
+    shifted = BodyMesh(vt + torch.tensor([0.05, 0.0, 0.0], dtype=vt.dtype), ft)
+    x = _t(hair)[None]
+    e0, g0, _ = _energy_forward(x, shifted, XI, DHAT, BP, 1.0, variant_id, "vertex")
+    cache.reset()
+    e1, g1, _ = _energy_forward(x, shifted, XI, DHAT, BP, 1.0, variant_id, "vertex", cache)
+    assert torch.equal(e0, e1) and torch.equal(g0, g1)

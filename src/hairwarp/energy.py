@@ -95,6 +95,7 @@ def total_energy(
     graph_safe: bool = False,
     hair_hair_capacity: int | None = None,
     hair_hair_cache=None,
+    hair_body_cache=None,
     barrier_join_fraction: torch.Tensor | None = None,
 ) -> EnergyResult:
     """The total energy of hair positions `x`: Eq. 5, or Eq. 6 (without L_func_reg) when `dynamic`.
@@ -114,6 +115,9 @@ def total_energy(
         hair_hair_cache: a `hairwarp.ops.hair_hair_contact.HairHairPairCache` that keeps the
             hair-hair pair list across calls (CPU only, not with `graph_safe`): the same
             energy, cheaper for an optimizer's evaluations of slowly moving hair.
+        hair_body_cache: a `hairwarp.ops.hair_body_contact.HairBodyDistanceCache` kept across
+            calls against a body that does not move (the caller resets it when it does; device
+            tensors, graph-safe): the hair-body queries it proves misses are skipped.
         barrier_join_fraction: a one-element tensor on `x`'s device in place of
             `config.barrier_join_fraction`: the contact kernels read it at launch, so a graph
             captured with it follows the value it holds (training's annealed b_p); None: the
@@ -166,6 +170,7 @@ def total_energy(
             bp,
             weight=config.hair_body_weight,
             variant=config.barrier_variant,
+            distance_cache=hair_body_cache,
         )
 
     # The two contact terms run side by side: on CUDA at batch 1 hair-body's deep queries are a

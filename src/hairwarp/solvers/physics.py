@@ -200,6 +200,13 @@ class PhysicsSolver:
         self.free_shape = (batch, strands, vertices - NUM_FIXED_VERTICES, 3)
         segments = batch * strands * (vertices - 1)
         self.capacity = 2 * segments  # hair-hair pair buffer of the graph-safe energy (regrown on overflow)
+        # What the hair-body queries proved, kept over a solve's iterations (the body stands still
+        # within one): reset whenever `set_frame` moves the body.
+        self.body_cache = None
+        if body is not None and energy_config.hair_body_weight != 0.0:
+            from hairwarp.ops.hair_body_contact import HairBodyDistanceCache
+
+            self.body_cache = HairBodyDistanceCache()
         self.pair_cache = None
         if not self.on_cuda and energy_config.hair_hair_weight != 0.0:
             from hairwarp.ops.hair_hair_contact import HairHairPairCache
@@ -250,7 +257,8 @@ class PhysicsSolver:
                 xg = self._assemble(free)
                 result = total_energy(xg, self.inputs, self.energy_config, dynamic=self.dynamic,
                                       graph_safe=graph_safe, hair_hair_capacity=self.capacity if graph_safe else None,
-                                      hair_hair_cache=None if graph_safe else self.pair_cache)
+                                      hair_hair_cache=None if graph_safe else self.pair_cache,
+                                      hair_body_cache=self.body_cache)
                 f = result.total.sum()
                 (grad,) = torch.autograd.grad(f, free)
         finally:
@@ -398,6 +406,8 @@ class PhysicsSolver:
             self.normals.copy_(scalp_normals.reshape(self.normals.shape))
         if self.body is not None and body_vertices is not None:
             self.body.update(body_vertices)
+            if self.body_cache is not None:
+                self.body_cache.reset()
 
     def set_state(self, x: torch.Tensor, x_prev: torch.Tensor | None = None) -> None:
         """The hair's state: x_{t-1} = x and x_{t-2} = x_prev (default x: at rest).
