@@ -247,8 +247,7 @@ def lbfgs_direction_kernel(
 ):
     """One thread per component: the memory's direction if it descends (g . d < 0), else
     -first_scale * fallback, the memory then dropped (thread 0 zeroes rho). The fallback is g
-    with first_scale = min(1, 1 / |g|_1) (torch's first step), or H0 g with first_scale = 1
-    when the solver has a preconditioner H0.
+    with first_scale = min(1, 1 / |g|_1) (torch's first step).
     """
     i = wp.tid()
     if g_dot_candidate[0] < type(g_dot_candidate[0])(0.0):
