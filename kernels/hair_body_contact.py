@@ -524,28 +524,26 @@ def hair_body_energy_vertex_kernel(
         # last query's distance less the move since (the distance is 1-Lipschitz), and the
         # body has not moved since it was written (`HairBodyDistanceCache`).
         queries = 0
-    elif use_cache != 0:
-        # Queried out to CACHE_REACH, so that a miss proves a bound that lasts: a hit beyond the
-        # radius is the capped query's miss, its distance kept for the next evaluations.
-        reach = wp.max(radius, CACHE_REACH)
+    else:
+        # With the cache the query looks out to CACHE_REACH, so that a miss proves a bound that
+        # lasts; a hit beyond the radius is the capped query's miss, its distance kept.
+        reach = radius
+        if use_cache != 0:
+            reach = wp.max(radius, CACHE_REACH)
         found, d, g = body_signed_distance(
             mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides,
             body * body_vertex_count, body * body_face_count * 3, p, reach, zero_dist
         )
-        known = reach  # no face strictly within the reach
-        if found != 0:
-            known = wp.float32(wp.abs(d))
-            if known >= radius:
-                found = 0
-                d = zero
-                g = p * zero
-        cache_points[i] = p32
-        cache_distance[i] = known
-    else:
-        found, d, g = body_signed_distance(
-            mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides,
-            body * body_vertex_count, body * body_face_count * 3, p, radius, zero_dist
-        )
+        if use_cache != 0:
+            known = reach  # no face strictly within the reach
+            if found != 0:
+                known = wp.float32(wp.abs(d))
+                if known >= radius:
+                    found = 0
+                    d = zero
+                    g = p * zero
+            cache_points[i] = p32
+            cache_distance[i] = known
     if found == 0 and v == 0:
         # The root anchors the strand's sides: measured at any distance (roots lie on the scalp,
         # so this is rare).

@@ -227,8 +227,6 @@ def launch(kernel, dim, inputs=(), outputs=(), device=None, stream=None, block_d
         block_dim = block_dim if target.is_cuda else 1
         tiled = {"block_dim": block_dim}
     if not isinstance(dim, int) or dim <= 0:
-        if tiled and isinstance(dim, int) and dim <= 0:
-            return
         wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=target, stream=stream, **tiled)
         return
     if tiled:
