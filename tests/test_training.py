@@ -450,6 +450,57 @@ def test_captured_steps_train_as_the_eager_ones(monkeypatch, static_config, samp
     _assert_trained_alike(expected, got, eager, captured, 1e-5, 1e-6, rtol=1e-4)
 
 
+def test_distillation_pulls_the_drape_toward_the_physics_teacher(static_config, sampler):
+    """With `teacher_iterations` the batch carries the network's drape refined by the physics'
+    static solve (lower energy at the physics' b_p, lengths kept), the log holds the "teacher"
+    term, and a step on a teacher-dominated loss moves the drape toward the teacher."""
+    from hairwarp.training.config import energy_config
+    from hairwarp.training.static import static_loss, teacher_term
+
+    cfg = static_config.replace(teacher_iterations=6, teacher_weight=1e7, learning_rate=_STEP_LR)
+    trainer = StaticTrainer(cfg, sampler=sampler)
+    trainer.step = 3
+    batch = trainer.training_batch(3)
+    assert batch.teacher is not None and batch.teacher.shape == batch.rigid.shape
+    with torch.no_grad():
+        _, _, drape = static_loss(trainer.model, batch, energy_config(cfg.energy, barrier_join_fraction=cfg.bp_end))
+        physics = energy_config(cfg.energy, barrier_join_fraction=cfg.bp_end)
+        e_drape = total_energy(drape, batch.inputs, physics).total
+        e_teacher = total_energy(batch.teacher, batch.inputs, physics).total
+    assert bool((e_teacher <= e_drape).all()) and bool((e_teacher < e_drape).any())
+    lengths = (batch.teacher[:, :, 1:] - batch.teacher[:, :, :-1]).norm(dim=-1)
+    torch.testing.assert_close(lengths, batch.inputs.rest_lengths.to(lengths.dtype), atol=1e-5, rtol=1e-4)
+    before = float(teacher_term(drape, batch.teacher, 1.0).mean())
+    assert before > 0
+    record = trainer.train_step(batch)
+    assert record["terms"]["teacher"] == pytest.approx(cfg.teacher_weight * before, rel=1e-4)
+    with torch.no_grad():
+        _, _, after_drape = static_loss(trainer.model, batch, physics)
+    assert float(teacher_term(after_drape, batch.teacher, 1.0).mean()) < before
+    with pytest.raises(ValueError, match="teacher_iterations"):
+        static_config.replace(teacher_iterations=-1)
+    with pytest.raises(ValueError, match="teacher_weight"):
+        static_config.replace(teacher_weight=float("nan"))
+
+
+def test_captured_distillation_steps_train_as_the_eager_ones(monkeypatch, static_config, sampler):
+    """The teacher's drapes go into the captured step's fixed buffers: the captured trainer
+    (its bookkeeping run eagerly on the CPU) gives the eager trainer's losses and weights."""
+    from hairwarp.training import capture
+
+    config = static_config.replace(phase_steps=(0, 1, 1, 1), teacher_iterations=4)
+    eager = StaticTrainer(config.replace(cuda_graph=False), sampler=sampler)
+    expected = eager.train(progress=False)
+    assert all("teacher" in e["terms"] for e in expected)
+    monkeypatch.setattr(capture, "CAPTURE_ON_CPU", True)
+    captured = StaticTrainer(config, sampler=sampler)
+    got = [captured.train_step() for _ in range(config.total_steps)]
+    assert captured._teacher.solver is not None  # one solver for the batches that carry their bodies
+    # Weights to 1e-4: each trainer's teacher solves on its own body (float32 sums in another
+    # order), and line-search decisions amplify that; the losses agree to 1e-4 relative.
+    _assert_trained_alike(expected, got, eager, captured, 1e-4, 1e-4, rtol=1e-3)
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device; this machine has none")
 def test_cuda_graph_training_steps_equal_eager(data):
     """On CUDA the default trainer replays each step from a CUDA graph: the same losses and

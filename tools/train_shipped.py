@@ -194,7 +194,8 @@ def train_static(args) -> None:
                                     loss_normalization=args.loss_normalization, grad_clip_norm=args.grad_clip_norm,
                                     energy=_overrides("--energy", args.energy),
                                     model=_overrides("--model", args.model, _number_or_text), checkpoint_every=0,
-                                    data=data, curve_every=0)
+                                    data=data, curve_every=0, teacher_iterations=args.teacher_iterations,
+                                    teacher_weight=args.teacher_weight)
 
     from hairwarp.evaluation.scenes import comparison_scene
 
@@ -318,6 +319,11 @@ def main(argv=None) -> None:
                         help="dynamic: fine-tune this dynamic checkpoint (e.g. src/hairwarp/assets/"
                              "hairformer_dynamic.pt) with a fresh optimizer; --static is then not needed")
     parser.add_argument("--lr", type=float, default=None, help="Adam step size")
+    parser.add_argument("--teacher-iterations", type=int, default=StaticTrainingConfig.teacher_iterations,
+                        help="static: distil from the physics, its static drape refining the network's in K "
+                             "iterations per step (0: off)")
+    parser.add_argument("--teacher-weight", type=float, default=StaticTrainingConfig.teacher_weight,
+                        help="static: weight of the distillation term [1/m^2]")
     parser.add_argument("--curve-every", type=int, default=250,
                         help="static/quaffure: learning curve every this many steps (0: off): "
                              "OUT/<kind>_run/learning_curve.json and .png")

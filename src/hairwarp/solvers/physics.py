@@ -158,7 +158,8 @@ class PhysicsSolver:
     """Implicit-Euler steps (or static drapes) of hair of one shape against one moving body.
 
     Args:
-        rest_lengths: (M, N-1) rest segment lengths [m].
+        rest_lengths: (M, N-1) rest segment lengths [m], or (B, M, N-1) per sample (a training batch
+            of several hairstyles; static drapes, or dynamic steps without `stiffness_scaling`).
         rigid: (B, M, N, 3) a rigid placement (shape, dtype (float32 or float64) and device of every step).
         scalp_normals: (B, M, 3) posed scalp normals at the roots, or None (no Eq. 15).
         body: a `hairwarp.ops.BodyMesh` (one mesh or B), moved in place by `step`'s
@@ -192,7 +193,8 @@ class PhysicsSolver:
         self.rigid_prev = self.rigid.clone()
         self.rigid_prev2 = self.rigid.clone()
         rest = rest_lengths.to(device=self.device, dtype=rigid.dtype)
-        self.arc_length = torch.cat([torch.zeros_like(rest[:, :1]), rest.cumsum(dim=1)], dim=1)  # (M, N) [m]
+        # (M, N) or (B, M, N) [m] arc length from the root
+        self.arc_length = torch.cat([torch.zeros_like(rest[..., :1]), rest.cumsum(dim=-1)], dim=-1)
         self.body = body
         self.inputs = EnergyInputs(rest_lengths=rest_lengths, rigid=self.rigid, scalp_normals=self.normals, body=body,
                                    prev=self.prev if dynamic else None, prev2=self.prev2 if dynamic else None)
@@ -215,6 +217,9 @@ class PhysicsSolver:
         self.chunk = config.chunk if dynamic else config.static_chunk
         # The solver's variables z = free targets / scale (`PhysicsConfig.stiffness_scaling`).
         self.scale = None
+        if config.stiffness_scaling > 0 and dynamic and rest_lengths.dim() != 2:
+            raise ValueError("rest_lengths: per-sample (B, M, N-1) rest lengths need stiffness_scaling = 0 in "
+                             "dynamic steps (the scaling is one per strand and vertex)")
         if config.stiffness_scaling > 0 and dynamic:
             stiffness = vertex_stiffness(energy_config, rest_lengths, inextensible=config.inextensible)
             scale = (stiffness.min() / stiffness) ** config.stiffness_scaling
@@ -433,7 +438,8 @@ class PhysicsSolver:
         length = self.config.head_follow_length
         if length > 0:
             surprise = self.rigid - (2 * self.rigid_prev - self.rigid_prev2)
-            x = x + torch.exp(-self.arc_length / length)[None, :, :, None] * surprise
+            fade = torch.exp(-self.arc_length / length)
+            x = x + (fade if fade.dim() == 3 else fade[None])[..., None] * surprise
         return x
 
     def step(self) -> StepReport:

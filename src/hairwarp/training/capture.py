@@ -32,7 +32,7 @@ def capture_applies(trainer, batch: HairBatch | None = None) -> bool:
 
 class FixedHairBatch:
     """The tensors of a `HairBatch` that a loss reads (latents, shapes, poses, rigid placement,
-    rest lengths, scalp normals) in fixed buffers, its bodies one uncropped `BodyMesh` refit per
+    rest lengths, scalp normals, the teacher's drapes) in fixed buffers, its bodies one uncropped `BodyMesh` refit per
     batch.
 
     Args:
@@ -50,8 +50,10 @@ class FixedHairBatch:
         rigid = batch.rigid.clone()
         inputs = dataclasses.replace(batch.inputs, rest_lengths=batch.inputs.rest_lengths.clone(), rigid=rigid,
                                      scalp_normals=batch.inputs.scalp_normals.clone(), body=self.body)
+        teacher = None if batch.teacher is None else batch.teacher.clone()
         self.batch = dataclasses.replace(batch, z=batch.z.clone(), betas=batch.betas.clone(),
-                                         poses=batch.poses.clone(), rigid=rigid, inputs=inputs, body_vertices=None)
+                                         poses=batch.poses.clone(), rigid=rigid, inputs=inputs, body_vertices=None,
+                                         teacher=teacher)
 
     def copy_from(self, batch: HairBatch) -> None:
         """Write `batch` (same shapes) into the buffers and refit the body to its poses."""
@@ -60,6 +62,10 @@ class FixedHairBatch:
                          (fixed.rigid, batch.rigid), (fixed.inputs.rest_lengths, batch.inputs.rest_lengths),
                          (fixed.inputs.scalp_normals, batch.inputs.scalp_normals)):
             dst.copy_(src)
+        if (fixed.teacher is None) != (batch.teacher is None):
+            raise ValueError("batch: a teacher where the captured step holds none, or none where it holds one")
+        if fixed.teacher is not None:
+            fixed.teacher.copy_(batch.teacher)
         if self.body is not None:
             self.body.update(batch.body_vertices)
 

@@ -350,6 +350,17 @@ class StaticTrainingConfig(_TrainingConfig):
         curve_strand_stride: their size: None full size (every scalp root), k every k-th root.
         curve_reference_iterations: L-BFGS iterations over the free vertices (the L-BFGS baseline) that give each scene's
             reference energy E* for the energy gap (0: no energy gap).
+        teacher_iterations: distillation from the physics (0: off, the paper's loss alone). Each
+            step the network's own drape of the batch (detached) is refined by this many
+            iterations of the physics' static drape (`hairwarp.solvers.physics`, device L-BFGS
+            on the rest lengths, b_p at `bp_end`), and the drape is pulled toward it. The
+            refinement's move is a curvature-aware step toward the optimum: the energy's own
+            gradient is dominated by contact and root alignment (17-32x the inertia and gravity
+            in |dE/dD|), and an energy-trained network errs up and out where the body is near
+            (docs/network_diagnosis.md, S4-S5, D7).
+        teacher_weight: weight of the distillation term [1/m^2]: teacher_weight times the mean
+            squared distance [m^2] of the free vertices to the teacher's, per sample (1e4: a
+            1 cm gap costs 1, an energy-sized term under the "inverse" normalization).
         energy: overrides of `hairwarp.config.EnergyConfig` fields (b_p is set per step).
         data: what the sampler draws.
     """
@@ -376,12 +387,16 @@ class StaticTrainingConfig(_TrainingConfig):
     curve_scenes: list = field(default_factory=lambda: ["table1", "medium_poses"])
     curve_strand_stride: int | None = None
     curve_reference_iterations: int = 100
+    teacher_iterations: int = 0
+    teacher_weight: float = 1.0e4
     energy: dict = field(default_factory=dict)
     data: DataConfig = field(default_factory=DataConfig)
 
     def __post_init__(self):
         owner = type(self).__name__
         _choice(owner, "model_kind", self.model_kind, STATIC_MODEL_KINDS)
+        _int(owner, "teacher_iterations", self.teacher_iterations)
+        _number(owner, "teacher_weight", self.teacher_weight)
         _check_curve(owner, self)
         _choice(owner, "model_preset", self.model_preset, MODEL_PRESETS)
         _check_model_keys(owner, self.model, StaticConfig if self.model_kind == "static" else QuaffureConfig)

@@ -156,6 +156,8 @@ class HairBatch:
             on every rank).
         body_vertices: (B, V, 3) the posed bodies' vertices [m] (uncropped; the faces are the
             sampler's `body_faces`), or None.
+        teacher: (B, M, N, 3) the drapes a distillation term pulls toward [m]
+            (`StaticTrainingConfig.teacher_iterations`), or None.
     """
 
     z: torch.Tensor
@@ -170,6 +172,7 @@ class HairBatch:
     info: dict = field(default_factory=dict)
     share: float = 1.0
     body_vertices: torch.Tensor | None = None
+    teacher: torch.Tensor | None = None
 
     @property
     def batch_size(self) -> int:

@@ -22,6 +22,7 @@ import math
 import torch
 from torch import nn
 
+from hairwarp.config import NUM_FIXED_VERTICES
 from hairwarp.energy import total_energy
 from hairwarp.models import (
     QuaffureConfig,
@@ -131,8 +132,10 @@ def build_model(config: StaticTrainingConfig, latent_dim: int = 512) -> nn.Modul
     return StaticNetwork(cfg) if config.model_kind == "static" else QuaffureNetwork(cfg)
 
 
-def static_loss(model: nn.Module, batch: HairBatch, energy, clip: float | None = None, normalization: str = "none"):
-    """Eq. 5 averaged over the batch for the drapes a static network predicts.
+def static_loss(model: nn.Module, batch: HairBatch, energy, clip: float | None = None, normalization: str = "none",
+                teacher_weight: float = 0.0):
+    """Eq. 5 averaged over the batch for the drapes a static network predicts, plus the
+    distillation term toward `batch.teacher` when it holds drapes and `teacher_weight` > 0.
 
     Args:
         model: a StaticNetwork or QuaffureNetwork (forward(z, beta, theta, clip) -> map).
@@ -140,17 +143,28 @@ def static_loss(model: nn.Module, batch: HairBatch, energy, clip: float | None =
         energy: the `EnergyConfig` (b_p of this step inside).
         clip: optional clamp of each deformation component [m].
         normalization: "none", "rigid" or "inverse" (`StaticTrainingConfig.loss_normalization`).
+        teacher_weight: [1/m^2] (`StaticTrainingConfig.teacher_weight`).
 
     Returns:
-        (loss () tensor, terms {name: batch-mean float}, positions (B, M, N, 3)).
+        (loss () tensor, terms {name: batch-mean float; "teacher" the distillation term},
+        positions (B, M, N, 3)).
     """
-    loss, result, positions = _static_loss(model, batch, energy, clip, normalization)
+    loss, result, positions = _static_loss(model, batch, energy, clip, normalization, teacher_weight)
     return loss, term_means(result.terms), positions
 
 
-def _static_loss(model, batch, energy, clip, normalization, **energy_options):
+def teacher_term(positions: torch.Tensor, teacher: torch.Tensor, weight: float) -> torch.Tensor:
+    """The distillation term per sample (B,): `weight` [1/m^2] times the mean squared distance
+    [m^2] of the free vertices (2..N-1) of `positions` to `teacher`, both (B, M, N, 3).
+    """
+    gap = (positions - teacher)[:, :, NUM_FIXED_VERTICES:]
+    return weight * gap.square().sum(dim=-1).mean(dim=(1, 2))
+
+
+def _static_loss(model, batch, energy, clip, normalization, teacher_weight=0.0, **energy_options):
     """`static_loss` with the `EnergyResult` in place of the terms' means (nothing read back to
-    the host: a CUDA graph captures it); `energy_options` go to `total_energy`.
+    the host: a CUDA graph captures it); `energy_options` go to `total_energy`. The distillation
+    term, when it applies, is added to the normalised energy and to `result.terms` ("teacher").
     """
     deformation = network_deformation(model, batch.z, batch.betas, batch.poses, batch.rigid, batch.root_uv,
                                       batch.inputs.body, clip)
@@ -158,13 +172,76 @@ def _static_loss(model, batch, energy, clip, normalization, **energy_options):
     result = total_energy(positions, batch.inputs, energy, **energy_options)
     if normalization == "inverse":
         weight = 1.0 / (1.0 + result.total.detach().abs())
-        return (result.total * weight).mean(), result, positions
-    if normalization == "rigid":
+        loss = (result.total * weight).mean()
+    elif normalization == "rigid":
         with torch.no_grad():
             scale = total_energy(batch.rigid, batch.inputs, energy, **energy_options).total.abs()
             scale = scale + LOSS_NORMALIZATION_FLOOR
-        return (result.total / scale).mean(), result, positions
-    return result.total.mean(), result, positions
+        loss = (result.total / scale).mean()
+    else:
+        loss = result.total.mean()
+    if batch.teacher is not None and teacher_weight > 0:
+        distillation = teacher_term(positions, batch.teacher, teacher_weight)
+        result.terms["teacher"] = distillation.detach()
+        loss = loss + distillation.mean()
+    return loss, result, positions
+
+
+class _DrapeTeacher:
+    """The distillation targets of a training batch (`StaticTrainingConfig.teacher_iterations`):
+    the network's own drapes (no gradient) refined by K iterations of the physics' static drape
+    (`hairwarp.solvers.physics.PhysicsSolver`, the energy at b_p = `bp_end`, the physics' own
+    barrier, not the step's annealed one).
+
+    One solver serves every batch of one shape: its buffers (rigid placement, rest lengths, scalp
+    normals, one uncropped body refit to the batch's poses) are written before each solve, so
+    on CUDA its two graphs (start, K iterations) are captured once. A batch without
+    `body_vertices` (built with its cropped bodies) gets a solver of its own.
+    """
+
+    def __init__(self, trainer):
+        self.trainer = trainer
+        self.solver = None
+        self.shape = None
+
+    def _physics_config(self):
+        from hairwarp.solvers.physics import PhysicsConfig
+
+        k = self.trainer.config.teacher_iterations
+        return PhysicsConfig(static_max_iterations=k, static_chunk=k)
+
+    def _make_solver(self, batch: HairBatch, body):
+        from hairwarp.solvers.physics import PhysicsSolver
+
+        config = self.trainer.config
+        energy = energy_config(config.energy, barrier_join_fraction=config.bp_end)
+        rest = batch.inputs.rest_lengths.detach().clone()
+        return PhysicsSolver(rest, batch.rigid.detach(), batch.inputs.scalp_normals, body, energy,
+                             self._physics_config(), dynamic=False)
+
+    def __call__(self, batch: HairBatch, clip) -> torch.Tensor:
+        """(B, M, N, 3) the teacher's drapes of `batch` [m]."""
+        from hairwarp.ops import BodyMesh
+
+        model = self.trainer.model
+        if batch.body_vertices is None:
+            solver = self._make_solver(batch, batch.inputs.body)
+        else:
+            shape = (tuple(batch.rigid.shape), tuple(batch.body_vertices.shape))
+            if self.solver is None or self.shape != shape:
+                self.solver = None
+                body = BodyMesh(batch.body_vertices, self.trainer.sampler.body_faces, require_watertight=False,
+                                bvh="lbvh")
+                self.solver, self.shape = self._make_solver(batch, body), shape
+            solver = self.solver
+            solver.inputs.rest_lengths.copy_(batch.inputs.rest_lengths)
+            solver.set_frame(batch.rigid, batch.inputs.scalp_normals, batch.body_vertices)
+        with torch.no_grad():
+            deformation = network_deformation(model, batch.z, batch.betas, batch.poses, batch.rigid, batch.root_uv,
+                                              solver.body, clip)
+            start = apply_deformation(batch.rigid, deformation, batch.root_uv, length_projection_of(model))
+        solver.solve(start.detach(), self.trainer.config.teacher_iterations)
+        return solver.positions()
 
 
 class _CapturedStaticStep:
@@ -189,7 +266,7 @@ class _CapturedStaticStep:
 
         def evaluate(graph_safe, capacity):
             loss, result, _ = _static_loss(trainer.model, self.fixed.batch, energy, clip, config.loss_normalization,
-                                           graph_safe=graph_safe, hair_hair_capacity=capacity,
+                                           config.teacher_weight, graph_safe=graph_safe, hair_hair_capacity=capacity,
                                            barrier_join_fraction=self.bp)
             return loss, result.terms, result.hair_hair_info
 
@@ -297,6 +374,7 @@ class StaticTrainer(Trainer):
                 group["lr"] = config.learning_rate
         self._setup_run(out, seed, rank, world_size, 0 if ckpt is None else ckpt.step)
         self._captured = None  # the step's CUDA graph (`captured_loss`), made at the first step
+        self._teacher = None  # the distillation's solver (`training_batch`), made at the first step
         if config.curve_every > 0:
             from hairwarp.training.monitor import LearningCurve
 
@@ -321,8 +399,15 @@ class StaticTrainer(Trainer):
         return self.sampler.static_batch(step, s["phase"], s["progress"], cfg.batch_size, pool, build_body)
 
     def training_batch(self, step: int) -> HairBatch:
-        """`next_batch`, without the body meshes when the step is captured (it refits its own)."""
-        return self.next_batch(step, build_body=not capture_applies(self))
+        """`next_batch`, without the body meshes when the step is captured (it refits its own),
+        with the teacher's drapes when the run distils (`StaticTrainingConfig.teacher_iterations`).
+        """
+        batch = self.next_batch(step, build_body=not capture_applies(self))
+        if self.config.teacher_iterations > 0:
+            if self._teacher is None:
+                self._teacher = _DrapeTeacher(self)
+            batch.teacher = self._teacher(batch, self.schedule(step)["clip"])
+        return batch
 
     def captured_loss(self, batch: HairBatch, step: int):
         """The step's loss through `_CapturedStaticStep` (gradients left in `.grad`): (loss, terms,
@@ -349,7 +434,7 @@ class StaticTrainer(Trainer):
         s = self.schedule(step)
         energy = energy_config(self.config.energy, barrier_join_fraction=s["bp"])
         loss, terms, _ = static_loss(self.model if model is None else model, batch, energy, s["clip"],
-                                     self.config.loss_normalization)
+                                     self.config.loss_normalization, self.config.teacher_weight)
         size = batch.info.get("global_batch_size", batch.batch_size)
         extras = {"phase": s["phase"], "bp": s["bp"], "clip": s["clip"], "batch_size": size}
         return loss, terms, extras
