@@ -30,6 +30,16 @@ def capture_applies(trainer, batch: HairBatch | None = None) -> bool:
     return bool(trainer.config.cuda_graph and on and trainer.world_size == 1 and carried)
 
 
+def refit_body(batch: HairBatch, faces: torch.Tensor):
+    """One uncropped `BodyMesh` of `batch`'s posed bodies (`body_vertices`), which
+    `BodyMesh.update` refits to later batches of the same shape (the crop changes no contact
+    result).
+    """
+    from hairwarp.ops import BodyMesh
+
+    return BodyMesh(batch.body_vertices, faces, require_watertight=False, bvh="lbvh")
+
+
 class FixedHairBatch:
     """The tensors of a `HairBatch` that a loss reads (latents, shapes, poses, rigid placement,
     rest lengths, scalp normals, the teacher's drapes) in fixed buffers, its bodies one uncropped `BodyMesh` refit per
@@ -42,11 +52,9 @@ class FixedHairBatch:
     """
 
     def __init__(self, batch: HairBatch, faces: torch.Tensor, with_body: bool = True):
-        from hairwarp.ops import BodyMesh
-
         self.body = None
         if with_body:
-            self.body = BodyMesh(batch.body_vertices, faces, require_watertight=False, bvh="lbvh")
+            self.body = refit_body(batch, faces)
         rigid = batch.rigid.clone()
         inputs = dataclasses.replace(batch.inputs, rest_lengths=batch.inputs.rest_lengths.clone(), rigid=rigid,
                                      scalp_normals=batch.inputs.scalp_normals.clone(), body=self.body)

@@ -34,7 +34,7 @@ from hairwarp.models import (
 )
 from hairwarp.models.contact_features import network_deformation
 from hairwarp.training import distributed
-from hairwarp.training.capture import CapturedLossStep, FixedHairBatch, capture_applies
+from hairwarp.training.capture import CapturedLossStep, FixedHairBatch, capture_applies, refit_body
 from hairwarp.training._common import (
     DTYPES,
     Trainer,
@@ -221,8 +221,6 @@ class _DrapeTeacher:
 
     def __call__(self, batch: HairBatch, clip) -> torch.Tensor:
         """(B, M, N, 3) the teacher's drapes of `batch` [m]."""
-        from hairwarp.ops import BodyMesh
-
         model = self.trainer.model
         if batch.body_vertices is None:
             solver = self._make_solver(batch, batch.inputs.body)
@@ -230,8 +228,7 @@ class _DrapeTeacher:
             shape = (tuple(batch.rigid.shape), tuple(batch.body_vertices.shape))
             if self.solver is None or self.shape != shape:
                 self.solver = None
-                body = BodyMesh(batch.body_vertices, self.trainer.sampler.body_faces, require_watertight=False,
-                                bvh="lbvh")
+                body = refit_body(batch, self.trainer.sampler.body_faces)
                 self.solver, self.shape = self._make_solver(batch, body), shape
             solver = self.solver
             solver.inputs.rest_lengths.copy_(batch.inputs.rest_lengths)
