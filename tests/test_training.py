@@ -483,6 +483,70 @@ def test_distillation_pulls_the_drape_toward_the_physics_teacher(static_config, 
         static_config.replace(teacher_weight=float("nan"))
 
 
+def test_a_teacher_pool_solves_each_batch_once_to_its_optimum(monkeypatch, static_config, sampler):
+    """With `teacher_pool` P the run cycles through P batches; each one's teacher is solved once
+    (the static drape with its restarts, not one chunk), then reused: a fresh solve from it
+    lowers the energy far less than the K-iteration teacher leaves to gain."""
+    from hairwarp.solvers.physics import PhysicsSolver
+    from hairwarp.training import static as static_training
+    from hairwarp.training.config import energy_config
+
+    cfg = static_config.replace(phase_steps=(0, 0, 0, 6), teacher_iterations=400, teacher_pool=2)
+    trainer = StaticTrainer(cfg, sampler=sampler)
+    solves = []
+    original = static_training._DrapeTeacher.__call__
+    monkeypatch.setattr(static_training._DrapeTeacher, "__call__",
+                        lambda self, batch, clip: solves.append(1) or original(self, batch, clip))
+    batches = [trainer.training_batch(step) for step in range(4)]
+    assert len(solves) == 2
+    torch.testing.assert_close(batches[2].rigid, batches[0].rigid)
+    torch.testing.assert_close(batches[3].rigid, batches[1].rigid)
+    assert not torch.equal(batches[0].rigid, batches[1].rigid)
+    assert batches[2].teacher is batches[0].teacher
+    physics = energy_config(cfg.energy, barrier_join_fraction=cfg.bp_end)
+
+    def energy_after(start, batch, iterations):
+        solver = trainer._teacher._make_solver(batch, batch.inputs.body)
+        solver.solve(start, iterations)
+        with torch.no_grad():
+            return float(total_energy(solver.positions(), batch.inputs, physics).total.sum())
+
+    batch = batches[0]
+    with torch.no_grad():
+        e_teacher = float(total_energy(batch.teacher, batch.inputs, physics).total.sum())
+    assert isinstance(trainer._teacher._make_solver(batch, batch.inputs.body), PhysicsSolver)
+    # From the rigid placement, 16 iterations (one chunk) leave far more to gain than the pool's teacher.
+    short = energy_after(batch.rigid.clone(), batch, 16)
+    assert e_teacher < short
+    assert e_teacher - energy_after(batch.teacher.clone(), batch, 200) < 0.05 * (short - e_teacher)
+    record = trainer.train_step()
+    assert "teacher" in record["terms"]
+    with pytest.raises(ValueError, match="teacher_pool"):
+        static_config.replace(teacher_pool=2)
+    with pytest.raises(ValueError, match="teacher_pool"):
+        static_config.replace(teacher_iterations=4, teacher_pool=-1)
+
+
+def test_a_run_starts_from_the_weights_of_another_checkpoint(static_config, sampler, static_checkpoint,
+                                                              dynamic_checkpoint):
+    """`init` takes a static checkpoint's network, or a dynamic checkpoint's frozen static one,
+    with a fresh optimizer at step 0; a network of other sizes is refused by name."""
+    from hairwarp.models.checkpoint import load_checkpoint
+
+    for source in (static_checkpoint, dynamic_checkpoint):
+        model = load_checkpoint(source).model
+        model = getattr(model, "static", model)
+        trainer = StaticTrainer(static_config, sampler=sampler, init=source)
+        assert trainer.step == 0 and not trainer.optimizer.state
+        for a, b in zip(trainer.model.state_dict().values(), model.state_dict().values()):
+            torch.testing.assert_close(a, b)
+    other = static_config.replace(model={"num_encoder_layers": 3})
+    with pytest.raises(ValueError, match="init"):
+        StaticTrainer(other, sampler=sampler, init=static_checkpoint)
+    with pytest.raises(ValueError, match="init"):
+        StaticTrainer(static_config, sampler=sampler, init=static_checkpoint, resume=static_checkpoint)
+
+
 def test_captured_distillation_steps_train_as_the_eager_ones(monkeypatch, static_config, sampler):
     """The teacher's drapes go into the captured step's fixed buffers: the captured trainer
     (its bookkeeping run eagerly on the CPU) gives the eager trainer's losses and weights."""

@@ -5,6 +5,8 @@
     python tools/train_shipped.py dynamic --device cuda --minutes 4 --init src/hairwarp/assets/hairformer_dynamic.pt \
         --grown-hair-fraction 0.5 --long-hair-fraction 0.3 --out OUT
     python tools/train_shipped.py quaffure --device cuda --steps 1100 --out OUT
+    python tools/train_shipped.py static --device cuda --steps 3000 --init src/hairwarp/assets/hairformer_dynamic.pt \
+        --teacher-pool 64 --teacher-iterations 800 --bp-start 0.01 --lr 5e-5 --out OUT
 
 The curriculum's length depends on its total step count (phase boundaries, the b_p anneal of
 Section 4.2.1), so the step count is fixed before training: a short probe times a step of the
@@ -195,7 +197,7 @@ def train_static(args) -> None:
                                     energy=_overrides("--energy", args.energy),
                                     model=_overrides("--model", args.model, _number_or_text), checkpoint_every=0,
                                     data=data, curve_every=0, teacher_iterations=args.teacher_iterations,
-                                    teacher_weight=args.teacher_weight)
+                                    teacher_weight=args.teacher_weight, teacher_pool=args.teacher_pool)
 
     from hairwarp.evaluation.scenes import comparison_scene
 
@@ -223,15 +225,19 @@ def train_static(args) -> None:
         del probe
         remaining = args.minutes * 60 - (time.perf_counter() - start) - 30
         total = max(20, int(remaining / s_step))
-    steps = tuple(int(round(total * share)) for share in PHASE_SHARES)
+    if args.init:  # a fine-tune continues the curriculum's last phase (every motion, subject and shape)
+        steps = (0, 0, 0, total)
+    else:
+        steps = tuple(int(round(total * share)) for share in PHASE_SHARES)
     print(f"probe: {s_step * 1e3:.0f} ms/step at batch {args.batch}; training {steps} steps", flush=True)
     shutil.rmtree(run, ignore_errors=True)
     trainer = StaticTrainer(config(steps).replace(curve_every=args.curve_every, curve_scenes=args.curve_scenes.split(",")),
-                            out=run, device=device, seed=args.seed, sampler=sampler, scene_factory=comparison_scene)
+                            out=run, device=device, seed=args.seed, sampler=sampler, scene_factory=comparison_scene,
+                            init=args.init or None)
     _loop(trainer, args.minutes * 60 - 20, start, device)
     _finish(trainer, args, args.kind, {"phase_steps": steps, "probe_ms_per_step": s_step * 1e3,
                                       "batch": args.batch, "strand_stride": STRAND_STRIDE,
-                                      "encode_s": enc_s}, start)
+                                      "encode_s": enc_s, "init": args.init}, start)
 
 
 def train_dynamic(args) -> None:
@@ -317,11 +323,16 @@ def main(argv=None) -> None:
                              "that many times as often (default: every motion once)")
     parser.add_argument("--init", default=None,
                         help="dynamic: fine-tune this dynamic checkpoint (e.g. src/hairwarp/assets/"
-                             "hairformer_dynamic.pt) with a fresh optimizer; --static is then not needed")
+                             "hairformer_dynamic.pt) with a fresh optimizer; --static is then not needed. "
+                             "static: start from this checkpoint's static network (a dynamic checkpoint's "
+                             "frozen one), every step in the curriculum's last phase")
     parser.add_argument("--lr", type=float, default=None, help="Adam step size")
     parser.add_argument("--teacher-iterations", type=int, default=StaticTrainingConfig.teacher_iterations,
                         help="static: distil from the physics, its static drape refining the network's in K "
                              "iterations per step (0: off)")
+    parser.add_argument("--teacher-pool", type=int, default=StaticTrainingConfig.teacher_pool,
+                        help="static: cycle through this many fixed batches, each one's teacher solved once to "
+                             "convergence (up to --teacher-iterations) and kept (0: a K-iteration teacher per step)")
     parser.add_argument("--teacher-weight", type=float, default=StaticTrainingConfig.teacher_weight,
                         help="static: weight of the distillation term [1/m^2]")
     parser.add_argument("--curve-every", type=int, default=250,
@@ -352,6 +363,8 @@ def main(argv=None) -> None:
             setattr(args, name, value)
     os.makedirs(args.out, exist_ok=True)
     if args.kind in ("static", "quaffure"):  # Quaffure (adapted): the static curriculum, Section 4.3.1
+        if args.init and not os.path.isfile(args.init):
+            raise SystemExit(f"--init: expected a checkpoint file, got {args.init!r}")
         train_static(args)
     else:
         if args.init:

@@ -361,6 +361,15 @@ class StaticTrainingConfig(_TrainingConfig):
         teacher_weight: weight of the distillation term [1/m^2]: teacher_weight times the mean
             squared distance [m^2] of the free vertices to the teacher's, per sample (1e4: a
             1 cm gap costs 1, an energy-sized term under the "inverse" normalization).
+        teacher_pool: 0: the teacher refines every step's fresh batch in `teacher_iterations`
+            iterations (one chunk, no restart). P > 0: the run cycles through P fixed batches
+            (the sampler's batches of steps 0..P-1, in the step's phase), and each one's teacher
+            is solved once, the first time it is drawn, to convergence: up to
+            `teacher_iterations` iterations with the static drape's restarts
+            (`PhysicsSolver.solve`), and kept on the run's device. Sixteen iterations from the
+            network's drape moved it 0.3 mm RMS and left the strands it throws up where they
+            were (docs/network_diagnosis.md, sixth session); a converged teacher is each
+            sample's optimum.
         energy: overrides of `hairwarp.config.EnergyConfig` fields (b_p is set per step).
         data: what the sampler draws.
     """
@@ -389,6 +398,7 @@ class StaticTrainingConfig(_TrainingConfig):
     curve_reference_iterations: int = 100
     teacher_iterations: int = 0
     teacher_weight: float = 1.0e4
+    teacher_pool: int = 0
     energy: dict = field(default_factory=dict)
     data: DataConfig = field(default_factory=DataConfig)
 
@@ -397,6 +407,10 @@ class StaticTrainingConfig(_TrainingConfig):
         _choice(owner, "model_kind", self.model_kind, STATIC_MODEL_KINDS)
         _int(owner, "teacher_iterations", self.teacher_iterations)
         _number(owner, "teacher_weight", self.teacher_weight)
+        _int(owner, "teacher_pool", self.teacher_pool)
+        if self.teacher_pool > 0 and self.teacher_iterations == 0:
+            _fail(owner, "teacher_pool", "0 unless teacher_iterations > 0 (the pool's teachers are solved "
+                  "in teacher_iterations iterations)", self.teacher_pool)
         _check_curve(owner, self)
         _choice(owner, "model_preset", self.model_preset, MODEL_PRESETS)
         _check_model_keys(owner, self.model, StaticConfig if self.model_kind == "static" else QuaffureConfig)

@@ -39,6 +39,7 @@ from hairwarp.training._common import (
     DTYPES,
     Trainer,
     load_training_checkpoint,
+    resolve_checkpoint,
     stored_config,
     stored_seed,
     term_means,
@@ -207,7 +208,10 @@ class _DrapeTeacher:
     def _physics_config(self):
         from hairwarp.solvers.physics import PhysicsConfig
 
-        k = self.trainer.config.teacher_iterations
+        config = self.trainer.config
+        k = config.teacher_iterations
+        if config.teacher_pool > 0:  # converged once per pool batch: the static drape's chunks and restarts
+            return PhysicsConfig(static_max_iterations=k)
         return PhysicsConfig(static_max_iterations=k, static_chunk=k)
 
     def _make_solver(self, batch: HairBatch, body):
@@ -301,6 +305,9 @@ class StaticTrainer(Trainer):
             torchrun) and wraps the loss in DistributedDataParallel.
         resume: a checkpoint (file or run folder) to continue from: weights, optimizer
             state and step; it may come from a run with another world size.
+        init: a checkpoint whose network's weights start a new run (a fresh optimizer, step 0):
+            a static or Quaffure run's, or a dynamic one's (its frozen static network, as the
+            shipped `hairformer_dynamic.pt` holds it). Its network must be the config's.
         sampler: a ready `TrainingSampler` (tests share one); None builds it from the config.
         scene_factory: builds the learning curve's held-out scenes
             (`hairwarp.evaluation.scenes.comparison_scene`, which the layers keep out of this
@@ -322,7 +329,10 @@ class StaticTrainer(Trainer):
         resume=None,
         sampler: TrainingSampler | None = None,
         scene_factory=None,
+        init=None,
     ):
+        if resume is not None and init is not None:
+            raise ValueError("resume, init: give one or the other")
         device = torch.device(device)
         self.device = device
         distributed.check_process_group(rank, world_size)
@@ -351,7 +361,9 @@ class StaticTrainer(Trainer):
             raise ValueError("sampler: built for another data config, dtype, device, seed or rank")
         self.sampler = sampler
         expected = model_config(config, sampler.latent_dim)
-        if ckpt is not None:
+        if init is not None:
+            self.model = _initial_network(init, expected, config.model_kind).to(device=device, dtype=self.dtype)
+        elif ckpt is not None:
             if type(ckpt.model).kind != config.model_kind or ckpt.config != expected:
                 raise ValueError(
                     f"resume: the checkpoint's network differs from the config's {config.model_kind} "
@@ -372,6 +384,7 @@ class StaticTrainer(Trainer):
         self._setup_run(out, seed, rank, world_size, 0 if ckpt is None else ckpt.step)
         self._captured = None  # the step's CUDA graph (`captured_loss`), made at the first step
         self._teacher = None  # the distillation's solver (`training_batch`), made at the first step
+        self._pool_teachers: dict[tuple, torch.Tensor] = {}  # (phase, pool index) -> converged drapes
         if config.curve_every > 0:
             from hairwarp.training.monitor import LearningCurve
 
@@ -390,20 +403,32 @@ class StaticTrainer(Trainer):
         return {"phase": phase, "progress": progress, "bp": bp, "clip": clip}
 
     def next_batch(self, step: int, build_body: bool = True) -> HairBatch:
+        """The batch of `step`: the sampler's, or with `teacher_pool` P the sampler's batch of step
+        `step % P` in `step`'s phase.
+        """
         cfg = self.config
         s = self.schedule(step)
         pool = {2: cfg.phase2_hairstyles, 3: cfg.phase3_hairstyles}.get(s["phase"], 1)
-        return self.sampler.static_batch(step, s["phase"], s["progress"], cfg.batch_size, pool, build_body)
+        drawn = step % cfg.teacher_pool if cfg.teacher_pool > 0 else step
+        return self.sampler.static_batch(drawn, s["phase"], s["progress"], cfg.batch_size, pool, build_body)
 
     def training_batch(self, step: int) -> HairBatch:
         """`next_batch`, without the body meshes when the step is captured (it refits its own),
-        with the teacher's drapes when the run distils (`StaticTrainingConfig.teacher_iterations`).
+        with the teacher's drapes when the run distils (`StaticTrainingConfig.teacher_iterations`;
+        with `teacher_pool`, each pool batch's converged drapes are solved once and kept).
         """
+        cfg = self.config
         batch = self.next_batch(step, build_body=not capture_applies(self))
-        if self.config.teacher_iterations > 0:
+        if cfg.teacher_iterations > 0:
             if self._teacher is None:
                 self._teacher = _DrapeTeacher(self)
-            batch.teacher = self._teacher(batch, self.schedule(step)["clip"])
+            key = (self.schedule(step)["phase"], step % cfg.teacher_pool) if cfg.teacher_pool > 0 else None
+            teacher = self._pool_teachers.get(key) if key is not None else None
+            if teacher is None:
+                teacher = self._teacher(batch, self.schedule(step)["clip"]).clone()
+                if key is not None:
+                    self._pool_teachers[key] = teacher
+            batch.teacher = teacher
         return batch
 
     def captured_loss(self, batch: HairBatch, step: int):
@@ -435,6 +460,21 @@ class StaticTrainer(Trainer):
         size = batch.info.get("global_batch_size", batch.batch_size)
         extras = {"phase": s["phase"], "bp": s["bp"], "clip": s["clip"], "batch_size": size}
         return loss, terms, extras
+
+
+def _initial_network(init, expected, kind: str) -> nn.Module:
+    """The network of checkpoint `init` (a dynamic one's frozen static network) for `StaticTrainer`'s
+    `init`; its config must be `expected`.
+    """
+    from hairwarp.models.checkpoint import load_checkpoint
+
+    model = load_checkpoint(resolve_checkpoint(init), "cpu").model
+    if type(model).kind == "dynamic":
+        model = model.static
+    if type(model).kind != kind or model.config != expected:
+        raise ValueError(f"init: {init} holds a {type(model).kind} network of other sizes or settings than the "
+                         f"config's {kind} network")
+    return model.train()
 
 
 def train_static(
