@@ -527,6 +527,33 @@ def test_a_teacher_pool_solves_each_batch_once_to_its_optimum(monkeypatch, stati
         static_config.replace(teacher_iterations=4, teacher_pool=-1)
 
 
+def test_a_map_teacher_is_a_drape_the_network_can_reach_with_less_energy(static_config, sampler):
+    """teacher_kind "map": the teacher is the drape of the best deformation map, from the
+    network's: lower energy than the network's drape, the fixed vertices on the rigid placement,
+    the rest lengths kept (the network's follow-the-leader projection)."""
+    from hairwarp.training.config import energy_config
+    from hairwarp.training.static import static_loss
+
+    cfg = static_config.replace(phase_steps=(0, 0, 0, 4), teacher_iterations=30, teacher_pool=1, teacher_kind="map",
+                                model={"length_projection": "follow_the_leader"})
+    trainer = StaticTrainer(cfg, sampler=sampler)
+    batch = trainer.training_batch(0)
+    physics = energy_config(cfg.energy, barrier_join_fraction=cfg.bp_end)
+    with torch.no_grad():
+        _, _, drape = static_loss(trainer.model, batch, physics)
+        e_drape = float(total_energy(drape, batch.inputs, physics).total.sum())
+        e_teacher = float(total_energy(batch.teacher, batch.inputs, physics).total.sum())
+    assert e_teacher < e_drape
+    torch.testing.assert_close(batch.teacher[:, :, :2], batch.rigid[:, :, :2])
+    lengths = (batch.teacher[:, :, 1:] - batch.teacher[:, :, :-1]).norm(dim=-1)
+    torch.testing.assert_close(lengths, batch.inputs.rest_lengths.to(lengths.dtype), atol=1e-5, rtol=1e-4)
+    assert trainer.training_batch(1).teacher is batch.teacher  # one pool batch: solved once
+    record = trainer.train_step()
+    assert record["terms"]["teacher"] > 0
+    with pytest.raises(ValueError, match="teacher_kind"):
+        static_config.replace(teacher_kind="oracle")
+
+
 def test_a_run_starts_from_the_weights_of_another_checkpoint(static_config, sampler, static_checkpoint,
                                                               dynamic_checkpoint):
     """`init` takes a static checkpoint's network, or a dynamic checkpoint's frozen static one,
@@ -540,6 +567,8 @@ def test_a_run_starts_from_the_weights_of_another_checkpoint(static_config, samp
         assert trainer.step == 0 and not trainer.optimizer.state
         for a, b in zip(trainer.model.state_dict().values(), model.state_dict().values()):
             torch.testing.assert_close(a, b)
+        trainer.train_step()  # every weight trains, a dynamic checkpoint's frozen ones too
+        assert all(p.grad is not None for p in trainer.model.parameters())
     other = static_config.replace(model={"num_encoder_layers": 3})
     with pytest.raises(ValueError, match="init"):
         StaticTrainer(other, sampler=sampler, init=static_checkpoint)

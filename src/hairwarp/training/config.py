@@ -36,6 +36,7 @@ MODEL_PRESETS = ("paper", "shipped", "tiny")
 STATIC_MODEL_KINDS = ("static", "quaffure")
 BP_SCHEDULES = ("linear", "geometric")
 LOSS_NORMALIZATIONS = ("none", "rigid", "inverse")
+TEACHER_KINDS = ("physics", "map")
 INERTIA_TIME_STEPS = ("interval", "frame")
 # Energy added to the rigid placement's before dividing by it ("rigid" normalization): keeps
 # samples that start at rest (energy near its minimum) from being magnified.
@@ -370,6 +371,12 @@ class StaticTrainingConfig(_TrainingConfig):
             network's drape moved it 0.3 mm RMS and left the strands it throws up where they
             were (docs/network_diagnosis.md, sixth session); a converged teacher is each
             sample's optimum.
+        teacher_kind: "physics": the teacher is the physics' static drape (any positions; the
+            network's tapered 8 x 8 map cannot reach most of them). "map": the drape of the best
+            deformation map of each sample, L-BFGS (strong Wolfe, `teacher_iterations`
+            iterations) over the map through the network's own taper and projection, from the
+            network's map, on the energy at `bp_end`: a target the network can reach exactly
+            (the 8 x 8 oracle map reached 0.999 x E*, docs/network_diagnosis.md S1).
         energy: overrides of `hairwarp.config.EnergyConfig` fields (b_p is set per step).
         data: what the sampler draws.
     """
@@ -399,6 +406,7 @@ class StaticTrainingConfig(_TrainingConfig):
     teacher_iterations: int = 0
     teacher_weight: float = 1.0e4
     teacher_pool: int = 0
+    teacher_kind: str = "physics"
     energy: dict = field(default_factory=dict)
     data: DataConfig = field(default_factory=DataConfig)
 
@@ -408,6 +416,7 @@ class StaticTrainingConfig(_TrainingConfig):
         _int(owner, "teacher_iterations", self.teacher_iterations)
         _number(owner, "teacher_weight", self.teacher_weight)
         _int(owner, "teacher_pool", self.teacher_pool)
+        _choice(owner, "teacher_kind", self.teacher_kind, TEACHER_KINDS)
         if self.teacher_pool > 0 and self.teacher_iterations == 0:
             _fail(owner, "teacher_pool", "0 unless teacher_iterations > 0 (the pool's teachers are solved "
                   "in teacher_iterations iterations)", self.teacher_pool)

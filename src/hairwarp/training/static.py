@@ -245,6 +245,56 @@ class _DrapeTeacher:
         return solver.positions()
 
 
+class _MapTeacher:
+    """The distillation targets of `StaticTrainingConfig.teacher_kind` "map": the drapes of each
+    sample's best deformation map, L-BFGS (strong Wolfe) over the map through the network's own
+    `apply_deformation` (taper and projection) from the network's map, on the energy at b_p =
+    `bp_end`. The network can reach these drapes exactly; the physics' optimum it cannot (its
+    positions are free, the network's map is 8 x 8 cells shared by their strands).
+    """
+
+    def __init__(self, trainer):
+        self.trainer = trainer
+        self.body = None
+        self.shape = None
+
+    def _body(self, batch: HairBatch):
+        if batch.body_vertices is None:
+            return batch.inputs.body
+        shape = tuple(batch.body_vertices.shape)
+        if self.body is None or self.shape != shape:
+            self.body, self.shape = refit_body(batch, self.trainer.sampler.body_faces), shape
+        else:
+            self.body.update(batch.body_vertices)
+        return self.body
+
+    def __call__(self, batch: HairBatch, clip) -> torch.Tensor:
+        """(B, M, N, 3) the drapes of the best maps of `batch` [m]."""
+        config, model = self.trainer.config, self.trainer.model
+        body = self._body(batch)
+        inputs = dataclasses.replace(batch.inputs, body=body)
+        energy = energy_config(config.energy, barrier_join_fraction=config.bp_end)
+        projection = length_projection_of(model)
+        with torch.no_grad():
+            start = network_deformation(model, batch.z, batch.betas, batch.poses, batch.rigid, batch.root_uv, body,
+                                        clip)
+        deformation = start.detach().clone().requires_grad_(True)
+        optimizer = torch.optim.LBFGS([deformation], lr=1.0, max_iter=config.teacher_iterations, history_size=20,
+                                      line_search_fn="strong_wolfe", tolerance_grad=1e-12, tolerance_change=1e-14)
+
+        def closure():
+            optimizer.zero_grad()
+            positions = apply_deformation(batch.rigid, deformation, batch.root_uv, projection)
+            total = total_energy(positions, inputs, energy).total.sum()
+            total.backward()
+            return total
+
+        with torch.enable_grad():
+            optimizer.step(closure)
+        with torch.no_grad():
+            return apply_deformation(batch.rigid, deformation.detach(), batch.root_uv, projection)
+
+
 class _CapturedStaticStep:
     """A static training step's forward and backward for one batch shape and clip, replayed from
     a CUDA graph (`hairwarp.training.capture`); b_p is a device scalar written before each
@@ -421,7 +471,7 @@ class StaticTrainer(Trainer):
         batch = self.next_batch(step, build_body=not capture_applies(self))
         if cfg.teacher_iterations > 0:
             if self._teacher is None:
-                self._teacher = _DrapeTeacher(self)
+                self._teacher = (_MapTeacher if cfg.teacher_kind == "map" else _DrapeTeacher)(self)
             key = (self.schedule(step)["phase"], step % cfg.teacher_pool) if cfg.teacher_pool > 0 else None
             teacher = self._pool_teachers.get(key) if key is not None else None
             if teacher is None:
@@ -474,7 +524,7 @@ def _initial_network(init, expected, kind: str) -> nn.Module:
     if type(model).kind != kind or model.config != expected:
         raise ValueError(f"init: {init} holds a {type(model).kind} network of other sizes or settings than the "
                          f"config's {kind} network")
-    return model.train()
+    return model.requires_grad_(True).train()  # a dynamic network's static one is frozen
 
 
 def train_static(
