@@ -407,6 +407,31 @@ def test_resume_continues_with_identical_results(tmp_path, static_config, sample
     assert len(state_a) > 10 and all(torch.equal(state_a[k], state_b[k]) for k in state_a)
 
 
+def test_resume_keeps_the_pool_teachers(tmp_path, static_config, sampler):
+    """With `teacher_pool` the teachers solved so far are saved beside the checkpoint: a
+    resumed run trains on the same targets as the uninterrupted one (solving them again from
+    the trained network would give others)."""
+    from hairwarp.training.static import TEACHERS_NAME
+
+    config = static_config.replace(phase_steps=(0, 0, 0, 4), teacher_iterations=20, teacher_pool=2)
+    straight = StaticTrainer(config, sampler=sampler)
+    full = straight.train(progress=False)
+    first = StaticTrainer(config, out=tmp_path, sampler=sampler)
+    first.train(2, progress=False)
+    first.close()
+    assert (tmp_path / TEACHERS_NAME).is_file()
+    resumed = StaticTrainer(out=tmp_path / "resumed", resume=tmp_path, sampler=sampler)
+    assert sorted(resumed._pool_teachers) == [(3, 0), (3, 1)]
+    rest = resumed.train(progress=False)
+    resumed.close()
+    assert [r["loss"] for r in rest] == [r["loss"] for r in full[2:]]
+    (tmp_path / TEACHERS_NAME).unlink()  # without them the targets are solved again, from the trained network
+    again = StaticTrainer(out=tmp_path / "again", resume=tmp_path, sampler=sampler)
+    assert not again._pool_teachers
+    assert [r["loss"] for r in again.train(progress=False)] != [r["loss"] for r in full[2:]]
+    again.close()
+
+
 def _assert_trained_alike(expected, got, eager, captured, loss_rel, atol, rtol=1e-3):
     """The captured trainer's records and weights against the eager one's: losses within
     `loss_rel`, weights within `atol` and `rtol`."""

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 
 import torch
 from torch import nn
@@ -46,6 +47,10 @@ from hairwarp.training._common import (
 )
 from hairwarp.training.config import LOSS_NORMALIZATION_FLOOR, StaticTrainingConfig, energy_config
 from hairwarp.training.data import HairBatch, TrainingSampler
+
+
+# The pool's converged teachers, beside a run's checkpoint (`StaticTrainingConfig.teacher_pool`).
+TEACHERS_NAME = "teachers.pt"
 
 
 def barrier_schedule(
@@ -435,6 +440,8 @@ class StaticTrainer(Trainer):
         self._captured = None  # the step's CUDA graph (`captured_loss`), made at the first step
         self._teacher = None  # the distillation's solver (`training_batch`), made at the first step
         self._pool_teachers: dict[tuple, torch.Tensor] = {}  # (phase, pool index) -> converged drapes
+        if resume is not None and config.teacher_pool > 0:
+            self._load_pool_teachers(resume)
         if config.curve_every > 0:
             from hairwarp.training.monitor import LearningCurve
 
@@ -480,6 +487,27 @@ class StaticTrainer(Trainer):
                     self._pool_teachers[key] = teacher
             batch.teacher = teacher
         return batch
+
+    def save(self, path=None) -> str | None:
+        """`Trainer.save`, and with `teacher_pool` the pool's teachers solved so far beside the
+        checkpoint (`TEACHERS_NAME`), so that a resumed run trains on the same targets.
+        """
+        written = super().save(path)
+        if written is not None and self._pool_teachers:
+            target = os.path.join(os.path.dirname(written), TEACHERS_NAME)
+            teachers = {f"{phase}:{index}": t.detach().cpu() for (phase, index), t in self._pool_teachers.items()}
+            torch.save(teachers, target + ".tmp")
+            os.replace(target + ".tmp", target)
+        return written
+
+    def _load_pool_teachers(self, resume) -> None:
+        """The pool's teachers saved beside the checkpoint `resume` (none saved: solved again as drawn)."""
+        path = os.path.join(os.path.dirname(resolve_checkpoint(resume)), TEACHERS_NAME)
+        if not os.path.isfile(path):
+            return
+        for key, teacher in torch.load(path, map_location="cpu", weights_only=True).items():
+            phase, index = (int(v) for v in key.split(":"))
+            self._pool_teachers[(phase, index)] = teacher.to(device=self.device, dtype=self.dtype)
 
     def captured_loss(self, batch: HairBatch, step: int):
         """The step's loss through `_CapturedStaticStep` (gradients left in `.grad`): (loss, terms,
