@@ -7,7 +7,7 @@
 - "auto" (`AutoMethod`): what the command line and `hairwarp.drape` use by default. A drape
   runs the static network with `AUTO_REFINE` refine iterations. A motion runs the physics
   simulation (`physics`) where it meets its speed goal (`physics_is_interactive`: on a CPU up to
-  256 x 100 vertices, 1.5 s a frame, measured 1.19 s on whiplash and 1.57 s on torso_bend on the
+  256 x 100 vertices, 1.5 s a frame, measured 0.97 s on whiplash and 1.38 s on torso_bend on the
   2-core CPU; no GPU size meets its 30 ms yet): no network meets the fidelity goals on motions (docs/network_diagnosis.md),
   the physics is what the others are measured against. Elsewhere a motion runs the dynamic
   network with `AUTO_REFINE_MOTION` (none by default: every frame of a motion is one more drape
@@ -40,8 +40,8 @@ AUTO_FALLBACK_ITERATIONS = 50
 # L-BFGS iterations "auto" gives a drape without a network (when `options.max_iterations` is None).
 AUTO_LBFGS_ITERATIONS = 200
 # Hair vertices (strands x vertices) up to which the physics simulation meets its speed goal, per
-# device type: 1.5 s a frame at 256 x 100 on the 2-core CPU (measured on 12 frames, 1.19 s on
-# whiplash, 1.57 s on torso_bend: `benchmarks/bm_physics.py --device cpu --strand-stride 4
+# device type: 1.5 s a frame at 256 x 100 on the 2-core CPU (measured on 12 frames, 0.97 s on
+# whiplash, 1.38 s on torso_bend: `benchmarks/bm_physics.py --device cpu --strand-stride 4
 # --frames 12`, docs/physics.md section 2). The H100's goal, 30 ms a frame at 1024 x 100, is not
 # met (152-156 ms), so no CUDA entry.
 PHYSICS_INTERACTIVE_VERTICES = {"cpu": 256 * 100}

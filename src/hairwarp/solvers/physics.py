@@ -139,9 +139,12 @@ def vertex_stiffness(config: EnergyConfig, rest_lengths: torch.Tensor, *, inexte
 
 # The hair-hair pair list's margin on the CPU [m] (`HairHairPairCache.skin`). An implicit-Euler
 # step moves the hair millimetres, not the centimetres of a drape from the rigid placement, so a
-# wider list is requeried less: 2-core CPU, torso_bend, 256 x 100, 9 steps, 24.3-24.7 ms an
-# iteration at the cache's 1 mm, 22.4 at 2 mm, 22.0 at 3 mm (the same pairs at any skin).
-PHYSICS_PAIR_SKIN = 3.0e-3
+# wider list is requeried less; but every stored pair is tested at every call (at 3 mm, 107 000
+# stored for 8 500 within the 1.25 mm cutoff, 7.7 ms of the side thread's 12 ms). 2-core CPU,
+# 256 x 100, 10 steps, the skins alternated in one process, two rounds [ms an iteration]:
+# torso_bend 1 mm 23.0 / 21.8, 1.5 mm 20.6 / 19.8, 2 mm 20.7 / 22.9, 3 mm 22.7 / 26.0; whiplash
+# 1.5 mm 16.2 / 18.0, 3 mm 17.0 / 19.2 (docs/physics.md; the same pairs at any skin).
+PHYSICS_PAIR_SKIN = 1.5e-3
 
 # A static drape is restarted (`PhysicsSolver.solve`) while a restart lowers its energy by more than
 # this share of it.
