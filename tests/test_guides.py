@@ -225,6 +225,42 @@ def test_body_pass_leaves_no_follower_inside_and_keeps_rest_lengths(rng, shape, 
     torch.testing.assert_close(after[0, guides.guide_indices], guide_positions[0])  # the guides stay the method's
 
 
+_SPLIT_SCRIPT = """
+import numpy as np, torch
+import hairwarp.ops.guide_interpolation as ops_guides
+from hairwarp.ops import BodyMesh
+from hairwarp.scene.guides import GuideConfig, GuideSet
+from meshes import icosphere
+from test_guides import _hanging_groom
+
+groom = _hanging_groom(np.random.default_rng(3), count=64)
+v, f = icosphere(8, radius=0.05, center=(0.03, 0.0, 0.0))
+body = BodyMesh(torch.tensor(v, dtype=torch.float32), torch.tensor(f, dtype=torch.int32))
+guides = GuideSet.build(groom, GuideConfig(num_guides=8, body_passes=8))
+positions = groom.strands[guides.guide_indices][None]
+ops_guides.CPU_SPLIT_THREADS = 4  # every launch of this groom split: the first ones of the process
+split, facts = guides.follow(positions, torch.eye(3)[None], body)
+assert ops_guides._SHARED_READY, "no launch was split"
+ops_guides.CPU_SPLIT_THREADS = 10**9
+whole, _ = guides.follow(positions, torch.eye(3)[None], body)
+assert torch.equal(split, whole) and int(facts["pushed"].sum()) > 0
+print("same")
+"""
+
+
+def test_the_passes_split_between_two_cores_match_one_launch_from_a_fresh_process():
+    """On the CPU a large follower pass runs as two launches, one on the side thread: the same
+    positions as one launch, bit for bit, from the first split launches of a fresh process on."""
+    import subprocess
+    import sys
+
+    here = os.path.dirname(os.path.abspath(__file__))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([here, os.environ.get("PYTHONPATH", "")]))
+    done = subprocess.run([sys.executable, "-c", _SPLIT_SCRIPT], cwd=here, env=env, capture_output=True, text=True,
+                          timeout=600)
+    assert done.returncode == 0 and done.stdout.strip().endswith("same"), done.stderr[-2000:]
+
+
 def test_guide_choice_covers_both_styles_and_is_deterministic(rng):
     n = 20
     left = wavy_strands(30, n, rng) + np.array([0.0, 0.0, 0.0])

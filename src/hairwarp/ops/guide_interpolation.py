@@ -22,6 +22,8 @@ from hairwarp.kernels import guide_interpolation as kernels
 INDEX_DTYPES = (torch.int32, torch.int64)
 # A CPU launch of at least twice this many threads is split between two cores (`_run_shared`).
 CPU_SPLIT_THREADS = 4096
+# Kernels whose shared launch (`_run_shared`) has run once: loaded, and recorded on both threads.
+_SHARED_READY: set = set()
 # The body pass's query reach in rest lengths: an empty ball clears that many vertices after it
 # without a query of their own (the signed distance is 1-Lipschitz). On a 100 000-strand groom
 # draped on the default body, reach 1 / 4 made 2.00 / 1.66 million queries against 2.45 million
@@ -54,8 +56,15 @@ def _run_shared(kernel, dim: int, device: torch.device, inputs, outputs) -> None
         _run(kernel, dim, device, [*inputs, 0], outputs)
         return
     pending = cpu_side_executor().submit(_run, kernel, dim - half, device, [*inputs, half], outputs)
+    if kernel not in _SHARED_READY:
+        # Warp checks and records a kernel's launch on a thread's first use of it; a hair-body
+        # pass split this way (tried on 2026-11-26) failed there, in Warp's launch checks, then
+        # crashed. This pass never did (5 fresh processes), but its first shared launch runs its
+        # halves in turn all the same: one call's cost, against a crash.
+        pending.result()
     _run(kernel, half, device, [*inputs, 0], outputs)
     pending.result()
+    _SHARED_READY.add(kernel)
 
 
 def rotation_quaternions(rotation: torch.Tensor) -> torch.Tensor:
