@@ -619,6 +619,24 @@ def test_captured_distillation_steps_train_as_the_eager_ones(monkeypatch, static
     _assert_trained_alike(expected, got, eager, captured, 1e-4, 1e-4, rtol=1e-3)
 
 
+@pytest.mark.parametrize("kind", ["physics", "map"])
+def test_captured_steps_on_a_teacher_pool_train_as_the_eager_ones(monkeypatch, static_config, sampler, kind):
+    """The pool's teachers (solved on the captured step's refit body) go into its fixed buffers:
+    the captured trainer (its bookkeeping run eagerly on the CPU) gives the eager trainer's
+    losses and weights, batch after batch of the cycle."""
+    from hairwarp.training import capture
+
+    config = static_config.replace(phase_steps=(0, 0, 0, 4), teacher_iterations=12, teacher_pool=2,
+                                   teacher_kind=kind)
+    eager = StaticTrainer(config.replace(cuda_graph=False), sampler=sampler)
+    expected = eager.train(progress=False)
+    monkeypatch.setattr(capture, "CAPTURE_ON_CPU", True)
+    captured = StaticTrainer(config, sampler=sampler)
+    got = [captured.train_step() for _ in range(config.total_steps)]
+    assert sorted(captured._pool_teachers) == [(3, 0), (3, 1)]
+    _assert_trained_alike(expected, got, eager, captured, 1e-4, 1e-4, rtol=1e-3)
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device; this machine has none")
 def test_cuda_graph_training_steps_equal_eager(data):
     """On CUDA the default trainer replays each step from a CUDA graph: the same losses and
