@@ -479,12 +479,13 @@ class StaticTrainer(Trainer):
         if cfg.teacher_iterations > 0:
             if self._teacher is None:
                 self._teacher = (_MapTeacher if cfg.teacher_kind == "map" else _DrapeTeacher)(self)
-            key = (self.schedule(step)["phase"], step % cfg.teacher_pool) if cfg.teacher_pool > 0 else None
+            s = self.schedule(step)
+            key = (s["phase"], step % cfg.teacher_pool) if cfg.teacher_pool > 0 else None
             teacher = self._pool_teachers.get(key) if key is not None else None
             if teacher is None:
-                teacher = self._teacher(batch, self.schedule(step)["clip"]).clone()
-                if key is not None:
-                    self._pool_teachers[key] = teacher
+                teacher = self._teacher(batch, s["clip"])
+                if key is not None:  # kept: a copy, the solver's buffers serve the next batch
+                    teacher = self._pool_teachers[key] = teacher.clone()
             batch.teacher = teacher
         return batch
 
