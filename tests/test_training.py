@@ -434,13 +434,33 @@ def test_resume_keeps_the_pool_teachers(tmp_path, static_config, sampler):
 
 def _assert_trained_alike(expected, got, eager, captured, loss_rel, atol, rtol=1e-3):
     """The captured trainer's records and weights against the eager one's: losses within
-    `loss_rel`, weights within `atol` and `rtol`."""
+    `loss_rel`, weights within `atol` and `rtol`.
+
+    Some weights get a gradient that is zero but for rounding (an attention's key bias, which the
+    softmax cannot see; a block whose output starts at zero): Adam divides it by its own size and
+    moves the weight by about its step size either way, so the two trainers' summation orders,
+    which differ with the number of torch threads, decide the sign. Those weights, whose gradient's
+    running RMS is below 1e-6 of the largest, are held only to Adam's step bound; they must stay a
+    minority of the weights."""
     for e, g in zip(expected, got):
         assert g["loss"] == pytest.approx(e["loss"], rel=loss_rel)
         assert g["terms"].keys() == e["terms"].keys()
+    rms = {name: eager.optimizer.state[p]["exp_avg_sq"].sqrt() for name, p in eager.model.named_parameters()
+           if p in eager.optimizer.state}
+    largest = max(float(r.max()) for r in rms.values())
+    steps_bound = 2.0 * eager.config.learning_rate * len(expected)
     state_a, state_b = eager.model.state_dict(), captured.model.state_dict()
+    noise_count = total_count = 0
     for k in state_a:
-        torch.testing.assert_close(state_b[k], state_a[k], rtol=rtol, atol=atol)
+        if k not in rms:
+            torch.testing.assert_close(state_b[k], state_a[k], rtol=rtol, atol=atol)
+            continue
+        noise = rms[k] < 1e-6 * largest
+        noise_count, total_count = noise_count + int(noise.sum()), total_count + noise.numel()
+        torch.testing.assert_close(state_b[k][~noise], state_a[k][~noise], rtol=rtol, atol=atol)
+        if bool(noise.any()):
+            assert float((state_b[k][noise] - state_a[k][noise]).abs().max()) <= steps_bound, k
+    assert noise_count < 0.5 * total_count
 
 
 def test_captured_steps_train_as_the_eager_ones(monkeypatch, static_config, sampler):
