@@ -26,6 +26,7 @@ peak memory and output sizes: `hairwarp drape` of the largest groom, and `hairwa
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import platform
@@ -151,7 +152,27 @@ def measure_groom(num_strands: int, args, device: torch.device) -> dict:
     row["interpolation_ms"] = _timed(lambda: scene.full_groom(draped, frames, body_pass=False), device, args.repeats)
     row["interpolation_and_body_pass_ms"] = _timed(
         lambda: scene.full_groom(draped, frames, guide_signed_distance=sd_draped), device, args.repeats)
+    row["schedule"] = guides.config.body_schedule or "walk"
+    if args.schedules:
+        # Each body-pass schedule on the same drape, alternated `repeats` times in one run.
+        config = guides.config
+        row["schedules"] = {}
+        for name in args.schedules.split(","):
+            guides.config = dataclasses.replace(config, body_schedule=name)
+            x, facts = scene.full_groom(draped, frames, guide_signed_distance=sd_draped)
+            sd = guides.signed_distance(x, draped, sd_draped, frames.body_mesh)
+            row["schedules"][name] = {
+                "interpolation_ms": _timed(lambda: scene.full_groom(draped, frames, body_pass=False), device,
+                                           args.repeats),
+                "interpolation_and_body_pass_ms": _timed(
+                    lambda: scene.full_groom(draped, frames, guide_signed_distance=sd_draped), device, args.repeats),
+                "inside_percent": {"followers": _inside(sd, follower_index), "all": _inside(sd, everyone)},
+                "deepest_follower_mm": float(sd[:, follower_index, 2:].min()) * 1e3,
+                "length_change_percent_all": _length_change(x, rest, everyone),
+                "pushed_vertices": int(facts["pushed"].sum())}
+        guides.config = config
     return row
+
 
 
 def _run_command(argv: list[str]) -> dict:
@@ -193,6 +214,8 @@ def main(argv=None) -> int:
     p.add_argument("--commands", action="store_true", help="also run hairwarp drape / simulate on the grooms")
     p.add_argument("--simulate-seconds", type=float, default=2.0, help="--commands: seconds of motion simulated")
     p.add_argument("--simulate-method", default="dynamic", help="--commands: the simulate command's method")
+    p.add_argument("--schedules", default="", help="also time these body-pass schedules, comma-separated "
+                   "(walk,rounds), each on the same drape")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="bm_guides_out", help="folder for the grooms, outputs and bm_guides_<device>.json")
     args = p.parse_args(argv)
@@ -221,6 +244,12 @@ def main(argv=None) -> int:
               f"{curl['median_change']:.3f} / {curl['p90_change']:.3f} ({curl['their_guides_median_change']:.3f} / "
               f"{curl['their_guides_p90_change']:.3f}) | {curl['median_excess_over_guide']:+.3f} / "
               f"{curl['p90_excess_over_guide']:+.3f} |")
+    for r in rows:
+        for name, sch in r.get("schedules", {}).items():
+            print(f"{r['strands']} strands, {name}: interpolation {sch['interpolation_ms']:.2f} ms, + body pass "
+                  f"{sch['interpolation_and_body_pass_ms']:.2f} ms, inside % followers / all "
+                  f"{sch['inside_percent']['followers']:.4f} / {sch['inside_percent']['all']:.4f}, deepest follower "
+                  f"{sch['deepest_follower_mm']:.2f} mm, pushed {sch['pushed_vertices']}")
     for name, c in record.get("commands", {}).items():
         print(f"{name}: {c['wall_s']:.0f} s, peak {c['peak_rss_gib']:.2f} GiB, rc {c['returncode']}"
               + (f", usdc {c['usdc_mib']:.0f} MiB" if c.get("usdc_mib") else ""))

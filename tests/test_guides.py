@@ -90,6 +90,27 @@ def test_frame_rotations_and_followers_match_the_float64_reference(rng):
     np.testing.assert_allclose(got[0].double().numpy(), want, atol=2e-6)
 
 
+def test_frames_a_block_per_guide_equal_the_one_thread_kernel(rng):
+    """The CUDA frames kernel (a block per guide, the strands in shared memory), run on the CPU,
+    gives the one-thread kernel's rotations bit for bit, for any window."""
+    from hairwarp import _warp
+    from hairwarp.kernels import guide_interpolation as kernels
+    from hairwarp.ops.guide_interpolation import rotation_quaternions
+
+    rest = torch.tensor(wavy_strands(5, 16, rng), dtype=torch.float32)
+    now = torch.tensor(np.stack([bend(rest.double().numpy(), 0.8), bend(rest.double().numpy(), -0.5)]),
+                       dtype=torch.float32)
+    head = torch.tensor(np.stack([random_rotation(rng), random_rotation(rng)]), dtype=torch.float32)
+    for window in (0, 4):
+        expected = guide_frame_rotations(rest, now, head, window=window)
+        got = torch.empty_like(expected)
+        _warp.launch(kernels.guide_frame_rotations_tiled_kernel(16, window), dim=10, device="cpu",
+                     inputs=[_warp.as_warp(rest, vec3=True), _warp.as_warp(now.contiguous(), vec3=True),
+                             _warp.as_warp(rotation_quaternions(head).contiguous(), quat=True), 5],
+                     outputs=[_warp.as_warp(got, quat=True)], block_dim=kernels.FRAMES_BLOCK_DIM)
+        assert torch.equal(got, expected)
+
+
 def test_head_rotation_quaternions_are_the_matrices(rng):
     half_turns = [axis_angle_to_matrix(torch.tensor(np.pi * np.asarray(a) / np.linalg.norm(a))).numpy()
                   for a in ([1.0, -1.0, 0.0], [0.0, 1.0, 0.0], [1.0, 2.0, -3.0])]
@@ -132,6 +153,14 @@ def test_bad_inputs_name_the_argument():
     with pytest.raises(ValueError, match="reach_segments"):
         follow_guides(rest, rest[None], rot, torch.zeros(2, 5, 3), torch.tensor([[0], [1]]), torch.ones(2, 1),
                       torch.ones(2, 1), reach_segments=0.5)
+    with pytest.raises(ValueError, match="schedule"):
+        follow_guides(rest, rest[None], rot, torch.zeros(2, 5, 3), torch.tensor([[0], [1]]), torch.ones(2, 1),
+                      torch.ones(2, 1), schedule="parallel")
+    with pytest.raises(ValueError, match="rest_lengths"):
+        follow_guides(rest, rest[None], rot, torch.zeros(2, 5, 3), torch.tensor([[0], [1]]), torch.ones(2, 1),
+                      torch.ones(2, 1), rest_lengths=torch.ones(2, 5))
+    with pytest.raises(ValueError, match="body_schedule"):
+        GuideConfig(body_schedule="parallel")
 
 
 # ------------------------------------------------------------------ what followers do
@@ -197,9 +226,12 @@ def _hanging_groom(rng, count=40, n=24):
                      root_index=torch.arange(count), filtered=torch.zeros(0, dtype=torch.int64))
 
 
-@pytest.mark.parametrize("shape, reach", [("sphere", 1.0), ("box", 1.0), ("sphere", 4.0), ("box", 4.0)])
-def test_body_pass_leaves_no_follower_inside_and_keeps_rest_lengths(rng, shape, reach, monkeypatch):
-    """Whatever the queries' reach (an empty ball clears the vertices after it without a query)."""
+@pytest.mark.parametrize("shape, reach, schedule", [("sphere", 1.0, "walk"), ("box", 1.0, "walk"), ("sphere", 4.0, "walk"),
+                                                     ("box", 4.0, "walk"), ("sphere", 1.0, "rounds"),
+                                                     ("box", 1.0, "rounds")])
+def test_body_pass_leaves_no_follower_inside_and_keeps_rest_lengths(rng, shape, reach, schedule, monkeypatch):
+    """Whatever the queries' reach (an empty ball clears the vertices after it without a query)
+    and their schedule (vertex after vertex, or in rounds)."""
     import hairwarp.ops.guide_interpolation as ops_guides
 
     monkeypatch.setattr(ops_guides, "QUERY_REACH_SEGMENTS", reach)
@@ -209,7 +241,7 @@ def test_body_pass_leaves_no_follower_inside_and_keeps_rest_lengths(rng, shape, 
     else:
         v, f = box([-0.02, -0.04, -0.03], [0.06, 0.03, 0.05])
     body = BodyMesh(torch.tensor(v, dtype=torch.float32), torch.tensor(f, dtype=torch.int32))
-    guides = GuideSet.build(groom, GuideConfig(num_guides=8, body_passes=8))
+    guides = GuideSet.build(groom, GuideConfig(num_guides=8, body_passes=8, body_schedule=schedule))
     guide_positions = groom.strands[guides.guide_indices][None]
     before, _ = guides.follow(guide_positions, torch.eye(3)[None])
     assert bool((hair_body_signed_distance(before, body)[:, :, 2:] < 0).any())  # the case has followers inside
@@ -223,6 +255,37 @@ def test_body_pass_leaves_no_follower_inside_and_keeps_rest_lengths(rng, shape, 
     torch.testing.assert_close(lengths[followers], rest[followers], atol=1e-5, rtol=1e-4)
     assert int(facts["pushed"].sum()) > 0
     torch.testing.assert_close(after[0, guides.guide_indices], guide_positions[0])  # the guides stay the method's
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_frames_and_both_schedules_match_the_cpu(rng):
+    """The CUDA kernels (the frames a block per guide, the rounds' walk a block per strand) give
+    the CPU's frames, and each schedule the CPU's positions, to float32 rounding."""
+    from hairwarp.ops.guide_interpolation import follow_guides
+
+    groom = _hanging_groom(rng, count=64)
+    v, f = icosphere(8, radius=0.05, center=(0.03, 0.0, 0.0))
+    guides = GuideSet.build(groom, GuideConfig(num_guides=8))
+    now = torch.tensor(bend(groom.strands[guides.guide_indices].double().numpy(), 0.4), dtype=torch.float32)[None]
+    head = torch.eye(3)[None]
+    results = {}
+    for device in ("cpu", "cuda"):
+        body = BodyMesh(torch.tensor(v, dtype=torch.float32, device=device), torch.tensor(f, dtype=torch.int32,
+                                                                                        device=device))
+        on = guides._on(torch.device(device))
+        rotations = guide_frame_rotations(on["guides_rest"], now.to(device), head.to(device))
+        sd = hair_body_signed_distance(now.to(device), body)
+        results[device] = [rotations.cpu()]
+        for schedule in ("walk", "rounds"):
+            x, pushed = follow_guides(on["guides_rest"], now.to(device), rotations, on["rest"], *on["link"],
+                                      guide_slot=on["guide_slot"], body=body, guide_signed_distance=sd,
+                                      schedule=schedule)
+            results[device] += [x.cpu(), pushed.cpu()]
+    cpu, cuda = results["cpu"], results["cuda"]
+    torch.testing.assert_close(cuda[0], cpu[0], atol=2e-6, rtol=0)
+    for i in (1, 3):
+        assert int(cpu[i + 1].sum()) > 0
+        torch.testing.assert_close(cuda[i], cpu[i], atol=2e-5, rtol=0)
 
 
 _SPLIT_SCRIPT = """

@@ -16,12 +16,14 @@ the scalp and no style (a fringe, a strand combed the other way) is left without
 Followers. Each strand follows its `neighbours` nearest guides in the same space (a guide follows
 only itself), blended by inverse squared distance, each guide carrying the follower's rest
 offset in its parallel-transported segment frames (`hairwarp.kernels.guide_interpolation`): a
-rigid motion of the guides moves the followers rigidly and a curl keeps its shape. In the same
-pass (`hairwarp.kernels.guide_interpolation.follow_guides_kernel`, a thread per strand) each
-vertex is placed at its rest length from its predecessor (follow-the-leader), and one inside the
-body or within `body_margin` of it is pushed out along the signed distance's gradient and back
-onto its rest length, so the strand slides over the body. Only the vertices whose guides do not
-prove them clear (the signed distance is 1-Lipschitz) are queried.
+rigid motion of the guides moves the followers rigidly and a curl keeps its shape. Then a walk
+along each strand (`hairwarp.kernels.guide_interpolation.follow_guides_kernel`, a thread per
+strand) places each vertex at its rest length from its predecessor (follow-the-leader), and one
+inside the body or within `body_margin` of it is pushed out along the signed distance's gradient
+and back onto its rest length, so the strand slides over the body. Only the vertices whose guides
+do not prove them clear (the signed distance is 1-Lipschitz) are queried. `body_schedule =
+"rounds"` takes the queries out of the walk (faster on a GPU for a few thousand strands, more
+vertices left inside: docs/guides.md).
 
 Contact between guides. The energy's per-vertex constants (mass, stiffnesses, contact weights)
 stand for a whole bundle: scaling all of them by the same bundle size leaves the minimiser
@@ -70,6 +72,10 @@ class GuideConfig:
             (the hair-body barrier's hard distance, 1 mm).
         body_passes: push-out and length projection rounds per vertex of the body pass (0: no
             body pass).
+        body_schedule: how the body pass orders its queries, "walk" (vertex after vertex, a
+            thread per strand) or "rounds" (all queries of a round at once; faster on a GPU at
+            10 000 strands, with more vertices left inside); None: "walk"
+            (`hairwarp.ops.guide_interpolation.follow_guides`, docs/guides.md).
     """
 
     num_guides: int = 1024
@@ -77,6 +83,7 @@ class GuideConfig:
     shape_weight: float = 1.0
     body_margin: float = 1.0e-3
     body_passes: int = 3
+    body_schedule: str | None = None
 
     def __post_init__(self):
         for name in ("num_guides", "neighbours", "body_passes"):
@@ -87,6 +94,10 @@ class GuideConfig:
             raise ValueError(f"shape_weight: expected a number >= 0, got {self.shape_weight}")
         if not self.body_margin >= 0:
             raise ValueError(f"body_margin: expected a number >= 0 [m], got {self.body_margin}")
+        from hairwarp.ops.guide_interpolation import SCHEDULES
+
+        if self.body_schedule not in (None, *SCHEDULES):
+            raise ValueError(f"body_schedule: expected None or one of {SCHEDULES}, got {self.body_schedule!r}")
 
 
 def strand_features(strands: torch.Tensor, shape_weight: float = 1.0) -> torch.Tensor:
@@ -278,7 +289,8 @@ class GuideSet:
         x, pushed = follow_guides(guides_rest, guides, rotations, rest, *link, guide_slot=on["guide_slot"],
                                   body=body if use_body else None,
                                   guide_signed_distance=guide_signed_distance if use_body else None,
-                                  margin=self.config.body_margin, passes=self.config.body_passes, check=False)
+                                  margin=self.config.body_margin, passes=self.config.body_passes,
+                                  schedule=self.config.body_schedule, rest_lengths=on["rest_lengths"], check=False)
         return x.to(guide_positions.dtype), ({"pushed": pushed} if use_body else {})
 
     @torch.no_grad()
