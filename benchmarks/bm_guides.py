@@ -10,6 +10,8 @@ the K guides with L-BFGS at one frame of a motion, then measures, side by side i
   median of `--repeats` timed runs after a warm-up (device synchronised);
 - the share of vertices inside the body and the length change of the guides, of the followers
   and of all strands, after the drape and for the rigid placement;
+- with `--schedules walk,rounds`, the same two timings, the share inside and the deepest follower
+  vertex for each body-pass schedule (`GuideConfig.body_schedule`);
 - the followers' curl: per wavy or curly follower, the mean |turning angle - rest turning angle|
   over the mean rest turning angle (the curvature profile's relative change), median and p90,
   beside the same figure of the guide it follows most and the follower's excess over it (the
@@ -152,9 +154,9 @@ def measure_groom(num_strands: int, args, device: torch.device) -> dict:
     row["interpolation_ms"] = _timed(lambda: scene.full_groom(draped, frames, body_pass=False), device, args.repeats)
     row["interpolation_and_body_pass_ms"] = _timed(
         lambda: scene.full_groom(draped, frames, guide_signed_distance=sd_draped), device, args.repeats)
-    row["schedule"] = guides.config.body_schedule or "walk"
+    row["schedule"] = guides.config.body_schedule
     if args.schedules:
-        # Each body-pass schedule on the same drape, alternated `repeats` times in one run.
+        # Each body-pass schedule timed in turn on the same drape.
         config = guides.config
         row["schedules"] = {}
         for name in args.schedules.split(","):
@@ -172,7 +174,6 @@ def measure_groom(num_strands: int, args, device: torch.device) -> dict:
                 "pushed_vertices": int(facts["pushed"].sum())}
         guides.config = config
     return row
-
 
 
 def _run_command(argv: list[str]) -> dict:

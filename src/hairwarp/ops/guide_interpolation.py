@@ -204,7 +204,7 @@ def follow_guides(guides_rest: torch.Tensor, guides_now: torch.Tensor, rotations
                   follower_ratios: torch.Tensor, *, guide_slot: torch.Tensor | None = None,
                   project: bool = True, body=None, guide_signed_distance: torch.Tensor | None = None,
                   margin: float = 1.0e-3, passes: int = 3, reach_segments: float | None = None,
-                  schedule: str | None = None, rest_lengths: torch.Tensor | None = None,
+                  schedule: str = "walk", rest_lengths: torch.Tensor | None = None,
                   check: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
     """Every strand of a groom from its guides: interpolated, projected onto its rest lengths,
     kept out of the body.
@@ -234,7 +234,7 @@ def follow_guides(guides_rest: torch.Tensor, guides_now: torch.Tensor, rotations
         reach_segments: each signed-distance query reaches this many rest lengths (plus the
             margin), >= 1; an empty ball clears as many vertices after it without a query. None:
             `QUERY_REACH_SEGMENTS`.
-        schedule: "walk" or "rounds" (above); None: "walk".
+        schedule: "walk" or "rounds" (above).
         rest_lengths: (M, N-1) float32 the followers' rest segment lengths [m] if the caller keeps
             them (100 000 strands: 0.26 ms a call on a GPU to compute); None: computed.
         check: as in `guide_frame_rotations`.
@@ -262,8 +262,6 @@ def follow_guides(guides_rest: torch.Tensor, guides_now: torch.Tensor, rotations
             check_tensor("guide_signed_distance", guide_signed_distance, shape=(batch, num_guides, n), device=device)
     if reach_segments is None:
         reach_segments = QUERY_REACH_SEGMENTS
-    if schedule is None:
-        schedule = "walk"
     if schedule not in SCHEDULES:
         raise ValueError(f"schedule: expected one of {SCHEDULES}, got {schedule!r}")
     if not reach_segments >= 1:

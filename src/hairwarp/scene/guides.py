@@ -74,8 +74,8 @@ class GuideConfig:
             body pass).
         body_schedule: how the body pass orders its queries, "walk" (vertex after vertex, a
             thread per strand) or "rounds" (all queries of a round at once; faster on a GPU at
-            10 000 strands, with more vertices left inside); None: "walk"
-            (`hairwarp.ops.guide_interpolation.follow_guides`, docs/guides.md).
+            10 000 strands, with more vertices left inside;
+            `hairwarp.ops.guide_interpolation.follow_guides`, docs/guides.md).
     """
 
     num_guides: int = 1024
@@ -83,7 +83,7 @@ class GuideConfig:
     shape_weight: float = 1.0
     body_margin: float = 1.0e-3
     body_passes: int = 3
-    body_schedule: str | None = None
+    body_schedule: str = "walk"
 
     def __post_init__(self):
         for name in ("num_guides", "neighbours", "body_passes"):
@@ -96,8 +96,8 @@ class GuideConfig:
             raise ValueError(f"body_margin: expected a number >= 0 [m], got {self.body_margin}")
         from hairwarp.ops.guide_interpolation import SCHEDULES
 
-        if self.body_schedule not in (None, *SCHEDULES):
-            raise ValueError(f"body_schedule: expected None or one of {SCHEDULES}, got {self.body_schedule!r}")
+        if self.body_schedule not in SCHEDULES:
+            raise ValueError(f"body_schedule: expected one of {SCHEDULES}, got {self.body_schedule!r}")
 
 
 def strand_features(strands: torch.Tensor, shape_weight: float = 1.0) -> torch.Tensor:
