@@ -157,9 +157,11 @@ def test_compare_command(tmp_path, capsys):
     out = tmp_path / "cmp"
     code = main(["compare", "--methods", "rigid,lbfgs,reference", "--scenes", "table1", "--strand-stride", "32",
                  "--num-vertices", "8", "--max-iterations", "5", "--reference-max-iterations", "10",
-                 "--record-every", "2", "--out", str(out), "--quiet"])
+                 "--reference-starts", "2", "--record-every", "2", "--out", str(out), "--quiet"])
     assert code == 0
     record = json.load(open(out / "compare.json"))
+    assert record["options"]["reference_starts"] == 2
+    assert len(record["scenes"][0]["results"][2]["info"]["start_energies"]) == 2
     assert [r["method"] for r in record["scenes"][0]["results"]] == ["rigid", "lbfgs", "reference"]
     assert record["command_line"].startswith("hairwarp")
     assert (out / "compare.md").read_text().count("| lbfgs |") == 1
@@ -168,6 +170,8 @@ def test_compare_command(tmp_path, capsys):
     assert "--methods: unknown" in capsys.readouterr().err
     assert main(["compare", "--strand-stride", "0", "--out", str(out), "--quiet"]) == 1
     assert "--strand-stride" in capsys.readouterr().err
+    assert main(["compare", "--reference-starts", "0", "--out", str(out), "--quiet"]) == 1
+    assert "--reference-starts" in capsys.readouterr().err
 
 
 def test_motion_rows_against_the_physics_and_the_swing_plot(tmp_path):

@@ -199,6 +199,26 @@ def test_shipped_checkpoint_loads_and_drapes():
 # ------------------------------------------------------------------ refine and auto
 
 
+def test_the_reference_is_the_lowest_of_its_starts(poses_scene):
+    """With `reference_starts` the reference drape solves from the rigid placement and from it
+    moved by 0.1 mm, and keeps per frame the lowest energy: the first start's drape is the plain
+    reference's, the result is never above any start's, and the chosen start is named."""
+    frames = poses_scene.frames([0, 1])
+    one = make("reference", MethodOptions(reference_max_iterations=60)).drape(frames)
+    three = make("reference", MethodOptions(reference_max_iterations=60, reference_starts=3)).drape(frames)
+    energies = torch.tensor(three.info["start_energies"], dtype=torch.float64)  # (starts, frames)
+    assert energies.shape == (3, 2)
+    with torch.no_grad():
+        e_one = total_energy(one.positions, frames.inputs, MethodOptions().config()).total.double()
+        e_three = total_energy(three.positions, frames.inputs, MethodOptions().config()).total.double()
+    torch.testing.assert_close(energies[0], e_one, rtol=1e-6, atol=0)
+    torch.testing.assert_close(e_three, energies.min(0).values, rtol=1e-6, atol=0)
+    assert three.info["best_start"] == energies.argmin(0).tolist()
+    assert bool((energies[1:] != energies[0]).any())  # the moved starts end elsewhere
+    with pytest.raises(ValueError, match="reference_starts"):
+        make("reference", MethodOptions(reference_starts=0))
+
+
 def test_refine_zero_is_the_network_alone(checkpoints, poses_scene):
     frames = poses_scene.frames()
     alone = _make("static", checkpoints).drape(frames)

@@ -37,6 +37,9 @@ def add_parser(subparsers) -> None:
                    help="iteration cap of adam and lbfgs (default: 2000)")
     p.add_argument("--reference-max-iterations", type=int, default=None,
                    help="iteration cap of the converged reference drape (default: 5000)")
+    p.add_argument("--reference-starts", type=int, default=1,
+                   help="the reference drape is the lowest of this many solves, the first from the rigid placement, "
+                        "the others from it moved by 0.1 mm (default: 1)")
     p.add_argument("--patience", type=int, default=200,
                    help="optimizers stop after this many iterations without decrease (default: 200)")
     p.add_argument("--refine", type=int, default=0, metavar="K",
@@ -70,6 +73,7 @@ def run(args) -> int:
     _check_int(args.num_vertices, "--num-vertices", 3)
     _check_int(args.max_iterations, "--max-iterations", 0)
     _check_int(args.reference_max_iterations, "--reference-max-iterations", 0)
+    _check_int(args.reference_starts, "--reference-starts", 1)
     _check_int(args.patience, "--patience", 1)
     _check_int(args.record_every, "--record-every", 0)
     _check_int(args.refine, "--refine", 0)
@@ -97,6 +101,7 @@ def run(args) -> int:
         checkpoint=args.checkpoint,
         reference_max_iterations=(REFERENCE_MAX_ITERATIONS if args.reference_max_iterations is None
                                   else args.reference_max_iterations),
+        reference_starts=args.reference_starts,
     )
     try:
         record = run_comparison(args.methods, args.scenes, reduced=args.reduced, strand_stride=args.strand_stride,

@@ -284,6 +284,7 @@ def run_comparison(
         "options": {"max_iterations": options.max_iterations, "patience": options.patience,
                     "record_every": options.record_every,
                     "reference_max_iterations": options.reference_max_iterations,
+                    "reference_starts": options.reference_starts,
                     "energy_config": jsonable(config.__dict__)},
         "scenes": [],
     }

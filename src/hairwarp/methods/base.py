@@ -25,6 +25,9 @@ from hairwarp.config import EnergyConfig
 
 # Iteration cap of the converged reference drape (the energy gap's optimum).
 REFERENCE_MAX_ITERATIONS = 5000
+# Each extra start of the reference drape moves every vertex of the rigid placement by a seeded
+# Gaussian of this standard deviation [m] (`MethodOptions.reference_starts`).
+REFERENCE_START_NOISE = 1.0e-4
 # Iterations of the untimed warm-up run before a timed optimization (compiles the kernels).
 WARMUP_ITERATIONS = 2
 # What a method is, for tables and charts.
@@ -42,6 +45,11 @@ class MethodOptions:
         patience: optimizers stop after this many iterations without decrease (200, the paper).
         record_every: optimizers record penetration every this many iterations (0: never).
         reference_max_iterations: iteration cap of the converged reference drape.
+        reference_starts: the reference drape is the lowest-energy of this many solves, one from
+            the rigid placement and the others from it moved by `REFERENCE_START_NOISE` (seeded):
+            dense hair settles in resting states some per cent apart from starts that differ by
+            a tenth of a millimetre, or by the order of a GPU's sums (docs/network_diagnosis.md,
+            "The yardstick moved"). 1: the rigid placement's alone.
         checkpoint: network methods: a checkpoint file written by `hairwarp train` (None: the
             one shipped with the package).
         refine: composed methods ("<network>+refine", "auto"): L-BFGS iterations of the same
@@ -54,6 +62,7 @@ class MethodOptions:
     patience: int = 200
     record_every: int = 0
     reference_max_iterations: int = REFERENCE_MAX_ITERATIONS
+    reference_starts: int = 1
     checkpoint: str | None = None
     refine: int = 0
     progress: bool = False

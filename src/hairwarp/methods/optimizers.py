@@ -22,7 +22,7 @@ from dataclasses import replace
 
 import torch
 
-from hairwarp.methods.base import WARMUP_ITERATIONS, Method, MethodOptions, MethodResult
+from hairwarp.methods.base import REFERENCE_START_NOISE, WARMUP_ITERATIONS, Method, MethodOptions, MethodResult
 from hairwarp.solvers.direct import DirectOptimizationConfig, optimize_drape
 
 
@@ -146,5 +146,44 @@ class ReferenceMethod(PhysicsMethod):
         from hairwarp.solvers.physics import PhysicsConfig
 
         options = options or MethodOptions()
+        if isinstance(options.reference_starts, bool) or not isinstance(options.reference_starts, int) \
+                or options.reference_starts < 1:
+            raise ValueError(f"reference_starts: expected an integer >= 1, got {options.reference_starts!r}")
         tight = replace(PhysicsConfig().tight(), static_max_iterations=options.reference_max_iterations)
         super().__init__(options, tight)
+
+    def drape(self, frames, *, metrics: Callable | None = None, start: torch.Tensor | None = None) -> MethodResult:
+        """The static optimum of each frame: the lowest-energy of `reference_starts` solves (per
+        frame), from `start` (default: the rigid placement) and from it moved by
+        `REFERENCE_START_NOISE`, seeded by the start's index. info["start_energies"]: each
+        solve's energy per frame [J]; info["best_start"]: the chosen start per frame.
+        """
+        from hairwarp.energy import total_energy
+
+        x0 = (frames.rigid.positions if start is None else start).detach()
+        config = scene_energy_config(self.options, frames)
+        best, energies, time_ms = None, [], 0.0
+        for k in range(self.options.reference_starts):
+            moved = x0
+            if k:
+                generator = torch.Generator().manual_seed(k)
+                noise = torch.randn(x0.shape, generator=generator, dtype=torch.float32)
+                moved = x0 + REFERENCE_START_NOISE * noise.to(device=x0.device, dtype=x0.dtype)
+            result = super().drape(frames, metrics=metrics, start=moved)
+            with torch.no_grad():
+                energy = total_energy(result.positions, frames.inputs, config).total.reshape(-1).double().cpu()
+            energies.append(energy)
+            time_ms += result.time_ms
+            if best is None:
+                best, best_energy = result, energy
+                best.info["best_start"] = [0] * energy.numel()
+                continue
+            better = energy < best_energy
+            if bool(better.any()):
+                chosen = better.to(result.positions.device)
+                best.positions = torch.where(chosen[:, None, None, None], result.positions, best.positions)
+                best_energy = torch.where(better, energy, best_energy)
+                best.info["best_start"] = [k if b else s for b, s in zip(better.tolist(), best.info["best_start"])]
+        best.time_ms = time_ms
+        best.info["start_energies"] = [e.tolist() for e in energies]
+        return best
