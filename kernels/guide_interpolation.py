@@ -371,17 +371,6 @@ def follower_distance_bound_kernel(
                                 follower_ratios, m * neighbours, b, i, num_guides, num_vertices, neighbours)
 
 
-# The same groom in rounds (the CUDA default, `follow_guides(schedule="rounds")`). The walk above
-# queries the body vertex after vertex, so a strand lying on the shoulders is one chain of ~250
-# queries, and a GPU waits for its longest chain. In rounds the queries of a round run at once and
-# the walk reads their answers: the targets (a thread per vertex); then `passes` times [every
-# vertex whose bound is below the margin queried where it is now (a thread per vertex); the walk
-# again from the targets (a block per strand, the strand in shared memory), each vertex placed at
-# its rest length from its predecessor and pushed out of the tangent plane its last query found,
-# up to `passes` times]. A vertex pushed by a plane that no longer fits is queried again in the
-# next round.
-
-
 @wp.kernel
 def follower_targets_kernel(
     guides_rest: wp.array(dtype=wp.vec3),
@@ -426,6 +415,18 @@ def follower_targets_kernel(
         if with_bound != 0:
             bound[tid] = distance_bound(guides_now, guide_signed_distance, x, follower_guides, follower_weights,
                                         follower_ratios, m * neighbours, b, i, num_guides, num_vertices, neighbours)
+
+
+# The same groom in rounds (`follow_guides(schedule="rounds")`, `GuideConfig.body_schedule`). The
+# walk above queries the body vertex after vertex, so a strand lying on the shoulders is one chain
+# of ~250 queries, and a GPU waits for its longest chain. In rounds the queries of a round run at
+# once and a walk with no query in it reads their answers: after the targets, follow-the-leader
+# from them (a block per strand, the strand in shared memory); then `passes` times [every vertex
+# whose bound is below the margin queried where it is (a thread per vertex); the walk again from
+# the last positions, each vertex placed at its rest length from its predecessor and moved out of
+# the tangent plane its last query found (`onto_plane_side`)]. A plane is wrong where the body is
+# concave and stale where a vertex's predecessors moved: the rounds leave more vertices inside
+# than the walk (docs/guides.md).
 
 
 @wp.func

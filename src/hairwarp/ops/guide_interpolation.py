@@ -215,10 +215,10 @@ def follow_guides(guides_rest: torch.Tensor, guides_now: torch.Tensor, rotations
       pushes each vertex before the next. Fewest queries, fewest vertices left inside; on a GPU
       its time is its longest strand's chain of queries.
     - "rounds": `passes` rounds of [every vertex near the body queried at once; the walk again
-      from the targets, pushing each vertex out of the tangent plane its query found, no query
-      in it]. On one H200, 10 000 strands: 2.9 ms against the walk's 5.1 ms, but 0.06 % of
-      the followers' vertices left inside against 0.007 %; 100 000 strands: 10.8 ms against
-      10.1 ms (docs/guides.md).
+      from the last positions, moving each vertex out of the tangent plane its query found, no
+      query in it]. On one H100, 10 000 strands: 3.3 ms against the walk's 5.5 ms, but 0.06 % of
+      the followers' vertices left inside against 0.007 %; 100 000 strands: 12.0 ms against
+      10.7 ms (docs/guides.md).
 
     Args:
         guides_rest, guides_now, rotations, followers_rest, follower_guides, follower_weights,
