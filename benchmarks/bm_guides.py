@@ -12,6 +12,10 @@ the K guides with L-BFGS at one frame of a motion, then measures, side by side i
   and of all strands, after the drape and for the rigid placement;
 - with `--schedules walk,rounds`, the same two timings, the share inside and the deepest follower
   vertex for each body-pass schedule (`GuideConfig.body_schedule`);
+- on CUDA the interpolation + body pass also without its CUDA graph (`GuideConfig.cuda_graph`:
+  the timed calls reuse one body, so from the second call on they replay a graph);
+- with `--walk-block-dims 32,64,128,256`, the interpolation + body pass with the walk's CUDA
+  threads per block (`WALK_THREADS_PER_BLOCK`), without the graph, alternated in three rounds;
 - the followers' curl: per wavy or curly follower, the mean |turning angle - rest turning angle|
   over the mean rest turning angle (the curvature profile's relative change), median and p90,
   beside the same figure of the guide it follows most and the follower's excess over it (the
@@ -155,6 +159,13 @@ def measure_groom(num_strands: int, args, device: torch.device) -> dict:
     row["interpolation_and_body_pass_ms"] = _timed(
         lambda: scene.full_groom(draped, frames, guide_signed_distance=sd_draped), device, args.repeats)
     row["schedule"] = guides.config.body_schedule
+    if device.type == "cuda":
+        # The same call with every launch made from Python (no CUDA graph), beside the replay.
+        config = guides.config
+        guides.config = dataclasses.replace(config, cuda_graph=False)
+        row["interpolation_and_body_pass_eager_ms"] = _timed(
+            lambda: scene.full_groom(draped, frames, guide_signed_distance=sd_draped), device, args.repeats)
+        guides.config = config
     if args.schedules:
         # Each body-pass schedule timed in turn on the same drape.
         config = guides.config
@@ -173,6 +184,22 @@ def measure_groom(num_strands: int, args, device: torch.device) -> dict:
                 "length_change_percent_all": _length_change(x, rest, everyone),
                 "pushed_vertices": int(facts["pushed"].sum())}
         guides.config = config
+    if args.walk_block_dims:
+        # The walk's CUDA threads per block, alternated in rounds on the same drape.
+        import hairwarp.ops.guide_interpolation as ops_guides
+
+        kept, config = ops_guides.WALK_THREADS_PER_BLOCK, guides.config
+        guides.config = dataclasses.replace(config, cuda_graph=False)  # a graph keeps its launch's block size
+        sizes = [int(v) for v in args.walk_block_dims.split(",")]
+        times = {v: [] for v in sizes}
+        for _ in range(3):
+            for v in sizes:
+                ops_guides.WALK_THREADS_PER_BLOCK = v
+                times[v].append(_timed(lambda: scene.full_groom(draped, frames, guide_signed_distance=sd_draped),
+                                       device, args.repeats))
+        ops_guides.WALK_THREADS_PER_BLOCK, guides.config = kept, config
+        row["walk_block_dims"] = {str(v): {"interpolation_and_body_pass_ms": sorted(t)[1], "rounds_ms": t}
+                                  for v, t in times.items()}
     return row
 
 
@@ -217,6 +244,8 @@ def main(argv=None) -> int:
     p.add_argument("--simulate-method", default="dynamic", help="--commands: the simulate command's method")
     p.add_argument("--schedules", default="", help="also time these body-pass schedules, comma-separated "
                    "(walk,rounds), each on the same drape")
+    p.add_argument("--walk-block-dims", default="", help="also time the walk's CUDA threads per block, "
+                   "comma-separated (e.g. 32,64,128,256), alternated in three rounds on the same drape")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="bm_guides_out", help="folder for the grooms, outputs and bm_guides_<device>.json")
     args = p.parse_args(argv)
@@ -246,11 +275,17 @@ def main(argv=None) -> int:
               f"{curl['their_guides_p90_change']:.3f}) | {curl['median_excess_over_guide']:+.3f} / "
               f"{curl['p90_excess_over_guide']:+.3f} |")
     for r in rows:
+        if "interpolation_and_body_pass_eager_ms" in r:
+            print(f"{r['strands']} strands: + body pass {r['interpolation_and_body_pass_ms']:.2f} ms replayed from its "
+                  f"CUDA graph, {r['interpolation_and_body_pass_eager_ms']:.2f} ms launched from Python")
         for name, sch in r.get("schedules", {}).items():
             print(f"{r['strands']} strands, {name}: interpolation {sch['interpolation_ms']:.2f} ms, + body pass "
                   f"{sch['interpolation_and_body_pass_ms']:.2f} ms, inside % followers / all "
                   f"{sch['inside_percent']['followers']:.4f} / {sch['inside_percent']['all']:.4f}, deepest follower "
                   f"{sch['deepest_follower_mm']:.2f} mm, pushed {sch['pushed_vertices']}")
+        for name, o in r.get("walk_block_dims", {}).items():
+            print(f"{r['strands']} strands, walk in blocks of {name}: + body pass {o['interpolation_and_body_pass_ms']:.2f} "
+                  f"ms (median of three rounds: {', '.join(f'{t:.2f}' for t in o['rounds_ms'])})")
     for name, c in record.get("commands", {}).items():
         print(f"{name}: {c['wall_s']:.0f} s, peak {c['peak_rss_gib']:.2f} GiB, rc {c['returncode']}"
               + (f", usdc {c['usdc_mib']:.0f} MiB" if c.get("usdc_mib") else ""))

@@ -163,6 +163,34 @@ def test_bad_inputs_name_the_argument():
         GuideConfig(body_schedule="parallel")
 
 
+def test_follow_names_the_input_that_holds_a_nan(rng):
+    """`GuideSet.follow` scans its inputs for NaN/Inf in one read-back and names the culprit."""
+    from hairwarp._validate import check_finite
+
+    groom = _hanging_groom(rng)
+    v, f = icosphere(8, radius=0.05, center=(0.03, 0.0, 0.0))
+    body = BodyMesh(torch.tensor(v, dtype=torch.float32), torch.tensor(f, dtype=torch.int32))
+    guides = GuideSet.build(groom, GuideConfig(num_guides=8))
+    positions = groom.strands[guides.guide_indices][None].float()
+    sd = hair_body_signed_distance(positions, body)
+    head = torch.eye(3)[None]
+    bad = positions.clone()
+    bad[0, 3, 5, 1] = float("nan")
+    for kwargs, name in ((dict(guide_positions=bad, head_rotation=head), "guide_positions"),
+                         (dict(guide_positions=positions, head_rotation=head * float("inf")), "head_rotation"),
+                         (dict(guide_positions=bad, head_rotation=head, body=body), "guide_positions"),
+                         (dict(guide_positions=positions, head_rotation=head, body=body,
+                               guide_signed_distance=sd.index_fill(2, torch.tensor([4]), float("nan"))),
+                          "guide_signed_distance")):
+        with pytest.raises(ValueError, match=name):
+            guides.follow(**kwargs)
+    x, facts = guides.follow(positions, head, body, guide_signed_distance=sd)
+    assert bool(torch.isfinite(x).all()) and int(facts["pushed"].sum()) > 0
+    check_finite(a=positions, b=torch.zeros(0), c=torch.arange(3))  # clean, empty and integer tensors pass
+    with pytest.raises(ValueError, match="^b: contains NaN or Inf"):
+        check_finite(a=positions, b=bad)
+
+
 # ------------------------------------------------------------------ what followers do
 
 
@@ -286,6 +314,43 @@ def test_cuda_frames_and_both_schedules_match_the_cpu(rng):
     for i in (1, 3):
         assert int(cpu[i + 1].sum()) > 0
         torch.testing.assert_close(cuda[i], cpu[i], atol=2e-5, rtol=0)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.parametrize("schedule", ["walk", "rounds"])
+def test_cuda_follow_replayed_from_its_graph_equals_the_eager_launches(rng, schedule):
+    """Calls 1 (eager), 2 (captured) and 3-4 (replayed) with new guide positions each, the body
+    moved by `BodyMesh.update` in between, against the same calls with `cuda_graph=False`; a new
+    body object is a new key, run eagerly."""
+    groom = _hanging_groom(rng, count=64)
+    v, f = icosphere(8, radius=0.05, center=(0.03, 0.0, 0.0))
+    device = torch.device("cuda")
+    vertices = torch.tensor(v, dtype=torch.float32, device=device)
+    results = {}
+    for graph in (True, False):
+        body = BodyMesh(vertices.clone(), torch.tensor(f, dtype=torch.int32, device=device))
+        guides = GuideSet.build(groom, GuideConfig(num_guides=8, body_passes=8, body_schedule=schedule, cuda_graph=graph))
+        base = groom.strands[guides.guide_indices][None].to(device)
+        out = []
+        for call in range(4):
+            body.update(vertices + torch.tensor([0.004 * call, 0.0, 0.0], device=device))
+            moved = base + 0.002 * call * torch.sin(torch.arange(base.shape[2], device=device))[None, None, :, None]
+            x, facts = guides.follow(moved, torch.eye(3, device=device)[None], body)
+            out.append((x.cpu(), facts["pushed"].cpu()))
+        if graph:
+            (entry,) = guides._graphs.values()
+            assert entry["call"] is not None  # captured at call 2, replayed at calls 3 and 4
+        other = BodyMesh(vertices.clone() + 0.01, torch.tensor(f, dtype=torch.int32, device=device))
+        x, facts = guides.follow(base, torch.eye(3, device=device)[None], other)
+        out.append((x.cpu(), facts["pushed"].cpu()))
+        if graph:
+            (entry,) = guides._graphs.values()
+            assert entry["call"] is None  # the new body: a new key, eager
+        results[graph] = out
+    for (x_graph, p_graph), (x_eager, p_eager) in zip(results[True], results[False]):
+        torch.testing.assert_close(x_graph, x_eager, atol=1e-6, rtol=0)
+        assert torch.equal(p_graph, p_eager)
+    assert int(results[True][3][1].sum()) > 0
 
 
 _SPLIT_SCRIPT = """

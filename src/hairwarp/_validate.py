@@ -77,6 +77,23 @@ def check_tensor(
     return t
 
 
+def check_finite(**tensors: torch.Tensor) -> None:
+    """No NaN or Inf in any of the named tensors, read back in one synchronisation (a
+    `check_tensor(..., finite=True)` per tensor waits for the device once each).
+
+    Raises:
+        ValueError: naming the first tensor that holds a NaN or Inf.
+    """
+    named = [(name, t) for name, t in tensors.items() if t.is_floating_point() and t.numel() > 0]
+    if not _check_finite or not named:
+        return
+    if bool(torch.stack([torch.isfinite(t).all() for _, t in named]).all()):
+        return
+    for name, t in named:
+        if not bool(torch.isfinite(t).all()):
+            raise ValueError(f"{name}: contains NaN or Inf")
+
+
 def check_same_dtype(**tensors: torch.Tensor) -> torch.dtype:
     """All named tensors share one dtype; return it."""
     items = list(tensors.items())

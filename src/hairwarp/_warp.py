@@ -206,11 +206,15 @@ def _concrete_kernel(kernel, arguments):
 _launches: dict = {}
 
 
-def launch(kernel, dim, inputs=(), outputs=(), device=None, stream=None, block_dim: int | None = None) -> None:
+def launch(kernel, dim, inputs=(), outputs=(), device=None, stream=None, block_dim: int | None = None,
+           threads_per_block: int | None = None) -> None:
     """`wp.launch` with the host work an eager call repeats done once.
 
     With `block_dim` the kernel is a tile kernel (`wp.launch_tiled`): `dim` blocks of
     `block_dim` threads on CUDA (one thread each on the CPU), `wp.tid()` giving (block, lane).
+    With `threads_per_block` a plain kernel's `dim` threads run in CUDA blocks of that size
+    (Warp's default 256): a launch of few threads, each long, spreads over more of the GPU's
+    multiprocessors in smaller blocks.
 
     - A generic kernel's instance is looked up per argument types: `wp.launch` infers the types
       and the overload's signature on every call (~70 us per launch on an H100's host).
@@ -226,12 +230,14 @@ def launch(kernel, dim, inputs=(), outputs=(), device=None, stream=None, block_d
     if block_dim is not None:
         block_dim = block_dim if target.is_cuda else 1
         tiled = {"block_dim": block_dim}
+    elif threads_per_block is not None and target.is_cuda:
+        tiled = {"block_dim": int(threads_per_block)}
     if not isinstance(dim, int) or dim <= 0:
         wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=target, stream=stream, **tiled)
         return
-    if tiled:
+    if block_dim is not None:
         dim = (dim, block_dim)
-    record_key = (kernel, target.alias, threading.get_ident())
+    record_key = (kernel, target.alias, threading.get_ident(), tiled.get("block_dim"))
     record = _launches.get(record_key)
     if record is None:
         command = wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=target, record_cmd=True, **tiled)

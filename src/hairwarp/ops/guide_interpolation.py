@@ -31,6 +31,12 @@ _SHARED_READY: set = set()
 # 1 627, median of 5) and slower on one H100 (10 000 strands 6.59 ms against 5.6: a warp waits
 # for its longest walk).
 QUERY_REACH_SEGMENTS = 1.0
+# CUDA threads per block of the walk (`follow_guides_kernel`, a thread per strand): 10 000 strands
+# are 40 blocks of Warp's default 256, on 40 of an H100's 132 multiprocessors. One H100,
+# `bm_guides.py --walk-block-dims 32,64,128,256` (interpolation + body pass, median of three
+# alternated rounds): 10 000 strands 4.93 / 4.90 / 4.91 / 5.18 ms, 100 000 strands 9.32 / 9.44 /
+# 9.65 / 9.78 ms.
+WALK_THREADS_PER_BLOCK = 32
 # How `follow_guides` orders its work (its docstring).
 SCHEDULES = ("walk", "rounds")
 
@@ -39,14 +45,15 @@ def _quats(t: torch.Tensor):
     return _warp.as_warp(t, quat=True)
 
 
-def _run(kernel, dim: int, device: torch.device, inputs, outputs) -> None:
+def _run(kernel, dim: int, device: torch.device, inputs, outputs, threads_per_block: int | None = None) -> None:
     if dim == 0:
         return
     with _warp.launch_scope(device):
-        _warp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=_warp.warp_device(device))
+        _warp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=_warp.warp_device(device),
+                     threads_per_block=threads_per_block)
 
 
-def _run_shared(kernel, dim: int, device: torch.device, inputs, outputs) -> None:
+def _run_shared(kernel, dim: int, device: torch.device, inputs, outputs, threads_per_block: int | None = None) -> None:
     """`_run` of a kernel whose last input is its first thread's index: on the CPU the threads
     are split in two launches, one on the side thread (`hairwarp.runtime`; Warp's CPU kernels
     release Python's lock), so both cores work; one launch elsewhere.
@@ -55,7 +62,7 @@ def _run_shared(kernel, dim: int, device: torch.device, inputs, outputs) -> None
 
     half = dim // 2
     if device.type != "cpu" or half < CPU_SPLIT_THREADS or torch.get_num_interop_threads() < 2:
-        _run(kernel, dim, device, [*inputs, 0], outputs)
+        _run(kernel, dim, device, [*inputs, 0], outputs, threads_per_block)
         return
     pending = cpu_side_executor().submit(_run, kernel, dim - half, device, [*inputs, half], outputs)
     if kernel not in _SHARED_READY:
@@ -216,9 +223,9 @@ def follow_guides(guides_rest: torch.Tensor, guides_now: torch.Tensor, rotations
       its time is its longest strand's chain of queries.
     - "rounds": `passes` rounds of [every vertex near the body queried at once; the walk again
       from the last positions, moving each vertex out of the tangent plane its query found, no
-      query in it]. On one H100, 10 000 strands: 3.3 ms against the walk's 5.5 ms, but 0.06 % of
-      the followers' vertices left inside against 0.007 %; 100 000 strands: 12.0 ms against
-      10.7 ms (docs/guides.md).
+      query in it]. On one H100, 10 000 strands: 3.0 ms against the walk's 4.9 ms, but 0.06 % of
+      the followers' vertices left inside against 0.007 %; 100 000 strands: 11.0 ms against
+      9.3 ms (docs/guides.md).
 
     Args:
         guides_rest, guides_now, rotations, followers_rest, follower_guides, follower_weights,
@@ -298,7 +305,7 @@ def follow_guides(guides_rest: torch.Tensor, guides_now: torch.Tensor, rotations
     if schedule == "walk":
         inputs = [targets_wp, _warp.as_warp(target_bound), slot, lengths_wp, *body_arrays, m, n, int(body is not None),
                   float(margin), int(passes), float(reach_segments), float(_ZERO_DISTANCE[torch.float32])]
-        _run_shared(kernels.follow_guides_kernel, batch * m, device, inputs, [x, pushed_wp])
+        _run_shared(kernels.follow_guides_kernel, batch * m, device, inputs, [x, pushed_wp], WALK_THREADS_PER_BLOCK)
         return out, pushed
     cleared_at, surface, normal = torch.zeros_like(out), torch.zeros_like(out), torch.zeros_like(out)
     clearance = torch.full((batch, m, n), -1.0e30, dtype=torch.float32, device=device)

@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from hairwarp._validate import check_tensor
+from hairwarp._validate import check_finite, check_tensor
 
 # Quarters of a strand whose mean positions describe its shape in the guide choice.
 SHAPE_SAMPLES = 4
@@ -76,6 +76,10 @@ class GuideConfig:
             thread per strand) or "rounds" (all queries of a round at once; faster on a GPU at
             10 000 strands, with more vertices left inside;
             `hairwarp.ops.guide_interpolation.follow_guides`, docs/guides.md).
+        cuda_graph: on CUDA, `GuideSet.follow` replays its launches from a CUDA graph from the
+            second call on with the same shapes, settings and body (a per-frame loop that moves
+            its body with `BodyMesh.update`): the launches' host work, ~1 ms a call, is then
+            one replay.
     """
 
     num_guides: int = 1024
@@ -84,6 +88,7 @@ class GuideConfig:
     body_margin: float = 1.0e-3
     body_passes: int = 3
     body_schedule: str = "walk"
+    cuda_graph: bool = True
 
     def __post_init__(self):
         for name in ("num_guides", "neighbours", "body_passes"):
@@ -272,26 +277,67 @@ class GuideSet:
             moved per strand, on the device: read it only when needed, it waits for the GPU).
         """
         from hairwarp.ops import hair_body_signed_distance
-        from hairwarp.ops.guide_interpolation import follow_guides, guide_frame_rotations
 
         device = guide_positions.device
         on = self._on(device)
-        rest, guides_rest, link = on["rest"], on["guides_rest"], on["link"]
         guides = guide_positions.to(torch.float32)
         batch = guides.shape[0]
-        check_tensor("guide_positions", guides, shape=(None, self.num_guides, rest.shape[1], 3))
-        check_tensor("head_rotation", head_rotation, shape=(batch, 3, 3))
-        # The groom's own tensors need no check; the guides' were checked once above.
-        rotations = guide_frame_rotations(guides_rest, guides, head_rotation.to(device), check=False)
+        check_tensor("guide_positions", guides, shape=(None, self.num_guides, on["rest"].shape[1], 3), finite=False)
+        check_tensor("head_rotation", head_rotation, shape=(batch, 3, 3), finite=False)
+        head = head_rotation.to(device)
+        # The NaN/Inf scan of all inputs in one wait for the device instead of one per tensor.
+        finite = {"guide_positions": guides, "head_rotation": head}
         use_body = body is not None and self.config.body_passes > 0
-        if use_body and guide_signed_distance is None:
-            guide_signed_distance = hair_body_signed_distance(guides, body)
-        x, pushed = follow_guides(guides_rest, guides, rotations, rest, *link, guide_slot=on["guide_slot"],
-                                  body=body if use_body else None,
-                                  guide_signed_distance=guide_signed_distance if use_body else None,
-                                  margin=self.config.body_margin, passes=self.config.body_passes,
-                                  schedule=self.config.body_schedule, rest_lengths=on["rest_lengths"], check=False)
+        if use_body:
+            if guide_signed_distance is None:
+                check_finite(**finite)
+                finite = {}
+                guide_signed_distance = hair_body_signed_distance(guides, body)
+            check_tensor("guide_signed_distance", guide_signed_distance, shape=guides.shape[:3], device=device,
+                         finite=False)
+            finite["guide_signed_distance"] = guide_signed_distance
+            inputs = (guides, head, guide_signed_distance.to(torch.float32))
+        else:
+            body, inputs = None, (guides, head)
+        check_finite(**finite)
+        if device.type == "cuda" and self.config.cuda_graph:
+            x, pushed = self._replayed(inputs, body)
+        else:
+            x, pushed = self._launches(body, *inputs)
         return x.to(guide_positions.dtype), ({"pushed": pushed} if use_body else {})
+
+    def _launches(self, body, guides: torch.Tensor, head: torch.Tensor,
+                  guide_signed_distance: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """`follow`'s device work on checked inputs: no host synchronisation, so a graph can hold it."""
+        from hairwarp.ops.guide_interpolation import follow_guides, guide_frame_rotations
+
+        on = self._on(guides.device)
+        rotations = guide_frame_rotations(on["guides_rest"], guides, head, check=False)
+        return follow_guides(on["guides_rest"], guides, rotations, on["rest"], *on["link"], guide_slot=on["guide_slot"],
+                             body=body, guide_signed_distance=guide_signed_distance,
+                             margin=self.config.body_margin, passes=self.config.body_passes,
+                             schedule=self.config.body_schedule, rest_lengths=on["rest_lengths"], check=False)
+
+    def _replayed(self, inputs: tuple, body) -> tuple[torch.Tensor, torch.Tensor]:
+        """`_launches` from a CUDA graph: eager at the first call with a key (shapes, dtypes,
+        settings, body), captured at the second, replayed after. The graph reads the body's
+        buffers where they are, so it follows `BodyMesh.update`; another body object is another
+        key (one graph is kept per shape and settings, the last body's).
+        """
+        import weakref
+
+        from hairwarp.runtime import CapturedCall
+
+        key = (str(inputs[0].device), tuple((tuple(t.shape), t.dtype) for t in inputs), self.config)
+        graphs = self.__dict__.setdefault("_graphs", {})
+        entry = graphs.get(key)
+        if entry is None or (entry["body"]() if entry["body"] is not None else None) is not body:
+            graphs[key] = {"body": None if body is None else weakref.ref(body), "call": None}
+            return self._launches(body, *inputs)
+        if entry["call"] is None:
+            with torch.cuda.device(inputs[0].device):
+                entry["call"] = CapturedCall(lambda *t: self._launches(body, *t), *inputs, warmup=1)
+        return entry["call"](*inputs)
 
     @torch.no_grad()
     def signed_distance(self, x: torch.Tensor, guide_positions: torch.Tensor, guide_signed_distance: torch.Tensor,
