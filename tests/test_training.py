@@ -572,6 +572,34 @@ def test_a_teacher_pool_solves_each_batch_once_to_its_optimum(monkeypatch, stati
         static_config.replace(teacher_iterations=4, teacher_pool=-1)
 
 
+def test_the_teacher_of_both_starts_is_per_sample_the_lower_one(static_config, sampler):
+    """teacher_start "lower": the physics teacher solved from the network's drape and from the
+    rigid placement, per sample the one of lower energy; "rigid" and "network" are those two."""
+    from hairwarp.training.config import energy_config
+
+    physics = energy_config(static_config.energy, barrier_join_fraction=static_config.bp_end)
+    teachers, energies = {}, {}
+    for start in ("network", "rigid", "lower"):
+        cfg = static_config.replace(phase_steps=(0, 0, 0, 4), teacher_iterations=200, teacher_pool=1,
+                                    teacher_start=start)
+        torch.manual_seed(0)
+        trainer = StaticTrainer(cfg, sampler=sampler, seed=0)
+        batch = trainer.training_batch(0)
+        teachers[start] = batch.teacher
+        with torch.no_grad():
+            energies[start] = total_energy(batch.teacher, batch.inputs, physics).total
+    assert not torch.allclose(teachers["network"], teachers["rigid"], atol=1e-4)
+    lower_is_rigid = energies["rigid"] < energies["network"]
+    expected = torch.where(lower_is_rigid[:, None, None, None], teachers["rigid"], teachers["network"])
+    torch.testing.assert_close(teachers["lower"], expected, atol=1e-5, rtol=0)
+    torch.testing.assert_close(energies["lower"], torch.minimum(energies["rigid"], energies["network"]),
+                               atol=1e-5, rtol=1e-5)
+    with pytest.raises(ValueError, match="teacher_start"):
+        static_config.replace(teacher_start="middle")
+    with pytest.raises(ValueError, match="teacher_start"):
+        static_config.replace(teacher_iterations=4, teacher_kind="map", teacher_start="rigid")
+
+
 def test_a_map_teacher_is_a_drape_the_network_can_reach_with_less_energy(static_config, sampler):
     """teacher_kind "map": the teacher is the drape of the best deformation map, from the
     network's: lower energy than the network's drape, the fixed vertices on the rigid placement,

@@ -198,7 +198,7 @@ def train_static(args) -> None:
                                     model=_overrides("--model", args.model, _number_or_text), checkpoint_every=0,
                                     data=data, curve_every=0, teacher_iterations=args.teacher_iterations,
                                     teacher_weight=args.teacher_weight, teacher_pool=args.teacher_pool,
-                                    teacher_kind=args.teacher_kind)
+                                    teacher_kind=args.teacher_kind, teacher_start=args.teacher_start)
 
     from hairwarp.evaluation.scenes import comparison_scene
 
@@ -290,7 +290,8 @@ def main(argv=None) -> None:
     parser.add_argument("--minutes", type=float, default=6.0, help="wall-clock budget, encoding included")
     parser.add_argument("--steps", type=int, default=0, help="total steps (0: from a timing probe and --minutes)")
     parser.add_argument("--batch", type=int, default=32)
-    from hairwarp.training.config import BP_SCHEDULES, LOSS_NORMALIZATIONS, TEACHER_KINDS, StaticTrainingConfig
+    from hairwarp.training.config import (BP_SCHEDULES, LOSS_NORMALIZATIONS, TEACHER_KINDS, TEACHER_STARTS,
+                                          StaticTrainingConfig)
 
     parser.add_argument("--bp-schedule", default=StaticTrainingConfig.bp_schedule, choices=BP_SCHEDULES,
                         help="static/quaffure: how b_p falls from 0.9 to 0.01 (geometric spends more steps "
@@ -337,6 +338,9 @@ def main(argv=None) -> None:
     parser.add_argument("--teacher-kind", default=StaticTrainingConfig.teacher_kind, choices=TEACHER_KINDS,
                         help="static: physics (the physics' static drape) or map (each sample's best deformation "
                              "map, which the network can reach)")
+    parser.add_argument("--teacher-start", default=StaticTrainingConfig.teacher_start, choices=TEACHER_STARTS,
+                        help="static: where the physics teacher's solve starts: the network's drape, the rigid "
+                             "placement, or both with the lower energy per sample")
     parser.add_argument("--teacher-weight", type=float, default=StaticTrainingConfig.teacher_weight,
                         help="static: weight of the distillation term [1/m^2]")
     parser.add_argument("--curve-every", type=int, default=250,

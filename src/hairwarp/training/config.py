@@ -37,6 +37,8 @@ STATIC_MODEL_KINDS = ("static", "quaffure")
 BP_SCHEDULES = ("linear", "geometric")
 LOSS_NORMALIZATIONS = ("none", "rigid", "inverse")
 TEACHER_KINDS = ("physics", "map")
+# Where the physics teacher's solve starts (`StaticTrainingConfig.teacher_start`).
+TEACHER_STARTS = ("network", "rigid", "lower")
 INERTIA_TIME_STEPS = ("interval", "frame")
 # Energy added to the rigid placement's before dividing by it ("rigid" normalization): keeps
 # samples that start at rest (energy near its minimum) from being magnified.
@@ -377,6 +379,14 @@ class StaticTrainingConfig(_TrainingConfig):
             iterations) over the map through the network's own taper and projection, from the
             network's map, on the energy at `bp_end`: a target the network can reach exactly
             (the 8 x 8 oracle map reached 0.999 x E*, docs/network_diagnosis.md S1).
+        teacher_start: where the physics teacher's solve starts (a static drape rests in the
+            state nearest its start). "network": the network's own drape; "rigid": the rigid
+            placement, as the optimum E* does; "lower": both, and per sample the teacher of
+            lower energy (twice the solves). Long straight hair grown on the body at rest (256
+            strands, 2-core CPU, 800 iterations): from the shipped network's drape the teacher
+            kept its lift (tips +45 mm above E*'s, 1.147 x E*); from the rigid placement it
+            reached 1.008 x E*, tips +7 mm. On a bob at rest the network's start was the lower
+            one (0.984 x E*) (docs/network_diagnosis.md, ninth session).
         energy: overrides of `hairwarp.config.EnergyConfig` fields (b_p is set per step).
         data: what the sampler draws.
     """
@@ -407,6 +417,7 @@ class StaticTrainingConfig(_TrainingConfig):
     teacher_weight: float = 1.0e4
     teacher_pool: int = 0
     teacher_kind: str = "physics"
+    teacher_start: str = "network"
     energy: dict = field(default_factory=dict)
     data: DataConfig = field(default_factory=DataConfig)
 
@@ -417,6 +428,10 @@ class StaticTrainingConfig(_TrainingConfig):
         _number(owner, "teacher_weight", self.teacher_weight)
         _int(owner, "teacher_pool", self.teacher_pool)
         _choice(owner, "teacher_kind", self.teacher_kind, TEACHER_KINDS)
+        _choice(owner, "teacher_start", self.teacher_start, TEACHER_STARTS)
+        if self.teacher_kind != "physics" and self.teacher_start != "network":
+            _fail(owner, "teacher_start", '"network" unless teacher_kind is "physics" (a map teacher starts '
+                  "from the network's map)", self.teacher_start)
         if self.teacher_pool > 0 and self.teacher_iterations == 0:
             _fail(owner, "teacher_pool", "0 unless teacher_iterations > 0 (the pool's teachers are solved "
                   "in teacher_iterations iterations)", self.teacher_pool)

@@ -242,12 +242,31 @@ class _DrapeTeacher:
             solver = self.solver
             solver.inputs.rest_lengths.copy_(batch.inputs.rest_lengths)
             solver.set_frame(batch.rigid, batch.inputs.scalp_normals, batch.body_vertices)
-        with torch.no_grad():
-            deformation = network_deformation(model, batch.z, batch.betas, batch.poses, batch.rigid, batch.root_uv,
-                                              solver.body, clip)
-            start = apply_deformation(batch.rigid, deformation, batch.root_uv, length_projection_of(model))
-        solver.solve(start.detach(), self.trainer.config.teacher_iterations)
-        return solver.positions()
+        config = self.trainer.config
+        starts = []
+        if config.teacher_start in ("network", "lower"):
+            with torch.no_grad():
+                deformation = network_deformation(model, batch.z, batch.betas, batch.poses, batch.rigid,
+                                                  batch.root_uv, solver.body, clip)
+                starts.append(apply_deformation(batch.rigid, deformation, batch.root_uv, length_projection_of(model)))
+        if config.teacher_start in ("rigid", "lower"):
+            starts.append(batch.rigid)
+        best = best_energy = None
+        for start in starts:
+            solver.solve(start.detach(), config.teacher_iterations)
+            if len(starts) == 1:
+                return solver.positions()
+            x = solver.positions().detach().clone()
+            with torch.no_grad():
+                energy = total_energy(x, solver.inputs, energy_config(config.energy,
+                                                                      barrier_join_fraction=config.bp_end)).total
+            if best is None:
+                best, best_energy = x, energy
+            else:  # per sample, the teacher of lower energy
+                lower = energy < best_energy
+                best = torch.where(lower[:, None, None, None], x, best)
+                best_energy = torch.minimum(energy, best_energy)
+        return best
 
 
 class _MapTeacher:
