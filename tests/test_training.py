@@ -574,12 +574,15 @@ def test_a_teacher_pool_solves_each_batch_once_to_its_optimum(monkeypatch, stati
 
 def test_the_teacher_of_both_starts_is_per_sample_the_lower_one(static_config, sampler):
     """teacher_start "lower": the physics teacher solved from the network's drape and from the
-    rigid placement, per sample the one of lower energy; "rigid" and "network" are those two."""
+    rigid placement, per sample the one of lower energy; "rigid" and "network" are those two;
+    "lower_where_clean" takes the rigid start only where the rigid placement has no free vertex
+    inside the body."""
+    from hairwarp.ops import hair_body_signed_distance
     from hairwarp.training.config import energy_config
 
     physics = energy_config(static_config.energy, barrier_join_fraction=static_config.bp_end)
     teachers, energies = {}, {}
-    for start in ("network", "rigid", "lower"):
+    for start in ("network", "rigid", "lower", "lower_where_clean"):
         cfg = static_config.replace(phase_steps=(0, 0, 0, 4), teacher_iterations=200, teacher_pool=1,
                                     teacher_start=start)
         torch.manual_seed(0)
@@ -588,12 +591,17 @@ def test_the_teacher_of_both_starts_is_per_sample_the_lower_one(static_config, s
         teachers[start] = batch.teacher
         with torch.no_grad():
             energies[start] = total_energy(batch.teacher, batch.inputs, physics).total
+            clean = (hair_body_signed_distance(batch.rigid, trainer._teacher.solver.body)[:, :, 2:] >= 0
+                     ).flatten(1).all(dim=1) if trainer._teacher.solver is not None else None
     assert not torch.allclose(teachers["network"], teachers["rigid"], atol=1e-4)
     lower_is_rigid = energies["rigid"] < energies["network"]
     expected = torch.where(lower_is_rigid[:, None, None, None], teachers["rigid"], teachers["network"])
     torch.testing.assert_close(teachers["lower"], expected, atol=1e-5, rtol=0)
     torch.testing.assert_close(energies["lower"], torch.minimum(energies["rigid"], energies["network"]),
                                atol=1e-5, rtol=1e-5)
+    assert clean is not None
+    expected = torch.where((lower_is_rigid & clean)[:, None, None, None], teachers["rigid"], teachers["network"])
+    torch.testing.assert_close(teachers["lower_where_clean"], expected, atol=1e-5, rtol=0)
     with pytest.raises(ValueError, match="teacher_start"):
         static_config.replace(teacher_start="middle")
     with pytest.raises(ValueError, match="teacher_start"):

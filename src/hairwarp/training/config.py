@@ -38,7 +38,7 @@ BP_SCHEDULES = ("linear", "geometric")
 LOSS_NORMALIZATIONS = ("none", "rigid", "inverse")
 TEACHER_KINDS = ("physics", "map")
 # Where the physics teacher's solve starts (`StaticTrainingConfig.teacher_start`).
-TEACHER_STARTS = ("network", "rigid", "lower")
+TEACHER_STARTS = ("network", "rigid", "lower", "lower_where_clean")
 INERTIA_TIME_STEPS = ("interval", "frame")
 # Energy added to the rigid placement's before dividing by it ("rigid" normalization): keeps
 # samples that start at rest (energy near its minimum) from being magnified.
@@ -386,7 +386,11 @@ class StaticTrainingConfig(_TrainingConfig):
             strands, 2-core CPU, 800 iterations): from the shipped network's drape the teacher
             kept its lift (tips +45 mm above E*'s, 1.147 x E*); from the rigid placement it
             reached 1.008 x E*, tips +7 mm. On a bob at rest the network's start was the lower
-            one (0.984 x E*) (docs/network_diagnosis.md, ninth session).
+            one (0.984 x E*). Trained with "lower" on one H100, the long hair at rest fell from
+            2.55 to 1.24 x E*, but curly hair pushed deep into the body by a nod rose from 1.65
+            to 3.91 x E* with 1.57 % inside (docs/network_diagnosis.md, ninth session, S8).
+            "lower_where_clean": "lower" on the samples whose rigid placement has no free vertex
+            inside the body, "network" on the others (not yet trained).
         energy: overrides of `hairwarp.config.EnergyConfig` fields (b_p is set per step).
         data: what the sampler draws.
     """

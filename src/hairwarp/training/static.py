@@ -244,12 +244,21 @@ class _DrapeTeacher:
             solver.set_frame(batch.rigid, batch.inputs.scalp_normals, batch.body_vertices)
         config = self.trainer.config
         starts = []
-        if config.teacher_start in ("network", "lower"):
+        if config.teacher_start != "rigid":
             with torch.no_grad():
                 deformation = network_deformation(model, batch.z, batch.betas, batch.poses, batch.rigid,
                                                   batch.root_uv, solver.body, clip)
                 starts.append(apply_deformation(batch.rigid, deformation, batch.root_uv, length_projection_of(model)))
-        if config.teacher_start in ("rigid", "lower"):
+        # Per sample, whether the rigid start may be taken ("lower_where_clean": only where the
+        # rigid placement has no free vertex inside the body).
+        rigid_allowed = None
+        if config.teacher_start == "lower_where_clean":
+            from hairwarp.ops import hair_body_signed_distance
+
+            with torch.no_grad():
+                sd = hair_body_signed_distance(batch.rigid.detach(), solver.body)
+            rigid_allowed = (sd[:, :, NUM_FIXED_VERTICES:] >= 0).flatten(1).all(dim=1)
+        if config.teacher_start in ("rigid", "lower") or (rigid_allowed is not None and bool(rigid_allowed.any())):
             starts.append(batch.rigid)
         best = best_energy = None
         for start in starts:
@@ -264,8 +273,10 @@ class _DrapeTeacher:
                 best, best_energy = x, energy
             else:  # per sample, the teacher of lower energy
                 lower = energy < best_energy
+                if rigid_allowed is not None:
+                    lower = lower & rigid_allowed
                 best = torch.where(lower[:, None, None, None], x, best)
-                best_energy = torch.minimum(energy, best_energy)
+                best_energy = torch.where(lower, energy, best_energy)
         return best
 
 
