@@ -572,14 +572,21 @@ def test_a_teacher_pool_solves_each_batch_once_to_its_optimum(monkeypatch, stati
         static_config.replace(teacher_iterations=4, teacher_pool=-1)
 
 
-def test_the_teacher_of_both_starts_is_per_sample_the_lower_one(static_config, sampler):
+def test_the_teacher_of_both_starts_is_per_sample_the_lower_one(static_config, sampler, monkeypatch):
     """teacher_start "lower": the physics teacher solved from the network's drape and from the
     rigid placement, per sample the one of lower energy; "rigid" and "network" are those two;
     "lower_where_clean" takes the rigid start only where the rigid placement has no free vertex
-    inside the body."""
+    inside the body. The untrained test network's drape is the rigid placement to a millimetre,
+    so its drape here is the rigid placement lifted 3 cm at the tips (a start of its own)."""
     from hairwarp.ops import hair_body_signed_distance
+    from hairwarp.training import static as static_training
     from hairwarp.training.config import energy_config
 
+    def lifted(rigid, deformation, root_uv, projection):
+        along = torch.linspace(0.0, 1.0, rigid.shape[2], dtype=rigid.dtype)[None, None, :]
+        return rigid + torch.stack([torch.zeros_like(along), 0.03 * along, torch.zeros_like(along)], dim=-1)
+
+    monkeypatch.setattr(static_training, "apply_deformation", lifted)
     physics = energy_config(static_config.energy, barrier_join_fraction=static_config.bp_end)
     teachers, energies = {}, {}
     for start in ("network", "rigid", "lower", "lower_where_clean"):
@@ -593,15 +600,20 @@ def test_the_teacher_of_both_starts_is_per_sample_the_lower_one(static_config, s
             energies[start] = total_energy(batch.teacher, batch.inputs, physics).total
             clean = (hair_body_signed_distance(batch.rigid, trainer._teacher.solver.body)[:, :, 2:] >= 0
                      ).flatten(1).all(dim=1) if trainer._teacher.solver is not None else None
-    assert not torch.allclose(teachers["network"], teachers["rigid"], atol=1e-4)
+    # The solves of separate runs agree to float32 rounding only (the CPU's two threads sum
+    # contact in either order: up to 0.2 mm apart in a full-suite run), so each chosen teacher
+    # is matched to the nearer of the two starts' teachers, which lie far apart.
+    gap = lambda a, b: (a - b).norm(dim=-1).flatten(1).max(dim=1).values  # noqa: E731
+    apart = gap(teachers["network"], teachers["rigid"])
+    assert bool((apart > 2e-3).all()), apart
     lower_is_rigid = energies["rigid"] < energies["network"]
-    expected = torch.where(lower_is_rigid[:, None, None, None], teachers["rigid"], teachers["network"])
-    torch.testing.assert_close(teachers["lower"], expected, atol=1e-5, rtol=0)
-    torch.testing.assert_close(energies["lower"], torch.minimum(energies["rigid"], energies["network"]),
-                               atol=1e-5, rtol=1e-5)
     assert clean is not None
-    expected = torch.where((lower_is_rigid & clean)[:, None, None, None], teachers["rigid"], teachers["network"])
-    torch.testing.assert_close(teachers["lower_where_clean"], expected, atol=1e-5, rtol=0)
+    for start, take_rigid in (("lower", lower_is_rigid), ("lower_where_clean", lower_is_rigid & clean)):
+        to_rigid, to_network = gap(teachers[start], teachers["rigid"]), gap(teachers[start], teachers["network"])
+        nearest = torch.where(take_rigid, to_rigid, to_network)
+        assert bool((nearest < 5e-4).all()), (start, nearest)
+    torch.testing.assert_close(energies["lower"], torch.minimum(energies["rigid"], energies["network"]),
+                               atol=1e-4, rtol=1e-3)
     with pytest.raises(ValueError, match="teacher_start"):
         static_config.replace(teacher_start="middle")
     with pytest.raises(ValueError, match="teacher_start"):
