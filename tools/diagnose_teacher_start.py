@@ -14,7 +14,6 @@ vertices inside [%].
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -25,7 +24,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 
 def main(argv=None) -> int:
-    from diagnose_networks import load_scene, machine
+    from diagnose_networks import load_scene, machine, write_json
 
     from hairwarp.energy import total_energy
     from hairwarp.methods import MethodOptions, make
@@ -81,11 +80,7 @@ def main(argv=None) -> int:
             print(f"  {label:48s} E/E* {r['energy_ratio']:.4f}  tips {r['tip_height_vs_optimum_mm']:+7.1f} mm  "
                   f"mean {r['mean_distance_mm']:6.1f} mm  inside {r['inside_percent']:.3f} %  {r['seconds']:.1f} s",
                   flush=True)
-    os.makedirs(args.out, exist_ok=True)
-    path = os.path.join(args.out, "teacher_start.json")
-    with open(path, "w") as f:
-        json.dump(record, f, indent=1)
-    print(f"wrote {path}")
+    write_json(args.out, "teacher_start.json", record)
     return 0
 
 

@@ -11,13 +11,14 @@ of the profiled steps, and each kernel's device time per iteration [us], largest
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
 from dataclasses import replace
 
 import torch
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 
 def _profile_steps(solver, posed, first: int, steps: int, device) -> dict:
@@ -57,6 +58,8 @@ def main(argv=None) -> int:
     p.add_argument("--modes", default="graph,eager", help="graph (the default solver) and/or eager")
     p.add_argument("--out", default="profile_physics_out")
     args = p.parse_args(argv)
+    from diagnose_networks import write_json
+
     from hairwarp.config import EnergyConfig
     from hairwarp.evaluation.scenes import comparison_scene
     from hairwarp.ops import BodyMesh
@@ -92,11 +95,7 @@ def main(argv=None) -> int:
                 print(f"    {us:8.1f} us  {k[:110]}")
             del solver
         record["motions"][name] = entry
-    os.makedirs(args.out, exist_ok=True)
-    path = os.path.join(args.out, "profile_physics.json")
-    with open(path, "w") as f:
-        json.dump(record, f, indent=1)
-    print(f"wrote {path}")
+    write_json(args.out, "profile_physics.json", record)
     return 0
 
 
