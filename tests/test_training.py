@@ -604,14 +604,16 @@ def test_the_teacher_of_both_starts_is_per_sample_the_lower_one(static_config, s
     # contact in either order: up to 0.2 mm apart in a full-suite run), so each chosen teacher
     # is matched to the nearer of the two starts' teachers, which lie far apart.
     gap = lambda a, b: (a - b).norm(dim=-1).flatten(1).max(dim=1).values  # noqa: E731
-    apart = gap(teachers["network"], teachers["rigid"])
-    assert bool((apart > 2e-3).all()), apart
+    # Two starts may also rest in one state (the batch drawn depends on the tests run before).
+    apart = gap(teachers["network"], teachers["rigid"]) > 2e-3
+    assert bool(apart.any())
     lower_is_rigid = energies["rigid"] < energies["network"]
     assert clean is not None
     for start, take_rigid in (("lower", lower_is_rigid), ("lower_where_clean", lower_is_rigid & clean)):
         to_rigid, to_network = gap(teachers[start], teachers["rigid"]), gap(teachers[start], teachers["network"])
         nearest = torch.where(take_rigid, to_rigid, to_network)
-        assert bool((nearest < 5e-4).all()), (start, nearest)
+        assert bool((nearest[apart] < 5e-4).all()), (start, nearest)
+        assert bool((torch.minimum(to_rigid, to_network)[~apart] < 2e-3).all()), (start, to_rigid, to_network)
     torch.testing.assert_close(energies["lower"], torch.minimum(energies["rigid"], energies["network"]),
                                atol=1e-4, rtol=1e-3)
     with pytest.raises(ValueError, match="teacher_start"):
