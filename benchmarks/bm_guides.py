@@ -11,7 +11,8 @@ the K guides with L-BFGS at one frame of a motion, then measures, side by side i
 - the share of vertices inside the body and the length change of the guides, of the followers
   and of all strands, after the drape and for the rigid placement;
 - with `--schedules walk,rounds`, the same two timings, the share inside and the deepest follower
-  vertex for each body-pass schedule (`GuideConfig.body_schedule`);
+  vertex for each body-pass schedule (`GuideConfig.body_schedule`), and with `--settles 0,0.0005`
+  for the walk with each `GuideConfig.body_settle` (alternated in three rounds);
 - on CUDA the interpolation + body pass also without its CUDA graph (`GuideConfig.cuda_graph`:
   the timed calls reuse one body, so from the second call on they replay a graph);
 - with `--walk-block-dims 32,64,128,256`, the interpolation + body pass with the walk's CUDA
@@ -166,23 +167,52 @@ def measure_groom(num_strands: int, args, device: torch.device) -> dict:
         row["interpolation_and_body_pass_eager_ms"] = _timed(
             lambda: scene.full_groom(draped, frames, guide_signed_distance=sd_draped), device, args.repeats)
         guides.config = config
-    if args.schedules:
-        # Each body-pass schedule timed in turn on the same drape.
-        config = guides.config
+    variants = [(name, {"body_schedule": name}) for name in filter(None, args.schedules.split(","))]
+    variants += [(f"walk, settle {float(v) * 1e3:g} mm", {"body_schedule": "walk", "body_settle": float(v)})
+                 for v in filter(None, args.settles.split(","))]
+    # "hint": the module's `WALK_FACE_HINT` (not a config field: the graph is dropped on a switch).
+    variants += [(f"walk, face hint {int(v)}" + (f", settle {float(t) * 1e3:g} mm" if t else ""),
+                  {"body_schedule": "walk", "body_settle": float(t or 0.0), "hint": bool(int(v))})
+                 for v in filter(None, args.face_hints.split(","))
+                 for t in (filter(None, args.settles.split(",")) if args.settles else [None])]
+    if variants:
+        # Each body-pass variant on the same drape; the timings alternated in three rounds (the
+        # median round), so that a machine's drift within the run falls on all of them alike.
+        import hairwarp.ops.guide_interpolation as ops_guides
+
+        config, kept_hint = guides.config, ops_guides.WALK_FACE_HINT
         row["schedules"] = {}
-        for name in args.schedules.split(","):
-            guides.config = dataclasses.replace(config, body_schedule=name)
+
+        def use(change):
+            change = dict(change)
+            hint = change.pop("hint", kept_hint)
+            if hint != ops_guides.WALK_FACE_HINT:
+                ops_guides.WALK_FACE_HINT = hint
+                guides.__dict__.pop("_graphs", None)
+            guides.config = dataclasses.replace(config, **change)
+
+        for name, change in variants:
+            use(change)
             x, facts = scene.full_groom(draped, frames, guide_signed_distance=sd_draped)
             sd = guides.signed_distance(x, draped, sd_draped, frames.body_mesh)
             row["schedules"][name] = {
-                "interpolation_ms": _timed(lambda: scene.full_groom(draped, frames, body_pass=False), device,
-                                           args.repeats),
-                "interpolation_and_body_pass_ms": _timed(
-                    lambda: scene.full_groom(draped, frames, guide_signed_distance=sd_draped), device, args.repeats),
+                "config": change, "interpolation_and_body_pass_rounds_ms": [],
                 "inside_percent": {"followers": _inside(sd, follower_index), "all": _inside(sd, everyone)},
                 "deepest_follower_mm": float(sd[:, follower_index, 2:].min()) * 1e3,
                 "length_change_percent_all": _length_change(x, rest, everyone),
                 "pushed_vertices": int(facts["pushed"].sum())}
+        for _ in range(3):
+            for name, change in variants:
+                use(change)
+                row["schedules"][name]["interpolation_and_body_pass_rounds_ms"].append(_timed(
+                    lambda: scene.full_groom(draped, frames, guide_signed_distance=sd_draped), device, args.repeats))
+        for name, change in variants:
+            o = row["schedules"][name]
+            o["interpolation_and_body_pass_ms"] = sorted(o["interpolation_and_body_pass_rounds_ms"])[1]
+            use(change)
+            o["interpolation_ms"] = _timed(lambda: scene.full_groom(draped, frames, body_pass=False), device,
+                                           args.repeats)
+        use({"hint": kept_hint})
         guides.config = config
     if args.walk_block_dims:
         # The walk's CUDA threads per block, alternated in rounds on the same drape.
@@ -244,6 +274,10 @@ def main(argv=None) -> int:
     p.add_argument("--simulate-method", default="dynamic", help="--commands: the simulate command's method")
     p.add_argument("--schedules", default="", help="also time these body-pass schedules, comma-separated "
                    "(walk,rounds), each on the same drape")
+    p.add_argument("--settles", default="", help="also time the walk with these `GuideConfig.body_settle` [m], "
+                   "comma-separated (e.g. 0,0.0005), each on the same drape")
+    p.add_argument("--face-hints", default="", help="also time the walk with its face hint off / on "
+                   "(`WALK_FACE_HINT`), comma-separated 0,1; crossed with --settles")
     p.add_argument("--walk-block-dims", default="", help="also time the walk's CUDA threads per block, "
                    "comma-separated (e.g. 32,64,128,256), alternated in three rounds on the same drape")
     p.add_argument("--seed", type=int, default=0)

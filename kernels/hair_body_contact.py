@@ -118,7 +118,7 @@ def seam_inside_other_part(sides: wp.vec4, u: Any, v: Any, w: Any):
 
 
 @wp.func
-def body_signed_distance(
+def body_signed_distance_face(
     mesh: wp.uint64,
     vertices: wp.array(dtype=Any),
     faces: wp.array(dtype=wp.int32),
@@ -132,9 +132,10 @@ def body_signed_distance(
     max_dist: float,
     zero_dist: Any,
 ):
-    """Signed distance d [m] from `p` to the mesh (negative inside) and dd/dp.
+    """Signed distance d [m] from `p` to the mesh (negative inside), dd/dp and the closest face.
 
-    Returns (found, d, gradient): found = 0 when no face lies strictly within `max_dist`
+    Returns (found, d, gradient, face), face the mesh-local index of the closest face (-1 when
+    none is found): found = 0 when no face lies strictly within `max_dist`
     (then d = 0, gradient = 0); 2 when the closest face is a piece on a self-intersection's
     crossing whose side of the other part is not known (`seam_sides`), whose sign is the winding
     number's (`winding_signed`; a pass of its own, `hair_body_energy_winding_kernel` and
@@ -166,7 +167,7 @@ def body_signed_distance(
     p32 = wp.vec3(wp.float32(p[0]), wp.float32(p[1]), wp.float32(p[2]))
     q = wp.mesh_query_point_no_sign(mesh, p32, max_dist)
     if not q.result:
-        return 0, zero, p * zero
+        return 0, zero, p * zero, -1
     a = vertices[vertex_offset + faces[3 * q.face + 0]]
     b = vertices[vertex_offset + faces[3 * q.face + 1]]
     c = vertices[vertex_offset + faces[3 * q.face + 2]]
@@ -191,10 +192,33 @@ def body_signed_distance(
     if dist2 > zero_dist * zero_dist:
         # n: unit (p - closest), exactly the face normal's direction in the face region.
         dist, n, grad_a, grad_b, grad_c = point_triangle_distance_gradient_at(p, a, b, c, u, v, w)
-        return found, sign * dist, sign * n
+        return found, sign * dist, sign * n, q.face
     # On the surface: the outward face normal (whatever side rounding put p on).
     normal = wp.cross(b - a, c - a)
-    return found, sign * wp.sqrt(dist2), normal / wp.length(normal)
+    return found, sign * wp.sqrt(dist2), normal / wp.length(normal), q.face
+
+
+@wp.func
+def body_signed_distance(
+    mesh: wp.uint64,
+    vertices: wp.array(dtype=Any),
+    faces: wp.array(dtype=wp.int32),
+    vertex_normals: wp.array(dtype=Any),
+    edge_normals: wp.array(dtype=Any),
+    first_piece: int,
+    seam_sides: wp.array(dtype=wp.vec4),
+    vertex_offset: int,
+    edge_offset: int,
+    p: Any,
+    max_dist: float,
+    zero_dist: Any,
+):
+    """`body_signed_distance_face` without the face: (found, d, gradient)."""
+    found, d, g, face = body_signed_distance_face(
+        mesh, vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides, vertex_offset, edge_offset, p,
+        max_dist, zero_dist,
+    )
+    return found, d, g
 
 
 # Past a ray's hit [m] before the next query: the same face is not hit twice.

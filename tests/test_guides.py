@@ -254,12 +254,14 @@ def _hanging_groom(rng, count=40, n=24):
                      root_index=torch.arange(count), filtered=torch.zeros(0, dtype=torch.int64))
 
 
-@pytest.mark.parametrize("shape, reach, schedule", [("sphere", 1.0, "walk"), ("box", 1.0, "walk"), ("sphere", 4.0, "walk"),
-                                                     ("box", 4.0, "walk"), ("sphere", 1.0, "rounds"),
-                                                     ("box", 1.0, "rounds")])
-def test_body_pass_leaves_no_follower_inside_and_keeps_rest_lengths(rng, shape, reach, schedule, monkeypatch):
-    """Whatever the queries' reach (an empty ball clears the vertices after it without a query)
-    and their schedule (vertex after vertex, or in rounds)."""
+@pytest.mark.parametrize("shape, reach, schedule, settle", [
+    ("sphere", 1.0, "walk", 0.0), ("box", 1.0, "walk", 0.0), ("sphere", 4.0, "walk", 0.0), ("box", 4.0, "walk", 0.0),
+    ("sphere", 1.0, "walk", 5e-4), ("box", 1.0, "walk", 5e-4), ("sphere", 1.0, "rounds", 0.0),
+    ("box", 1.0, "rounds", 0.0)])
+def test_body_pass_leaves_no_follower_inside_and_keeps_rest_lengths(rng, shape, reach, schedule, settle, monkeypatch):
+    """Whatever the queries' reach (an empty ball clears the vertices after it without a query),
+    their schedule (vertex after vertex, or in rounds) and whether the walk settles a pushed
+    vertex on its query's tangent plane."""
     import hairwarp.ops.guide_interpolation as ops_guides
 
     monkeypatch.setattr(ops_guides, "QUERY_REACH_SEGMENTS", reach)
@@ -269,7 +271,7 @@ def test_body_pass_leaves_no_follower_inside_and_keeps_rest_lengths(rng, shape, 
     else:
         v, f = box([-0.02, -0.04, -0.03], [0.06, 0.03, 0.05])
     body = BodyMesh(torch.tensor(v, dtype=torch.float32), torch.tensor(f, dtype=torch.int32))
-    guides = GuideSet.build(groom, GuideConfig(num_guides=8, body_passes=8, body_schedule=schedule))
+    guides = GuideSet.build(groom, GuideConfig(num_guides=8, body_passes=8, body_schedule=schedule, body_settle=settle))
     guide_positions = groom.strands[guides.guide_indices][None]
     before, _ = guides.follow(guide_positions, torch.eye(3)[None])
     assert bool((hair_body_signed_distance(before, body)[:, :, 2:] < 0).any())  # the case has followers inside
@@ -283,6 +285,29 @@ def test_body_pass_leaves_no_follower_inside_and_keeps_rest_lengths(rng, shape, 
     torch.testing.assert_close(lengths[followers], rest[followers], atol=1e-5, rtol=1e-4)
     assert int(facts["pushed"].sum()) > 0
     torch.testing.assert_close(after[0, guides.guide_indices], guide_positions[0])  # the guides stay the method's
+
+
+@pytest.mark.parametrize("shape", ["sphere", "box"])
+def test_the_walks_face_hint_changes_no_position(rng, shape, monkeypatch):
+    """Capping a query at the strand's last closest face finds the same closest faces: the same
+    positions and pushes as the full-reach queries."""
+    import hairwarp.ops.guide_interpolation as ops_guides
+
+    groom = _hanging_groom(rng)
+    if shape == "sphere":
+        v, f = icosphere(8, radius=0.05, center=(0.03, 0.0, 0.0))
+    else:
+        v, f = box([-0.02, -0.04, -0.03], [0.06, 0.03, 0.05])
+    body = BodyMesh(torch.tensor(v, dtype=torch.float32), torch.tensor(f, dtype=torch.int32))
+    guides = GuideSet.build(groom, GuideConfig(num_guides=8))
+    now = torch.tensor(bend(groom.strands[guides.guide_indices].double().numpy(), 0.3), dtype=torch.float32)[None]
+    results = {}
+    for hint in (False, True):
+        monkeypatch.setattr(ops_guides, "WALK_FACE_HINT", hint)
+        results[hint] = guides.follow(now, torch.eye(3)[None], body)
+    assert int(results[False][1]["pushed"].sum()) > 0
+    torch.testing.assert_close(results[True][0], results[False][0], atol=1e-6, rtol=0)
+    assert torch.equal(results[True][1]["pushed"], results[False][1]["pushed"])
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")

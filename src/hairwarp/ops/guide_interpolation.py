@@ -37,6 +37,9 @@ QUERY_REACH_SEGMENTS = 1.0
 # alternated rounds): 10 000 strands 4.93 / 4.90 / 4.91 / 5.18 ms, 100 000 strands 9.32 / 9.44 /
 # 9.65 / 9.78 ms.
 WALK_THREADS_PER_BLOCK = 32
+# The walk caps each query at the distance to the strand's last closest face (`face_hint` of
+# `follow_guides_kernel`): the same faces, a smaller ball for the tree's descent.
+WALK_FACE_HINT = True
 # How `follow_guides` orders its work (its docstring).
 SCHEDULES = ("walk", "rounds")
 
@@ -212,7 +215,7 @@ def follow_guides(guides_rest: torch.Tensor, guides_now: torch.Tensor, rotations
                   project: bool = True, body=None, guide_signed_distance: torch.Tensor | None = None,
                   margin: float = 1.0e-3, passes: int = 3, reach_segments: float | None = None,
                   schedule: str = "walk", rest_lengths: torch.Tensor | None = None,
-                  check: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+                  settle: float = 0.0, check: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
     """Every strand of a groom from its guides: interpolated, projected onto its rest lengths,
     kept out of the body.
 
@@ -244,6 +247,9 @@ def follow_guides(guides_rest: torch.Tensor, guides_now: torch.Tensor, rotations
         schedule: "walk" or "rounds" (above).
         rest_lengths: (M, N-1) float32 the followers' rest segment lengths [m] if the caller keeps
             them (100 000 strands: 0.26 ms a call on a GPU to compute); None: computed.
+        settle: "walk": a pushed vertex is not queried again where the length projection moved it
+            less than this from where the push put it [m] (it is then at least margin - settle
+            out); 0: always queried again (up to `passes`).
         check: as in `guide_frame_rotations`.
 
     Returns:
@@ -271,6 +277,8 @@ def follow_guides(guides_rest: torch.Tensor, guides_now: torch.Tensor, rotations
         reach_segments = QUERY_REACH_SEGMENTS
     if schedule not in SCHEDULES:
         raise ValueError(f"schedule: expected one of {SCHEDULES}, got {schedule!r}")
+    if not settle >= 0:
+        raise ValueError(f"settle: expected a number >= 0 [m], got {settle}")
     if not reach_segments >= 1:
         raise ValueError(f"reach_segments: expected a number >= 1, got {reach_segments}")
     if guide_slot is None:
@@ -304,7 +312,8 @@ def follow_guides(guides_rest: torch.Tensor, guides_now: torch.Tensor, rotations
         return targets, pushed
     if schedule == "walk":
         inputs = [targets_wp, _warp.as_warp(target_bound), slot, lengths_wp, *body_arrays, m, n, int(body is not None),
-                  float(margin), int(passes), float(reach_segments), float(_ZERO_DISTANCE[torch.float32])]
+                  float(margin), int(passes), float(reach_segments), float(_ZERO_DISTANCE[torch.float32]),
+                  float(settle), int(WALK_FACE_HINT)]
         _run_shared(kernels.follow_guides_kernel, batch * m, device, inputs, [x, pushed_wp], WALK_THREADS_PER_BLOCK)
         return out, pushed
     cleared_at, surface, normal = torch.zeros_like(out), torch.zeros_like(out), torch.zeros_like(out)

@@ -76,6 +76,9 @@ class GuideConfig:
             thread per strand) or "rounds" (all queries of a round at once; faster on a GPU at
             10 000 strands, with more vertices left inside;
             `hairwarp.ops.guide_interpolation.follow_guides`, docs/guides.md).
+        body_settle: the walk does not query a pushed vertex again where the length projection
+            moved it less than this from where the push put it [m]; 0: it is queried again, up
+            to `body_passes` times (`follow_guides`' `settle`).
         cuda_graph: on CUDA, `GuideSet.follow` of one frame replays its launches from a CUDA
             graph from the second call on with the same shapes, settings and body (a per-frame
             loop that moves its body with `BodyMesh.update`): the launches' host work, ~1 ms a
@@ -89,6 +92,7 @@ class GuideConfig:
     body_margin: float = 1.0e-3
     body_passes: int = 3
     body_schedule: str = "walk"
+    body_settle: float = 0.0
     cuda_graph: bool = True
 
     def __post_init__(self):
@@ -98,6 +102,8 @@ class GuideConfig:
                 raise ValueError(f"{name}: expected an integer >= {0 if name == 'body_passes' else 1}, got {value!r}")
         if not self.shape_weight >= 0:
             raise ValueError(f"shape_weight: expected a number >= 0, got {self.shape_weight}")
+        if not self.body_settle >= 0:
+            raise ValueError(f"body_settle: expected a number >= 0 [m], got {self.body_settle}")
         if not self.body_margin >= 0:
             raise ValueError(f"body_margin: expected a number >= 0 [m], got {self.body_margin}")
         from hairwarp.ops.guide_interpolation import SCHEDULES
@@ -317,7 +323,8 @@ class GuideSet:
         return follow_guides(on["guides_rest"], guides, rotations, on["rest"], *on["link"], guide_slot=on["guide_slot"],
                              body=body, guide_signed_distance=guide_signed_distance,
                              margin=self.config.body_margin, passes=self.config.body_passes,
-                             schedule=self.config.body_schedule, rest_lengths=on["rest_lengths"], check=False)
+                             schedule=self.config.body_schedule, rest_lengths=on["rest_lengths"],
+                             settle=self.config.body_settle, check=False)
 
     def _replayed(self, inputs: tuple, body) -> tuple[torch.Tensor, torch.Tensor]:
         """`_launches` from a CUDA graph: eager at the first call with a key (shapes, dtypes,
