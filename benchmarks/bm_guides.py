@@ -12,8 +12,8 @@ the K guides with L-BFGS at one frame of a motion, then measures, side by side i
   and of all strands, after the drape and for the rigid placement;
 - with `--schedules walk,rounds`, the same two timings, the share inside and the deepest follower
   vertex for each body-pass schedule (`GuideConfig.body_schedule`), and with `--settles 0,0.0005`
-  for the walk with each `GuideConfig.body_settle`, `--face-hints 0,1` and `--body-grids 0,1`
-  crossed with those (alternated in three rounds);
+  for the walk with each `GuideConfig.body_settle`, and `--face-hints 0,1` crossed with those
+  (alternated in three rounds);
 - on CUDA the interpolation + body pass also without its CUDA graph (`GuideConfig.cuda_graph`:
   the timed calls reuse one body, so from the second call on they replay a graph);
 - with `--walk-block-dims 32,64,128,256`, the interpolation + body pass with the walk's CUDA
@@ -176,10 +176,6 @@ def measure_groom(num_strands: int, args, device: torch.device) -> dict:
                   {"body_schedule": "walk", "body_settle": float(t or 0.0), "hint": bool(int(v))})
                  for v in filter(None, args.face_hints.split(","))
                  for t in (filter(None, args.settles.split(",")) if args.settles else [None])]
-    variants += [(f"walk, body grid {int(v)}" + (f", settle {float(t) * 1e3:g} mm" if t else ""),
-                  {"body_schedule": "walk", "body_settle": float(t or 0.0), "body_grid": bool(int(v))})
-                 for v in filter(None, args.body_grids.split(","))
-                 for t in (filter(None, args.settles.split(",")) if args.settles else [None])]
     if variants:
         # Each body-pass variant on the same drape; the timings alternated in three rounds (the
         # median round), so that a machine's drift within the run falls on all of them alike.
@@ -283,8 +279,6 @@ def main(argv=None) -> int:
                    "comma-separated (e.g. 0,0.0005), each on the same drape")
     p.add_argument("--face-hints", default="", help="also time the walk with its face hint off / on "
                    "(`WALK_FACE_HINT`), comma-separated 0,1; crossed with --settles")
-    p.add_argument("--body-grids", default="", help="also time the walk with its body grid off / on "
-                   "(`GuideConfig.body_grid`), comma-separated 0,1; crossed with --settles")
     p.add_argument("--walk-block-dims", default="", help="also time the walk's CUDA threads per block, "
                    "comma-separated (e.g. 32,64,128,256), alternated in three rounds on the same drape")
     p.add_argument("--seed", type=int, default=0)

@@ -41,13 +41,7 @@ import warp as wp
 
 from hairwarp.config import NUM_FIXED_VERTICES
 from hairwarp.kernels.distances import point_triangle_closest_barycentric
-from hairwarp.kernels.body_grid import body_grid_closest_face
-from hairwarp.kernels.hair_body_contact import (
-    body_signed_distance,
-    body_signed_distance_at_face,
-    body_signed_distance_face,
-    winding_signed,
-)
+from hairwarp.kernels.hair_body_contact import body_signed_distance, body_signed_distance_face, winding_signed
 
 wp.set_module_options({"enable_backward": False})
 
@@ -283,13 +277,6 @@ def follow_guides_kernel(
     zero_dist: float,
     settle: float,
     face_hint: int,
-    grid_inv_cell: float,
-    grid_reach: float,
-    grid_buckets: int,
-    grid_capacity: int,
-    grid_start: wp.array(dtype=wp.int32),
-    grid_count: wp.array(dtype=wp.int32),
-    grid_faces: wp.array(dtype=wp.int32),
     first_thread: int,
     out: wp.array(dtype=wp.vec3),
     pushed: wp.array(dtype=wp.int32),
@@ -317,9 +304,7 @@ def follow_guides_kernel(
     that confirmed it was a second or third link in the strand's chain of queries.
     With `face_hint` each query is capped at the distance to the closest face of the strand's
     last query (that face lies within it; the closest one can only be nearer), so that the
-    tree's descent prunes more; the same faces are found (up to ties). With a grid
-    (`grid_buckets` > 0, `hairwarp.kernels.body_grid`, one body: batch 1) a query whose radius is
-    within the grid's reach reads its cell's bucket instead of descending the tree.
+    tree's descent prunes more; the same faces are found (up to ties).
     The strand slides over the body; every segment keeps its rest length. out (B*M*N,), pushed
     (B*M,): vertices the body pass moved.
     """
@@ -363,24 +348,11 @@ def follow_guides_kernel(
                                 x, body_vertices[vo + faces[3 * hint + 0]], body_vertices[vo + faces[3 * hint + 1]],
                                 body_vertices[vo + faces[3 * hint + 2]])
                             reach = wp.min(reach, wp.sqrt(hint_d2) * HINT_SLACK + HINT_PAD)
-                        # A short query from the grid's bucket where it can tell (batch 1 only).
-                        state, face = body_grid_closest_face(
-                            x, reach, body_vertices, faces, 0, grid_inv_cell, grid_reach, grid_buckets, grid_capacity,
-                            grid_start, grid_count, grid_faces)
-                        found = int(0)
-                        d = float(0.0)
-                        g = wp.vec3(0.0, 0.0, 0.0)
-                        if state == 2:
-                            found, d, g, face = body_signed_distance_face(
-                                mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece,
-                                seam_sides, body * body_vertex_count, body * body_face_count * 3, x, reach,
-                                zero_dist,
-                            )
-                        elif state == 1:
-                            found, d, g = body_signed_distance_at_face(
-                                face, body_vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides,
-                                body * body_vertex_count, body * body_face_count * 3, x, zero_dist,
-                            )
+                        found, d, g, face = body_signed_distance_face(
+                            mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece,
+                            seam_sides, body * body_vertex_count, body * body_face_count * 3, x, reach,
+                            zero_dist,
+                        )
                         d, g = winding_signed(winding_ids[body], x, found, d, g, zero_dist)
                         if found == 0:
                             clear = reach

@@ -118,54 +118,6 @@ def seam_inside_other_part(sides: wp.vec4, u: Any, v: Any, w: Any):
 
 
 @wp.func
-def body_signed_distance_at_face(
-    face: int,
-    vertices: wp.array(dtype=Any),
-    faces: wp.array(dtype=wp.int32),
-    vertex_normals: wp.array(dtype=Any),
-    edge_normals: wp.array(dtype=Any),
-    first_piece: int,
-    seam_sides: wp.array(dtype=wp.vec4),
-    vertex_offset: int,
-    edge_offset: int,
-    p: Any,
-    zero_dist: Any,
-):
-    """`body_signed_distance`'s (found, d, gradient) once the closest face (mesh-local) is known,
-    from the BVH or from `hairwarp.kernels.body_grid`.
-    """
-    zero = zero_dist * type(zero_dist)(0.0)
-    a = vertices[vertex_offset + faces[3 * face + 0]]
-    b = vertices[vertex_offset + faces[3 * face + 1]]
-    c = vertices[vertex_offset + faces[3 * face + 2]]
-    u, v, w, dist2 = point_triangle_closest_barycentric(p, a, b, c)
-    pseudo = feature_pseudo_normal(
-        vertex_normals, edge_normals, faces, vertex_offset, edge_offset, face, a, b, c, u, v, w
-    )
-    offset = p - (u * a + v * b + w * c)
-    sign = type(zero_dist)(-1.0)
-    if wp.dot(offset, pseudo) > zero:
-        sign = type(zero_dist)(1.0)
-    found = 1
-    if face >= first_piece:
-        # A piece on the crossing: an "outside" verdict is wrong where the closest point lies
-        # strictly inside the other part (the piece juts into it); "inside" is never wrong (a
-        # point outside the union has its closest point on the union's boundary).
-        sides = seam_sides[edge_offset // 3 + face]
-        if sides[3] != 0.0:
-            found = 2
-        elif sign > zero and seam_inside_other_part(sides, u, v, w):
-            sign = -sign
-    if dist2 > zero_dist * zero_dist:
-        # n: unit (p - closest), exactly the face normal's direction in the face region.
-        dist, n, grad_a, grad_b, grad_c = point_triangle_distance_gradient_at(p, a, b, c, u, v, w)
-        return found, sign * dist, sign * n
-    # On the surface: the outward face normal (whatever side rounding put p on).
-    normal = wp.cross(b - a, c - a)
-    return found, sign * wp.sqrt(dist2), normal / wp.length(normal)
-
-
-@wp.func
 def body_signed_distance_face(
     mesh: wp.uint64,
     vertices: wp.array(dtype=Any),
@@ -216,11 +168,34 @@ def body_signed_distance_face(
     q = wp.mesh_query_point_no_sign(mesh, p32, max_dist)
     if not q.result:
         return 0, zero, p * zero, -1
-    found, d, g = body_signed_distance_at_face(
-        q.face, vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides, vertex_offset, edge_offset, p,
-        zero_dist,
+    a = vertices[vertex_offset + faces[3 * q.face + 0]]
+    b = vertices[vertex_offset + faces[3 * q.face + 1]]
+    c = vertices[vertex_offset + faces[3 * q.face + 2]]
+    u, v, w, dist2 = point_triangle_closest_barycentric(p, a, b, c)
+    pseudo = feature_pseudo_normal(
+        vertex_normals, edge_normals, faces, vertex_offset, edge_offset, q.face, a, b, c, u, v, w
     )
-    return found, d, g, q.face
+    offset = p - (u * a + v * b + w * c)
+    sign = type(zero_dist)(-1.0)
+    if wp.dot(offset, pseudo) > zero:
+        sign = type(zero_dist)(1.0)
+    found = 1
+    if q.face >= first_piece:
+        # A piece on the crossing: an "outside" verdict is wrong where the closest point lies
+        # strictly inside the other part (the piece juts into it); "inside" is never wrong (a
+        # point outside the union has its closest point on the union's boundary).
+        sides = seam_sides[edge_offset // 3 + q.face]
+        if sides[3] != 0.0:
+            found = 2
+        elif sign > zero and seam_inside_other_part(sides, u, v, w):
+            sign = -sign
+    if dist2 > zero_dist * zero_dist:
+        # n: unit (p - closest), exactly the face normal's direction in the face region.
+        dist, n, grad_a, grad_b, grad_c = point_triangle_distance_gradient_at(p, a, b, c, u, v, w)
+        return found, sign * dist, sign * n, q.face
+    # On the surface: the outward face normal (whatever side rounding put p on).
+    normal = wp.cross(b - a, c - a)
+    return found, sign * wp.sqrt(dist2), normal / wp.length(normal), q.face
 
 
 @wp.func

@@ -18,7 +18,6 @@ import warp as wp
 from hairwarp import _warp
 from hairwarp._validate import check_tensor
 from hairwarp.kernels import guide_interpolation as kernels
-from hairwarp.ops.body_grid import no_grid_args
 
 INDEX_DTYPES = (torch.int32, torch.int64)
 # A CPU launch of at least twice this many threads is split between two cores (`_run_shared`).
@@ -216,7 +215,7 @@ def follow_guides(guides_rest: torch.Tensor, guides_now: torch.Tensor, rotations
                   project: bool = True, body=None, guide_signed_distance: torch.Tensor | None = None,
                   margin: float = 1.0e-3, passes: int = 3, reach_segments: float | None = None,
                   schedule: str = "walk", rest_lengths: torch.Tensor | None = None,
-                  settle: float = 0.0, body_grid=None, check: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+                  settle: float = 0.0, check: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
     """Every strand of a groom from its guides: interpolated, projected onto its rest lengths,
     kept out of the body.
 
@@ -251,8 +250,6 @@ def follow_guides(guides_rest: torch.Tensor, guides_now: torch.Tensor, rotations
         settle: "walk": a pushed vertex is not queried again where the length projection moved it
             less than this from where the push put it [m] (it is then at least margin - settle
             out); 0: always queried again (up to `passes`).
-        body_grid: "walk": a filled `hairwarp.ops.body_grid.BodyFaceGrid` of `body` (one mesh) for
-            the short queries; None: every query descends the BVH (the same positions).
         check: as in `guide_frame_rotations`.
 
     Returns:
@@ -280,8 +277,6 @@ def follow_guides(guides_rest: torch.Tensor, guides_now: torch.Tensor, rotations
         reach_segments = QUERY_REACH_SEGMENTS
     if schedule not in SCHEDULES:
         raise ValueError(f"schedule: expected one of {SCHEDULES}, got {schedule!r}")
-    if body_grid is not None and body is not None and body_grid.body is not body:
-        raise ValueError("body_grid: expected a BodyFaceGrid of `body`")
     if not settle >= 0:
         raise ValueError(f"settle: expected a number >= 0 [m], got {settle}")
     if not reach_segments >= 1:
@@ -318,8 +313,7 @@ def follow_guides(guides_rest: torch.Tensor, guides_now: torch.Tensor, rotations
     if schedule == "walk":
         inputs = [targets_wp, _warp.as_warp(target_bound), slot, lengths_wp, *body_arrays, m, n, int(body is not None),
                   float(margin), int(passes), float(reach_segments), float(_ZERO_DISTANCE[torch.float32]),
-                  float(settle), int(WALK_FACE_HINT),
-                  *(no_grid_args(device) if body_grid is None or body is None else body_grid.kernel_args())]
+                  float(settle), int(WALK_FACE_HINT)]
         _run_shared(kernels.follow_guides_kernel, batch * m, device, inputs, [x, pushed_wp], WALK_THREADS_PER_BLOCK)
         return out, pushed
     cleared_at, surface, normal = torch.zeros_like(out), torch.zeros_like(out), torch.zeros_like(out)

@@ -79,10 +79,6 @@ class GuideConfig:
         body_settle: the walk does not query a pushed vertex again where the length projection
             moved it less than this from where the push put it [m]; 0: it is queried again, up
             to `body_passes` times (`follow_guides`' `settle`).
-        body_grid: the walk answers its short queries (a few millimetres from the surface) from a
-            hashed grid of the body's faces refilled every call (`hairwarp.ops.body_grid`)
-            instead of the BVH: the same positions, a shorter chain of dependent loads per query.
-            None: on CUDA only (on the CPU the chain's latency is not what costs).
         cuda_graph: on CUDA, `GuideSet.follow` of one frame replays its launches from a CUDA
             graph from the second call on with the same shapes, settings and body (a per-frame
             loop that moves its body with `BodyMesh.update`): the launches' host work, ~1 ms a
@@ -97,7 +93,6 @@ class GuideConfig:
     body_passes: int = 3
     body_schedule: str = "walk"
     body_settle: float = 0.0
-    body_grid: bool | None = None
     cuda_graph: bool = True
 
     def __post_init__(self):
@@ -107,8 +102,6 @@ class GuideConfig:
                 raise ValueError(f"{name}: expected an integer >= {0 if name == 'body_passes' else 1}, got {value!r}")
         if not self.shape_weight >= 0:
             raise ValueError(f"shape_weight: expected a number >= 0, got {self.shape_weight}")
-        if self.body_grid not in (None, True, False):
-            raise ValueError(f"body_grid: expected None, True or False, got {self.body_grid!r}")
         if not self.body_settle >= 0:
             raise ValueError(f"body_settle: expected a number >= 0 [m], got {self.body_settle}")
         if not self.body_margin >= 0:
@@ -327,31 +320,11 @@ class GuideSet:
 
         on = self._on(guides.device)
         rotations = guide_frame_rotations(on["guides_rest"], guides, head, check=False)
-        grid = self._body_grid(body)
-        if grid is not None:
-            grid.fill()
         return follow_guides(on["guides_rest"], guides, rotations, on["rest"], *on["link"], guide_slot=on["guide_slot"],
                              body=body, guide_signed_distance=guide_signed_distance,
                              margin=self.config.body_margin, passes=self.config.body_passes,
                              schedule=self.config.body_schedule, rest_lengths=on["rest_lengths"],
-                             settle=self.config.body_settle, body_grid=grid, check=False)
-
-    def _body_grid(self, body):
-        """The walk's `BodyFaceGrid` of `body` (kept while the body object is), or None."""
-        import weakref
-
-        from hairwarp.ops.body_grid import BodyFaceGrid
-
-        use = self.config.body_grid
-        if use is None:
-            use = body is not None and body.device.type == "cuda"
-        if not use or body is None or self.config.body_schedule != "walk" or body.batch_size != 1:
-            return None
-        kept = self.__dict__.get("_grid")
-        if kept is None or kept[0]() is not body:
-            kept = (weakref.ref(body), BodyFaceGrid(body))
-            self.__dict__["_grid"] = kept
-        return kept[1]
+                             settle=self.config.body_settle, check=False)
 
     def _replayed(self, inputs: tuple, body) -> tuple[torch.Tensor, torch.Tensor]:
         """`_launches` from a CUDA graph: eager at the first call with a key (shapes, dtypes,
