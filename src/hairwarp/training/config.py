@@ -390,7 +390,9 @@ class StaticTrainingConfig(_TrainingConfig):
             2.55 to 1.24 x E*, but curly hair pushed deep into the body by a nod rose from 1.65
             to 3.91 x E* with 1.57 % inside (docs/network_diagnosis.md, ninth session, S8).
             "lower_where_clean": "lower" on the samples whose rigid placement has no free vertex
-            inside the body, "network" on the others (not yet trained).
+            inside the body, "network" on the others. Trained the same way (pool 48): 3 000
+            steps gave the long hair at rest 1.48 x E* and the curly nod 1.27; 6 000 steps 1.32
+            and 2.16 (0.42 % inside) (docs/network_diagnosis.md, tenth session).
         energy: overrides of `hairwarp.config.EnergyConfig` fields (b_p is set per step).
         data: what the sampler draws.
     """
