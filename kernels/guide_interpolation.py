@@ -371,7 +371,7 @@ def follow_guides_kernel(
                         count += 1
                         # pushed_to lies at the margin (the push is along the closest point's
                         # normal); the signed distance is 1-Lipschitz.
-                        if wp.length(x - pushed_to) <= settle:
+                        if settle > 0.0 and wp.length(x - pushed_to) <= settle:
                             break
         out[base + i] = x
         leader = x
