@@ -25,6 +25,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 def main(argv=None) -> int:
     from diagnose_networks import load_scene, machine, write_json
+    from static_rows import SCENES as STATIC_ROWS
 
     from hairwarp.energy import total_energy
     from hairwarp.methods import MethodOptions, make
@@ -34,7 +35,8 @@ def main(argv=None) -> int:
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--device", default="cpu")
-    p.add_argument("--scenes", default="long_rest,bob_rest,medium_poses,table1")
+    p.add_argument("--scenes", default="long_rest,bob_rest,medium_poses,table1",
+                   help="comparison scenes, grown rest scenes, or tools/static_rows.py rows, comma-separated")
     p.add_argument("--strand-stride", type=int, default=4)
     p.add_argument("--teacher-iterations", type=int, default=800)
     p.add_argument("--checkpoint", default=None, help="the static network (default: the shipped one)")
@@ -46,7 +48,14 @@ def main(argv=None) -> int:
     options = MethodOptions(checkpoint=args.checkpoint, progress=False)
     teacher = PhysicsMethod(options, PhysicsConfig(static_max_iterations=args.teacher_iterations))
     for name in args.scenes.split(","):
-        scene, size = load_scene(name, args.strand_stride)
+        if name in STATIC_ROWS:  # the held-out rows of tools/static_rows.py (e.g. the curly nod)
+            import hairwarp as hw
+
+            scene = hw.build_scene(strand_stride=args.strand_stride, **STATIC_ROWS[name])
+            size = {"strands": scene.hairstyle.num_strands, "strand_stride": args.strand_stride,
+                    "made_by": f"hw.build_scene(strand_stride={args.strand_stride}, **{STATIC_ROWS[name]!r})"}
+        else:
+            scene, size = load_scene(name, args.strand_stride)
         frames = scene.frames([0], device=device)
         config = scene_energy_config(options, frames)
 
