@@ -254,23 +254,28 @@ def _hanging_groom(rng, count=40, n=24):
                      root_index=torch.arange(count), filtered=torch.zeros(0, dtype=torch.int64))
 
 
+def _sphere_or_box(shape: str) -> BodyMesh:
+    """A body the hanging groom's followers pass through: a sphere or a box."""
+    if shape == "sphere":
+        v, f = icosphere(8, radius=0.05, center=(0.03, 0.0, 0.0))
+    else:
+        v, f = box([-0.02, -0.04, -0.03], [0.06, 0.03, 0.05])
+    return BodyMesh(torch.tensor(v, dtype=torch.float32), torch.tensor(f, dtype=torch.int32))
+
+
 @pytest.mark.parametrize("shape, reach, schedule, settle", [
     ("sphere", 1.0, "walk", 0.0), ("box", 1.0, "walk", 0.0), ("sphere", 4.0, "walk", 0.0), ("box", 4.0, "walk", 0.0),
     ("sphere", 1.0, "walk", 5e-4), ("box", 1.0, "walk", 5e-4), ("sphere", 1.0, "rounds", 0.0),
     ("box", 1.0, "rounds", 0.0)])
 def test_body_pass_leaves_no_follower_inside_and_keeps_rest_lengths(rng, shape, reach, schedule, settle, monkeypatch):
     """Whatever the queries' reach (an empty ball clears the vertices after it without a query),
-    their schedule (vertex after vertex, or in rounds) and whether the walk settles a pushed
-    vertex on its query's tangent plane."""
+    their schedule (vertex after vertex, or in rounds) and whether the walk skips a pushed
+    vertex's confirming query (`body_settle`)."""
     import hairwarp.ops.guide_interpolation as ops_guides
 
     monkeypatch.setattr(ops_guides, "QUERY_REACH_SEGMENTS", reach)
     groom = _hanging_groom(rng)
-    if shape == "sphere":
-        v, f = icosphere(8, radius=0.05, center=(0.03, 0.0, 0.0))
-    else:
-        v, f = box([-0.02, -0.04, -0.03], [0.06, 0.03, 0.05])
-    body = BodyMesh(torch.tensor(v, dtype=torch.float32), torch.tensor(f, dtype=torch.int32))
+    body = _sphere_or_box(shape)
     guides = GuideSet.build(groom, GuideConfig(num_guides=8, body_passes=8, body_schedule=schedule, body_settle=settle))
     guide_positions = groom.strands[guides.guide_indices][None]
     before, _ = guides.follow(guide_positions, torch.eye(3)[None])
@@ -294,11 +299,7 @@ def test_the_walks_face_hint_changes_no_position(rng, shape, monkeypatch):
     import hairwarp.ops.guide_interpolation as ops_guides
 
     groom = _hanging_groom(rng)
-    if shape == "sphere":
-        v, f = icosphere(8, radius=0.05, center=(0.03, 0.0, 0.0))
-    else:
-        v, f = box([-0.02, -0.04, -0.03], [0.06, 0.03, 0.05])
-    body = BodyMesh(torch.tensor(v, dtype=torch.float32), torch.tensor(f, dtype=torch.int32))
+    body = _sphere_or_box(shape)
     guides = GuideSet.build(groom, GuideConfig(num_guides=8))
     now = torch.tensor(bend(groom.strands[guides.guide_indices].double().numpy(), 0.3), dtype=torch.float32)[None]
     results = {}
