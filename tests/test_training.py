@@ -596,6 +596,17 @@ def test_the_teacher_of_both_starts_is_per_sample_the_lower_one(static_config, s
         trainer = StaticTrainer(cfg, sampler=sampler, seed=0)
         batch = trainer.training_batch(0)
         teachers[start] = batch.teacher
+        if start in ("lower", "lower_where_clean"):
+            # The record of the choice: one entry per sample, the winner by its own energies.
+            record = trainer._teacher.choices[-1]
+            n = batch.teacher.shape[0]
+            assert all(len(v) == n for v in record.values())
+            by_energy = torch.tensor(record["energy_rigid_start"]) < torch.tensor(record["energy_network_start"])
+            if start == "lower_where_clean":
+                by_energy &= torch.tensor(record["rigid_inside_percent"]) == 0
+            assert record["rigid_chosen"] == by_energy.tolist()
+            assert all(0.0 <= p <= 100.0 for p in record["rigid_inside_percent"])
+            assert all(length > 0.0 for length in record["mean_strand_length_m"])
         with torch.no_grad():
             energies[start] = total_energy(batch.teacher, batch.inputs, physics).total
             clean = (hair_body_signed_distance(batch.rigid, trainer._teacher.solver.body)[:, :, 2:] >= 0

@@ -151,6 +151,16 @@ def _finish(trainer, args, kind: str, info: dict, start: float) -> None:
         "shipped_bytes": os.path.getsize(ship),
         "device": torch.cuda.get_device_name() if torch.cuda.is_available() else "cpu",
     })
+    choices = getattr(getattr(trainer, "_teacher", None), "choices", None)
+    if choices:
+        # Which teacher start won per sample (teacher_start "lower" / "lower_where_clean"), with
+        # what may decide it: the rigid placement's penetration and the hair's length.
+        chosen = [c for r in choices for c in r["rigid_chosen"]]
+        inside = [p for r in choices for p in r["rigid_inside_percent"]]
+        info["teacher_choices"] = {
+            "samples": len(chosen), "rigid_chosen": int(sum(chosen)),
+            "rigid_chosen_where_rigid_clean": int(sum(c for c, p in zip(chosen, inside) if p == 0)),
+            "rigid_clean": int(sum(p == 0 for p in inside)), "batches": choices}
     with open(os.path.join(args.out, f"train_{kind}.json"), "w") as f:
         json.dump(info, f, indent=1)
     print(json.dumps(info, indent=1))

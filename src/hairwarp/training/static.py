@@ -209,6 +209,10 @@ class _DrapeTeacher:
         self.trainer = trainer
         self.solver = None
         self.shape = None
+        # With two starts, per solved batch: which start won per sample, both teachers' energies,
+        # the rigid placement's share of free vertices inside the body and the mean strand length
+        # (what decides the choice, for the diagnosis of docs/network_diagnosis.md).
+        self.choices: list[dict] = []
 
     def _physics_config(self):
         from hairwarp.solvers.physics import PhysicsConfig
@@ -251,13 +255,15 @@ class _DrapeTeacher:
                 starts.append(apply_deformation(batch.rigid, deformation, batch.root_uv, length_projection_of(model)))
         # Per sample, whether the rigid start may be taken ("lower_where_clean": only where the
         # rigid placement has no free vertex inside the body).
-        rigid_allowed = None
-        if config.teacher_start == "lower_where_clean":
+        rigid_allowed = rigid_inside = None
+        if config.teacher_start in ("lower", "lower_where_clean"):
             from hairwarp.ops import hair_body_signed_distance
 
             with torch.no_grad():
-                sd = hair_body_signed_distance(batch.rigid.detach(), solver.body)
-            rigid_allowed = (sd[:, :, NUM_FIXED_VERTICES:] >= 0).flatten(1).all(dim=1)
+                free = hair_body_signed_distance(batch.rigid.detach(), solver.body)[:, :, NUM_FIXED_VERTICES:]
+            rigid_inside = (free < 0).flatten(1).double().mean(dim=1) * 100.0
+            if config.teacher_start == "lower_where_clean":
+                rigid_allowed = rigid_inside == 0
         if config.teacher_start in ("rigid", "lower") or (rigid_allowed is not None and bool(rigid_allowed.any())):
             starts.append(batch.rigid)
         best = best_energy = None
@@ -275,6 +281,11 @@ class _DrapeTeacher:
                 lower = energy < best_energy
                 if rigid_allowed is not None:
                     lower = lower & rigid_allowed
+                self.choices.append({
+                    "rigid_chosen": lower.tolist(), "energy_network_start": best_energy.tolist(),
+                    "energy_rigid_start": energy.tolist(), "rigid_inside_percent": rigid_inside.tolist(),
+                    "mean_strand_length_m":
+                        batch.inputs.rest_lengths.sum(dim=-1).mean(dim=-1).expand(lower.shape[0]).tolist()})
                 best = torch.where(lower[:, None, None, None], x, best)
                 best_energy = torch.where(lower, energy, best_energy)
         return best
