@@ -576,8 +576,9 @@ def test_the_teacher_of_both_starts_is_per_sample_the_lower_one(static_config, s
     """teacher_start "lower": the physics teacher solved from the network's drape and from the
     rigid placement, per sample the one of lower energy; "rigid" and "network" are those two;
     "lower_where_clean" takes the rigid start only where the rigid placement has no free vertex
-    inside the body. The untrained test network's drape is the rigid placement to a millimetre,
-    so its drape here is the rigid placement lifted 3 cm at the tips (a start of its own)."""
+    inside the body, and "rigid_where_clean" there whatever the energies. The untrained test
+    network's drape is the rigid placement to a millimetre, so its drape here is the rigid
+    placement lifted 3 cm at the tips (a start of its own)."""
     from hairwarp.ops import hair_body_signed_distance
     from hairwarp.training import static as static_training
     from hairwarp.training.config import energy_config
@@ -589,22 +590,23 @@ def test_the_teacher_of_both_starts_is_per_sample_the_lower_one(static_config, s
     monkeypatch.setattr(static_training, "apply_deformation", lifted)
     physics = energy_config(static_config.energy, barrier_join_fraction=static_config.bp_end)
     teachers, energies = {}, {}
-    for start in ("network", "rigid", "lower", "lower_where_clean"):
+    for start in ("network", "rigid", "lower", "lower_where_clean", "rigid_where_clean"):
         cfg = static_config.replace(phase_steps=(0, 0, 0, 4), teacher_iterations=200, teacher_pool=1,
                                     teacher_start=start)
         torch.manual_seed(0)
         trainer = StaticTrainer(cfg, sampler=sampler, seed=0)
         batch = trainer.training_batch(0)
         teachers[start] = batch.teacher
-        if start in ("lower", "lower_where_clean"):
+        if start in ("lower", "lower_where_clean", "rigid_where_clean") and trainer._teacher.choices:
             # The record of the choice: one entry per sample, the winner by its own energies.
             record = trainer._teacher.choices[-1]
             n = batch.teacher.shape[0]
             assert all(len(v) == n for v in record.values())
             by_energy = torch.tensor(record["energy_rigid_start"]) < torch.tensor(record["energy_network_start"])
-            if start == "lower_where_clean":
-                by_energy &= torch.tensor(record["rigid_inside_percent"]) == 0
-            assert record["rigid_chosen"] == by_energy.tolist()
+            clean_rigid = torch.tensor(record["rigid_inside_percent"]) == 0
+            expected = {"lower": by_energy, "lower_where_clean": by_energy & clean_rigid,
+                        "rigid_where_clean": clean_rigid}[start]
+            assert record["rigid_chosen"] == expected.tolist()
             assert all(0.0 <= p <= 100.0 for p in record["rigid_inside_percent"])
             assert all(length > 0.0 for length in record["mean_strand_length_m"])
         with torch.no_grad():
@@ -620,7 +622,8 @@ def test_the_teacher_of_both_starts_is_per_sample_the_lower_one(static_config, s
     assert bool(apart.any())
     lower_is_rigid = energies["rigid"] < energies["network"]
     assert clean is not None
-    for start, take_rigid in (("lower", lower_is_rigid), ("lower_where_clean", lower_is_rigid & clean)):
+    for start, take_rigid in (("lower", lower_is_rigid), ("lower_where_clean", lower_is_rigid & clean),
+                              ("rigid_where_clean", clean)):
         to_rigid, to_network = gap(teachers[start], teachers["rigid"]), gap(teachers[start], teachers["network"])
         nearest = torch.where(take_rigid, to_rigid, to_network)
         assert bool((nearest[apart] < 5e-4).all()), (start, nearest)

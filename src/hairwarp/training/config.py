@@ -38,7 +38,7 @@ BP_SCHEDULES = ("linear", "geometric")
 LOSS_NORMALIZATIONS = ("none", "rigid", "inverse")
 TEACHER_KINDS = ("physics", "map")
 # Where the physics teacher's solve starts (`StaticTrainingConfig.teacher_start`).
-TEACHER_STARTS = ("network", "rigid", "lower", "lower_where_clean")
+TEACHER_STARTS = ("network", "rigid", "lower", "lower_where_clean", "rigid_where_clean")
 INERTIA_TIME_STEPS = ("interval", "frame")
 # Energy added to the rigid placement's before dividing by it ("rigid" normalization): keeps
 # samples that start at rest (energy near its minimum) from being magnified.
@@ -393,6 +393,11 @@ class StaticTrainingConfig(_TrainingConfig):
             inside the body, "network" on the others. Trained the same way (pool 48): 3 000
             steps gave the long hair at rest 1.48 x E* and the curly nod 1.27; 6 000 steps 1.32
             and 2.16 (0.42 % inside) (docs/network_diagnosis.md, tenth session).
+            "rigid_where_clean": the rigid start wherever the rigid placement has nothing inside,
+            the network's elsewhere, with no energy test. Over 384 training samples the two
+            starts' teachers were within 1 % in energy and "lower" took either half the time, so
+            similar samples got targets from two resting states; this rule is stable from sample
+            to sample (not yet trained).
         energy: overrides of `hairwarp.config.EnergyConfig` fields (b_p is set per step).
         data: what the sampler draws.
     """

@@ -253,16 +253,17 @@ class _DrapeTeacher:
                 deformation = network_deformation(model, batch.z, batch.betas, batch.poses, batch.rigid,
                                                   batch.root_uv, solver.body, clip)
                 starts.append(apply_deformation(batch.rigid, deformation, batch.root_uv, length_projection_of(model)))
-        # Per sample, whether the rigid start may be taken ("lower_where_clean": only where the
-        # rigid placement has no free vertex inside the body).
+        # Per sample, whether the rigid start may be taken ("lower_where_clean", and
+        # "rigid_where_clean" without the energy test: only where the rigid placement has no free
+        # vertex inside the body).
         rigid_allowed = rigid_inside = None
-        if config.teacher_start in ("lower", "lower_where_clean"):
+        if config.teacher_start in ("lower", "lower_where_clean", "rigid_where_clean"):
             from hairwarp.ops import hair_body_signed_distance
 
             with torch.no_grad():
                 free = hair_body_signed_distance(batch.rigid.detach(), solver.body)[:, :, NUM_FIXED_VERTICES:]
             rigid_inside = (free < 0).flatten(1).double().mean(dim=1) * 100.0
-            if config.teacher_start == "lower_where_clean":
+            if config.teacher_start in ("lower_where_clean", "rigid_where_clean"):
                 rigid_allowed = rigid_inside == 0
         if config.teacher_start in ("rigid", "lower") or (rigid_allowed is not None and bool(rigid_allowed.any())):
             starts.append(batch.rigid)
@@ -277,9 +278,11 @@ class _DrapeTeacher:
                                                                       barrier_join_fraction=config.bp_end)).total
             if best is None:
                 best, best_energy = x, energy
-            else:  # per sample, the teacher of lower energy
+            else:  # per sample, the teacher of lower energy (or, "rigid_where_clean", of a clean start)
                 lower = energy < best_energy
-                if rigid_allowed is not None:
+                if config.teacher_start == "rigid_where_clean":
+                    lower = rigid_allowed
+                elif rigid_allowed is not None:
                     lower = lower & rigid_allowed
                 self.choices.append({
                     "rigid_chosen": lower.tolist(), "energy_network_start": best_energy.tolist(),
