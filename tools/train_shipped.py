@@ -154,8 +154,8 @@ def _finish(trainer, args, kind: str, info: dict, start: float) -> None:
     choices = getattr(getattr(trainer, "_teacher", None), "choices", None)
     if choices:
         # Which teacher start won per sample (teacher_start "lower", "lower_where_clean" or
-        # "rigid_where_clean"), with
-        # what may decide it: the rigid placement's penetration and the hair's length.
+        # "rigid_where_clean"), with what may decide it: the rigid placement's penetration and
+        # the hair's length.
         chosen = [c for r in choices for c in r["rigid_chosen"]]
         inside = [p for r in choices for p in r["rigid_inside_percent"]]
         info["teacher_choices"] = {
