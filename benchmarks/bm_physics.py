@@ -11,6 +11,9 @@ of the first frame (the `reference` drape: tight tolerance); then
   the trajectory distance of `physics` to it per frame (mean vertex distance [mm]);
 - per step: from the tight trajectory's states, one `physics` step against the tight step
   (mean vertex distance [mm]): every step's own error, without the drift.
+With `--variant NAME:FIELD=VALUE,...` (repeatable) each variant of the fast setting runs in turn,
+`--rounds` times alternated, against the same start and tight trajectory (speed compared within
+one run); without, the one fast setting the flags give.
 Writes OUT/physics.json.
 """
 
@@ -38,6 +41,10 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--max-iterations", type=int, default=None, help="the fast setting's iteration cap per step")
     parser.add_argument("--stiffness-scaling", type=float, default=None,
                         help="the fast setting's PhysicsConfig.stiffness_scaling (0: unscaled variables)")
+    parser.add_argument("--variant", action="append", default=[],
+                        help="NAME:FIELD=VALUE,... a PhysicsConfig variant of the fast setting (repeatable), "
+                             "e.g. list3mm:hair_hair_list=1,hair_hair_list_skin=0.003")
+    parser.add_argument("--rounds", type=int, default=1, help="with --variant: alternated rounds of the variants")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default="hairwarp-out")
     return parser
@@ -45,6 +52,38 @@ def _parser() -> argparse.ArgumentParser:
 
 def _mean_distance_mm(a: torch.Tensor, b: torch.Tensor) -> float:
     return float((a - b).norm(dim=-1)[..., 2:].mean()) * 1e3
+
+
+def _variants(specs: list[str], base) -> dict:
+    """{name: PhysicsConfig} of `--variant` specs (values parsed as numbers or booleans)."""
+    from hairwarp.solvers.physics import PhysicsConfig
+
+    fields = {f for f in PhysicsConfig.__dataclass_fields__}
+    variants = {}
+    for spec in specs:
+        name, _, body = spec.partition(":")
+        changes = {}
+        for item in filter(None, body.split(",")):
+            key, _, value = item.partition("=")
+            if key not in fields:
+                raise SystemExit(f"--variant {spec!r}: {key!r} is not a PhysicsConfig field")
+            kind = type(getattr(base, key))
+            changes[key] = (value.lower() in ("1", "true", "on")) if kind is bool or getattr(base, key) is None \
+                else kind(float(value)) if kind is int else float(value)
+        variants[name or f"variant{len(variants)}"] = replace(base, **changes)
+    return variants
+
+
+def _per_step(solver, posed, tight, steps) -> tuple[list[float], list[int]]:
+    """From the tight states, one step of `solver` at each of `steps` against the tight step."""
+    distances, iterations = [], []
+    for t in steps:
+        solver.set_frame(posed.rigid.positions[t:t + 1], posed.rigid.normals[t:t + 1], posed.posed.vertices[t:t + 1])
+        solver.set_state(tight.positions[t - 1], tight.positions[t - 2])
+        report = solver.step()
+        distances.append(_mean_distance_mm(solver.prev, tight.positions[t]))
+        iterations.append(report.iterations)
+    return distances, iterations
 
 
 def main(argv=None) -> dict:
@@ -61,8 +100,11 @@ def main(argv=None) -> dict:
     changes = {"tolerance": args.tolerance, "max_iterations": args.max_iterations,
                "stiffness_scaling": args.stiffness_scaling}
     fast_config = replace(PhysicsConfig(), **{k: v for k, v in changes.items() if v is not None})
+    variants = _variants(args.variant, fast_config)
     record = {"machine": machine_description(device), "physics": fast_config.__dict__,
               "tight": tight_config.__dict__, "motions": {}}
+    if variants:
+        record["variants"] = {name: config.__dict__ for name, config in variants.items()}
     for name in args.motions.split(","):
         scene = comparison_scene(name, reduced=False, strand_stride=args.strand_stride).scene
         frames = list(range(scene.num_frames if args.frames <= 0 else min(args.frames, scene.num_frames)))
@@ -70,24 +112,51 @@ def main(argv=None) -> dict:
         print(f"{name}: {strands} x {vertices}, {len(frames)} frames on {device}", flush=True)
         start = simulate_physics(scene, frames[:1], device=device, config=tight_config)
         x0 = start.positions[0]
-        fast = simulate_physics(scene, frames, device=device, config=fast_config, initial=x0)
-        fast_again = simulate_physics(scene, frames, device=device, config=fast_config, initial=x0)  # warm
         tight = simulate_physics(scene, frames, device=device, config=tight_config, initial=x0)
-        trajectory = [_mean_distance_mm(a, b) for a, b in zip(fast_again.positions, tight.positions)]
-        # Each step on its own: from the tight states, one fast step against the tight step.
         energy_config = EnergyConfig().replace(time_step=1.0 / float(scene.motion.fps))
         posed = scene.frames(frames, device=device, build_body=False)
-        body = BodyMesh(posed.posed.vertices[:1], scene.body.faces.to(device=device, dtype=torch.int32), bvh="lbvh")
         rest = scene.rest_lengths.to(device)
-        solver = PhysicsSolver(rest, posed.rigid.positions[:1], posed.rigid.normals[:1], body, energy_config, fast_config)
-        per_step, per_step_iterations = [], []
         steps = range(2, min(len(frames), 2 + args.per_step))
-        for t in steps:
-            solver.set_frame(posed.rigid.positions[t:t + 1], posed.rigid.normals[t:t + 1], posed.posed.vertices[t:t + 1])
-            solver.set_state(tight.positions[t - 1], tight.positions[t - 2])
-            report = solver.step()
-            per_step.append(_mean_distance_mm(solver.prev, tight.positions[t]))
-            per_step_iterations.append(report.iterations)
+        if variants:
+            runs = {name: [] for name in variants}
+            for _ in range(max(1, args.rounds) + 1):  # the first round warms up (compiles, captures)
+                for name, config in variants.items():
+                    runs[name].append(simulate_physics(scene, frames, device=device, config=config, initial=x0))
+            entry = {"strands": strands, "vertices": vertices, "frames": len(frames), "variants": {}}
+            for name, config in variants.items():
+                timed = runs[name][1:]
+                body = BodyMesh(posed.posed.vertices[:1], scene.body.faces.to(device=device, dtype=torch.int32),
+                                bvh="lbvh")
+                solver = PhysicsSolver(rest, posed.rigid.positions[:1], posed.rigid.normals[:1], body, energy_config,
+                                       config)
+                per_step, per_step_iterations = _per_step(solver, posed, tight, steps)
+                medians = [statistics.median(run.frame_ms[1:]) for run in timed]
+                trajectory = [_mean_distance_mm(a, b) for a, b in zip(timed[-1].positions, tight.positions)]
+                entry["variants"][name] = {
+                    "ms_per_frame_median_by_round": medians,
+                    "iterations": [run.iterations[1:] for run in timed],
+                    "rebuilds": [[r.rebuilds for r in run.reports[1:]] for run in timed],
+                    "stop_reasons": timed[-1].stop_reasons[1:],
+                    "trajectory_distance_mm": trajectory, "per_step_distance_mm": per_step,
+                    "per_step_iterations": per_step_iterations,
+                }
+                rebuilds = statistics.mean(r.rebuilds for run in timed for r in run.reports[1:])
+                its = statistics.mean(i for run in timed for i in run.iterations[1:])
+                print(f"  {name}: {' / '.join(f'{m:.1f}' for m in medians)} ms/frame (median by round), "
+                      f"{its:.1f} iterations, {rebuilds:.2f} rebuilds a step; 10 frames max "
+                      f"{max(trajectory[:10]):.3f} mm, all max {max(trajectory):.3f} mm, per step max "
+                      f"{max(per_step):.3f} mm", flush=True)
+            entry["tight_ms_median"] = statistics.median(tight.frame_ms[1:]) if len(frames) > 1 else None
+            entry["tight_iterations"] = tight.iterations[1:]
+            record["motions"][name] = entry
+            continue
+        fast = simulate_physics(scene, frames, device=device, config=fast_config, initial=x0)
+        fast_again = simulate_physics(scene, frames, device=device, config=fast_config, initial=x0)  # warm
+        trajectory = [_mean_distance_mm(a, b) for a, b in zip(fast_again.positions, tight.positions)]
+        # Each step on its own: from the tight states, one fast step against the tight step.
+        body = BodyMesh(posed.posed.vertices[:1], scene.body.faces.to(device=device, dtype=torch.int32), bvh="lbvh")
+        solver = PhysicsSolver(rest, posed.rigid.positions[:1], posed.rigid.normals[:1], body, energy_config, fast_config)
+        per_step, per_step_iterations = _per_step(solver, posed, tight, steps)
         synchronize(device)
         motion = [_mean_distance_mm(tight.positions[t], tight.positions[0]) for t in range(len(frames))]
         entry = {

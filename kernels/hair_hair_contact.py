@@ -540,6 +540,7 @@ def hair_hair_candidates_kernel(
     # In:
     x_in: wp.array(dtype=Any),
     candidates_in: wp.array(dtype=wp.int32),
+    candidate_count: wp.array(dtype=wp.int32),
     queried_in: wp.array(dtype=wp.int32),
     num_vertices: int,
     num_strands: int,
@@ -560,10 +561,13 @@ def hair_hair_candidates_kernel(
     """Of candidate pairs (i < j, different strands, past the root segments: a reused pair list),
     write those closer than the cutoff, except pairs with a segment that queried this call
     (`queried_in`: `hair_hair_pairs_cpu_kernel` found those); with `with_energy` != 0 also add
-    their energy and gradient (as `hair_hair_pairs_cpu_kernel`).
+    their energy and gradient (as `hair_hair_pairs_cpu_kernel`). Launched over the list's
+    buffer: rows k >= min(candidate_count, rows) are empty (a graph's list is filled on the device).
     """
     bp = join_fraction[0]  # a device scalar: a captured graph follows its value
     k = wp.tid()
+    if k >= wp.min(candidate_count[0], candidates_in.shape[0] // 2):
+        return
     i = candidates_in[2 * k]
     j = candidates_in[2 * k + 1]
     if queried_in[i] != 0 or queried_in[j] != 0:
@@ -1279,3 +1283,21 @@ def hair_hair_long_pairs_kernel(
             _write_pair_if_close(x_in, i, j, strand_i, vi, p0, p1, num_vertices, num_strands,
                                  skip_root_segments, cutoff2, capacity, with_energy, xi, dhat, bp, weight,
                                  variant, count_out, pairs_out, energy_out, gradient_out)
+
+
+@wp.kernel
+def pair_list_stale_kernel(
+    # In:
+    x_in: wp.array(dtype=Any),
+    reference_in: wp.array(dtype=Any),
+    threshold: Any,
+    # Out:
+    stale_out: wp.array(dtype=wp.int32),
+):
+    """stale_out[0] = 1 if vertex v is more than `threshold` from where the pair list was built
+    (a Verlet list built at cutoff + skin holds every pair within the cutoff while no vertex has
+    moved more than skin / 2: two segments' distance changes by at most their vertices' moves).
+    """
+    v = wp.tid()
+    if wp.length_sq(x_in[v] - reference_in[v]) > threshold * threshold:
+        stale_out[0] = 1

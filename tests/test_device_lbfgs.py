@@ -176,12 +176,13 @@ def test_cuda_graph_backtracking_equals_eager():
     torch.testing.assert_close(graph.positions, eager.positions, atol=1e-4, rtol=0)
 
 
-def test_kept_curvature_products_equal_recomputed_ones():
+@pytest.mark.parametrize("passes", ["warp", "torch"])
+def test_kept_curvature_products_equal_recomputed_ones(passes):
     """The solver keeps s_k . y_j as pairs enter (two products per step); after many steps,
     stores, skips and clears it equals S Y^T computed afresh."""
     x0 = torch.tensor([-1.2, 1.0, -0.5, 2.0, 0.0, 0.0], dtype=torch.float64)
     solver = DirectOptimizationConfig(lbfgs_line_search="backtracking", lbfgs_history=4, lbfgs_max_step=10.0)
-    opt = DeviceLBFGS(_rosenbrock, x0, solver, chunk=1, point_size=2)
+    opt = DeviceLBFGS(_rosenbrock, x0, solver, chunk=1, point_size=2, passes=passes)
     for _ in range(25):
         opt.iterate()
         torch.testing.assert_close(opt.SY, opt.S @ opt.Y.T, rtol=1e-9, atol=1e-12)
@@ -198,14 +199,16 @@ def test_auto_line_search_is_backtracking_only_on_cuda_graphs():
     assert line_search(DirectOptimizationConfig(lbfgs_line_search="backtracking"), torch.device("cpu")) == "backtracking"
 
 
-def test_kernel_direction_equals_the_closed_form_through_stores_skips_and_clears():
-    """`iterate`'s direction (Warp kernels: the two loops on one thread, the (m, n) products by
-    torch) equals `lbfgs_direction` on the same state, step after step around the ring; where the
-    memory's direction does not descend (or the memory is empty) it is -min(1, 1/|g|_1) g."""
+@pytest.mark.parametrize("passes", ["warp", "torch"])
+def test_kernel_direction_equals_the_closed_form_through_stores_skips_and_clears(passes):
+    """The direction `iterate` leaves for the next trial (Warp kernels: block sums over n, the two
+    loops on one thread) equals `lbfgs_direction` on the same state, step after step around the
+    ring; where the memory's direction does not descend (or the memory is empty) it is
+    -min(1, 1/|g|_1) g."""
     x0 = torch.tensor([-1.2, 1.0, -0.5, 2.0, 0.0, 0.0, 1.5, -0.3], dtype=torch.float64)
     solver = DirectOptimizationConfig(lbfgs_line_search="backtracking", lbfgs_history=3, lbfgs_max_step=10.0,
                                       lbfgs_restart=1)  # every rejection clears the memory
-    opt = DeviceLBFGS(_rosenbrock, x0, solver, chunk=1, point_size=2)
+    opt = DeviceLBFGS(_rosenbrock, x0, solver, chunk=1, point_size=2, passes=passes)
     used = fallback = 0
     for _ in range(60):
         opt.iterate()
@@ -213,10 +216,53 @@ def test_kernel_direction_equals_the_closed_form_through_stores_skips_and_clears
         order = (opt.head - torch.arange(m)) % m
         if float(opt.rho[opt.head]) != 0.0:
             expected = lbfgs_direction(opt.g, opt.S, opt.Y, opt.rho, opt.gamma, opt.SY, order)
-            torch.testing.assert_close(opt.d, expected, rtol=1e-9, atol=1e-12)
+            torch.testing.assert_close(opt.direction(), expected, rtol=1e-9, atol=1e-12)
             used += 1
         else:
             first = min(1.0, 1.0 / float(opt.g.abs().sum()))
-            torch.testing.assert_close(opt.d, -first * opt.g, rtol=1e-12, atol=0.0)
+            torch.testing.assert_close(opt.direction(), -first * opt.g, rtol=1e-12, atol=0.0)
             fallback += 1
     assert used >= 10 and fallback >= 5  # both branches, many times
+
+
+def _stiff_quartic(x, graph_safe):
+    """A badly scaled convex quadratic plus a quartic over points of three (float64), for many
+    stores and a full ring."""
+    x = x.detach().requires_grad_(True)
+    with torch.enable_grad():
+        scales = torch.logspace(0, 3, x.numel(), dtype=x.dtype)
+        f = 0.5 * (scales * (x - 0.3) ** 2).sum() + 0.25 * (x.view(-1, 3).square().sum(dim=1) ** 2).sum()
+        (g,) = torch.autograd.grad(f, x)
+    return f.detach(), g, 0
+
+
+def test_warp_and_torch_passes_take_the_same_steps():
+    """The passes over n as Warp kernels with block sums (the CUDA path, run here on the CPU) and as
+    torch products (the CPU path) feed the same decisions: the same iterates, losses, memory and
+    next direction, step after step, through rejections and a wrapped ring."""
+    gen = torch.Generator().manual_seed(3)
+    x0 = 3 * torch.randn(3 * 67, generator=gen, dtype=torch.float64)
+    solver = DirectOptimizationConfig(lbfgs_line_search="backtracking", lbfgs_history=5, lbfgs_max_step=2.0)
+    runs = {p: DeviceLBFGS(_stiff_quartic, x0, solver, chunk=1, passes=p) for p in ("warp", "torch")}
+    rejected = 0
+    for _ in range(40):
+        for opt in runs.values():
+            opt.iterate()
+        warp_run, torch_run = runs["warp"], runs["torch"]
+        rejected += int(warp_run.flags[0]) == 0
+        # The sums' order differs (block sums against products), so float64 rounding, growing slowly.
+        for name in ("x", "g", "f", "S", "Y", "rho", "SY", "gamma", "head", "t", "g_norm1", "gmax"):
+            expected = getattr(torch_run, name)
+            scale = float(expected.abs().max()) if expected.is_floating_point() else 0.0
+            torch.testing.assert_close(getattr(warp_run, name), expected, rtol=1e-8, atol=1e-10 * max(1.0, scale),
+                                       msg=name)
+        torch.testing.assert_close(warp_run.direction(), torch_run.direction(), rtol=1e-8, atol=1e-10)
+    assert float(runs["warp"].f) < 0.05 * float(_stiff_quartic(x0, False)[0])
+    assert bool((runs["warp"].rho > 0).all())  # the ring filled and wrapped
+    assert rejected >= 1
+
+
+def test_torch_passes_are_refused_off_the_cpu():
+    with pytest.raises(ValueError, match="passes"):
+        DeviceLBFGS(_rosenbrock, torch.zeros(4, dtype=torch.float64), DirectOptimizationConfig(), chunk=1,
+                    point_size=2, passes="numpy")

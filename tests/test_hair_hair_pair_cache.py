@@ -211,3 +211,56 @@ def test_fused_pass_gives_the_pair_energies_of_the_plain_pass(rng, dtype):
         np.testing.assert_allclose(g_cached.numpy(), g_fresh.numpy(), rtol=rtol,
                                    atol=rtol * float(g_fresh.abs().max()))
     assert cache.builds >= 1 and cache.calls == 5
+
+
+def test_device_pair_list_gives_the_fresh_energy_within_reach_and_marks_stale_past_it(rng):
+    """`HairHairPairList` (the physics' list in CUDA graphs; the cells broad phase runs on the CPU
+    here): at positions moved less than 0.45 skin from its build, the energy and gradient of a
+    fresh broad phase; `mark_stale` stays 0 there and turns 1 once a vertex moved farther; a
+    build there serves again."""
+    x0 = torch.tensor(ref.random_hair(rng, batch=2, strands=12, vertices=14, extent=0.015, segment=3e-3))
+    pair_list = hh.HairHairPairList(x0.shape[:3], XI + DHAT, SKIN, capacity=4096, device="cpu", dtype=x0.dtype)
+    pair_list.build(x0)
+    assert 0 < int(pair_list.count) <= pair_list.capacity and not pair_list.overflowed()
+
+    def energy(x):
+        xg = x.clone().requires_grad_(True)
+        e, info = hair_hair_contact_energy(xg, XI, DHAT, BP, WEIGHT, pair_list=pair_list)
+        (g,) = torch.autograd.grad(e.sum(), xg)
+        return e.detach(), g, info
+
+    near = x0 + torch.tensor(rng.uniform(-1.0, 1.0, size=x0.shape)) * (0.25 * SKIN)  # every vertex within 0.45 skin
+    for x in (x0, near):
+        e_fresh, g_fresh, n_fresh = _energy_and_gradient(x)
+        e_list, g_list, info = energy(x)
+        assert n_fresh > 0 and float(g_fresh.abs().max()) > 0
+        torch.testing.assert_close(e_list, e_fresh, rtol=RTOL, atol=0)
+        torch.testing.assert_close(g_list, g_fresh, rtol=RTOL, atol=1e-12 * float(g_fresh.abs().max()))
+        assert info.pair_count == int(pair_list.count)
+        pair_list.mark_stale(x)
+        assert int(pair_list.stale) == 0
+    far = near.clone()
+    far[1, 4, 9:] += torch.tensor([0.6 * SKIN, 0.0, 0.0], dtype=far.dtype)
+    pair_list.mark_stale(far)
+    assert int(pair_list.stale) == 1
+    pair_list.build(far)
+    assert int(pair_list.stale) == 0
+    torch.testing.assert_close(energy(far)[0], _energy_and_gradient(far)[0], rtol=RTOL, atol=0)
+
+
+def test_device_pair_list_overflow_and_arguments():
+    x = torch.zeros(1, 3, 5, 3)
+    x[:, :, :, 2] = torch.linspace(0, 0.01, 5)
+    x[0, 1, :, 0] = 1e-3
+    x[0, 2, :, 0] = 2e-3
+    pair_list = hh.HairHairPairList(x.shape[:3], XI + DHAT, SKIN, capacity=1, device="cpu")
+    pair_list.build(x)
+    assert int(pair_list.count) > 1 and pair_list.overflowed()
+    with pytest.raises(ValueError, match="capacity"):
+        hh.HairHairPairList(x.shape[:3], XI + DHAT, SKIN, capacity=0, device="cpu")
+    with pytest.raises(ValueError, match="skin"):
+        hh.HairHairPairList(x.shape[:3], XI + DHAT, 0.0, capacity=8, device="cpu")
+    with pytest.raises(ValueError, match="pair_list"):
+        hair_hair_contact_energy(torch.zeros(1, 2, 5, 3), XI, DHAT, BP, WEIGHT, pair_list=pair_list)
+    with pytest.raises(ValueError, match="pair_list"):
+        hair_hair_contact_energy(x, XI, DHAT, BP, WEIGHT, pair_list=pair_list, pair_cache=HairHairPairCache())

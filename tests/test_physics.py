@@ -99,13 +99,37 @@ def test_fast_physics_stays_near_the_tight_solve(whiplash):
     assert torch.allclose(fast.positions[:, 0, :, :2], rigid[:, :, :2], atol=1e-6)
 
 
+def test_steps_on_the_device_pair_list_land_where_the_pair_cache_steps_do():
+    """The CUDA graphs' hair-hair pair list (`PhysicsConfig.hair_hair_list`, run eagerly on the CPU
+    here): built at each step's start, built again after a chunk that left the iterate out of its
+    reach; the steps land where those on the CPU pair cache (a fresh broad phase's pairs) do."""
+    from hairwarp.energy import total_energy
+
+    scene = comparison_scene("whiplash", strand_stride=16, num_vertices=24).scene
+    frames = range(0, 5)
+    cached = simulate_physics(scene, frames)
+    # A skin of 0.3 mm: the list is left behind within a step or two.
+    config = PhysicsConfig(hair_hair_list=True, hair_hair_list_skin=3e-4)
+    listed = simulate_physics(scene, frames, config=config, initial=cached.positions[0])
+    assert sum(r.rebuilds for r in listed.reports) > 0  # the list left behind and built again
+    assert sum(r.rebuilds for r in cached.reports) == 0
+    posed = scene.frames([4], build_body=False)
+    terms = total_energy(listed.positions[-1], posed.inputs, terms=("hair_hair_contact",)).terms
+    assert float(terms["hair_hair_contact"]) > 0  # the hair touches itself: the list had work to do
+    distance = (listed.positions - cached.positions).norm(dim=-1)[..., 2:].mean(dim=(1, 2, 3))
+    assert float(distance.max()) < 2e-4  # metres
+    assert all(r == "tolerance" for r in listed.stop_reasons[1:])
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device; this machine has none")
 def test_cuda_graph_steps_match_eager_steps(whiplash):
     from dataclasses import replace
 
     config = PhysicsConfig()
     graph = simulate_physics(whiplash, range(5), device="cuda", config=config)
-    eager = simulate_physics(whiplash, range(5), device="cuda", config=replace(config, cuda_graph=False),
+    # Eager steps keep the graphs' device pair list (`hair_hair_list`), so both take one path.
+    eager = simulate_physics(whiplash, range(5), device="cuda", config=replace(config, cuda_graph=False,
+                                                                             hair_hair_list=True),
                              initial=graph.positions[0])
     assert graph.iterations[1:] == eager.iterations[1:]
     assert float((graph.positions - eager.positions).abs().max()) < 1e-4

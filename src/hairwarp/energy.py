@@ -95,6 +95,7 @@ def total_energy(
     graph_safe: bool = False,
     hair_hair_capacity: int | None = None,
     hair_hair_cache=None,
+    hair_hair_list=None,
     hair_body_cache=None,
     barrier_join_fraction: torch.Tensor | None = None,
 ) -> EnergyResult:
@@ -115,6 +116,9 @@ def total_energy(
         hair_hair_cache: a `hairwarp.ops.hair_hair_contact.HairHairPairCache` that keeps the
             hair-hair pair list across calls (CPU only, not with `graph_safe`): the same
             energy, cheaper for an optimizer's evaluations of slowly moving hair.
+        hair_hair_list: a built `hairwarp.ops.hair_hair_contact.HairHairPairList` (device
+            buffers, graph-safe): hair-hair contact over its stored pairs, exact while its
+            `stale` flag stays 0 (the caller rebuilds it); the physics' steps on CUDA.
         hair_body_cache: a `hairwarp.ops.hair_body_contact.HairBodyDistanceCache` kept across
             calls against a body that does not move (the caller resets it when it does; device
             tensors, graph-safe): the hair-body queries it proves misses are skipped.
@@ -159,6 +163,7 @@ def total_energy(
             capacity=hair_hair_capacity,
             on_overflow="defer" if graph_safe else "grow",
             pair_cache=hair_hair_cache,
+            pair_list=hair_hair_list,
         )
 
     def hair_body_term():

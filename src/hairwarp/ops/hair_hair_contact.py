@@ -527,7 +527,8 @@ def _cell_table_size(num_segments: int) -> int:
 
 def _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy=None):
     """The device broad phase of boxes in hashed cells (`kernels.hair_hair_contact`,
-    `segment_boxes_kernel` ...): returns (run, count) as `_collect` takes them. Any device
+    `segment_boxes_kernel` ...): returns (run, count) as `_collect` takes them (`run(room,
+    out)` writes at most `room` pairs into `out`, by default the shared pair buffer). Any device
     (the CPU runs it in the tests); nothing read back to launch, so it can be captured.
 
     With `energy` (a `_PairEnergyArgs` whose `energy` holds one float64 per segment) the kernels
@@ -591,14 +592,14 @@ def _cell_broad_phase(x4, cutoff, skip_root_segments, cap, energy=None):
     lanes = int(hh_kernels.LONG_LANES)
     list_stride = max(1, num_segments // lanes)  # long segments served at once (more: in turn)
 
-    def run(room):
+    def run(room, out=None):
         count.zero_()
         if energy is not None:  # a rerun ("grow") starts the sums again
             energy.energy.zero_()
             energy.gradient.zero_()
         if energy is not None:
             room = 0  # no pair list
-        pairs = _pair_buffer(device, room, cap)
+        pairs = _pair_buffer(device, room, cap) if out is None else out
         common_out = [_warp.as_warp(count), _warp.as_warp(pairs)] + _PairEnergyArgs.outputs(energy, x4.dtype)
         pair_inputs = [_warp.scalar(cutoff, x4.dtype), room] + _PairEnergyArgs.inputs(energy, x4, 3)
         # The long segments' kernel beside the cells kernel (CUDA): a few hundred threads
@@ -748,11 +749,12 @@ class HairHairPairCache:
         self._key = None
         self._reference = None
         self._candidates = None
+        self._stored = None  # (1,) int32: the rows of _candidates
         self._room = 0  # pair-buffer rows for the next call: 1.25 x the last call's pairs
 
     def reset(self) -> None:
         """Forget the stored list (the next call builds one)."""
-        self._key = self._reference = self._candidates = None
+        self._key = self._reference = self._candidates = self._stored = None
 
     def __repr__(self) -> str:
         stored = 0 if self._candidates is None else self._candidates.shape[0]
@@ -811,6 +813,7 @@ def _cached_broad_phase(x4, cutoff, skip_root_segments, max_pairs, cache: HairHa
                 pairs = pairs[:0]
             return pairs, count, found, requested
         cache._candidates = candidates[:stored].clone()
+        cache._stored = torch.tensor([stored], dtype=torch.int32)
         cache._reference = x4.detach().clone()
         cache._key = key
         cache.builds += 1
@@ -831,7 +834,8 @@ def _cached_broad_phase(x4, cutoff, skip_root_segments, max_pairs, cache: HairHa
             grid.pairs(x4, skip_root_segments, cutoff, queried, count, pairs, room, energy)
         if candidates.shape[0] > 0:
             _warp.launch(hh_kernels.hair_hair_candidates_kernel, dim=candidates.shape[0],
-                         inputs=[x_wp, _warp.as_warp(candidates), _warp.as_warp(queried), n, m,
+                         inputs=[x_wp, _warp.as_warp(candidates), _warp.as_warp(cache._stored),
+                                 _warp.as_warp(queried), n, m,
                               _warp.scalar(cutoff, x4.dtype), room, *_PairEnergyArgs.inputs(energy, x4)],
                          outputs=[_warp.as_warp(count), _warp.as_warp(pairs),
                                *_PairEnergyArgs.outputs(energy, x4.dtype)], device="cpu")
@@ -851,6 +855,99 @@ def _cached_broad_phase(x4, cutoff, skip_root_segments, max_pairs, cache: HairHa
     pairs, count, found, requested = _collect(run, count, requested, cap, requested, num_segments, "grow")
     cache._room = max(found + found // 4, 1)
     return pairs, count, found, requested
+
+
+class HairHairPairList:
+    """A hair-hair pair list kept in device buffers across the calls of CUDA graphs (a Verlet
+    list): the physics' implicit-Euler steps move the hair millimetres over a step's hundred
+    energy calls, where the cells broad phase at every call was 0.31-0.50 ms of a ~1 ms
+    iteration on one H100 (docs/physics.md, section 2).
+
+    `build(x)` stores every pair within cutoff + `skin` at x (the cells broad phase into a fixed
+    buffer) and x itself. An energy call over the list (`hair_hair_contact_energy(...,
+    pair_list=...)`) sums the stored pairs within the cutoff, by their exact distances. While no
+    vertex is more than 0.45 `skin` from where the list was built, the list holds every pair
+    within the cutoff (two segments' distance changes by at most the sum of their vertices'
+    largest moves, 0.9 `skin`), so the energy and gradient are a fresh broad phase's up to the
+    float order of the sums; `mark_stale(x)` raises `stale` where x is past that. Nothing here
+    reads the device: the caller checks the points it keeps (the physics: its iterate, once a
+    chunk; a line search's far trial that is rejected needs no list) and builds again.
+
+    Args:
+        shape: (B, M, N) of the hair.
+        cutoff: xi + dhat of the contact [m].
+        skin: the list's margin [m], > 0.
+        capacity: rows of the pair buffer; a build that finds more pairs writes the first ones
+            and counts them all (`overflowed()`).
+        device, dtype: of the hair.
+        skip_root_segments: as `hair_hair_contact_energy`'s.
+
+    Attributes:
+        pairs: (capacity, 2) int32 flat segment ids (i < j) of the last build.
+        count: (1,) int32 the pairs the last build found (may exceed `capacity`).
+        reference: (B, M, N, 3) the positions of the last build [m].
+        stale: (1,) int32, 1 once `mark_stale` saw a vertex beyond 0.45 `skin` of `reference`.
+    """
+
+    def __init__(self, shape, cutoff: float, skin: float, capacity: int, device, dtype=torch.float32, *,
+                 skip_root_segments: int = DEFAULT_SKIP_ROOT_SEGMENTS):
+        b, m, n = (int(v) for v in shape)
+        self.cutoff = check_positive("cutoff", cutoff)
+        self.skin = check_positive("skin", skin)
+        if int(capacity) < 1:
+            raise ValueError(f"capacity: expected >= 1 pair rows, got {capacity}")
+        self.capacity = int(capacity)
+        self.skip_root_segments = int(skip_root_segments)
+        self.shape = (b, m, n)
+        device = torch.device(device)
+        self.pairs = torch.zeros(self.capacity, 2, dtype=torch.int32, device=device)
+        self.count = torch.zeros(1, dtype=torch.int32, device=device)
+        self.reference = torch.zeros(b, m, n, 3, dtype=dtype, device=device)
+        self.stale = torch.zeros(1, dtype=torch.int32, device=device)
+        self._none_queried = torch.zeros(max(b * m * (n - 1), 1), dtype=torch.int32, device=device)
+
+    def build(self, x: torch.Tensor) -> None:
+        """Store the pairs within cutoff + skin of hair x (B, M, N, 3) and x (graph-safe)."""
+        x4 = x.detach().reshape(*self.shape, 3).contiguous()
+        num_segments = self.shape[0] * self.shape[1] * (self.shape[2] - 1)
+        run, count = _cell_broad_phase(x4, self.cutoff + self.skin, self.skip_root_segments,
+                                       max(self.capacity, default_max_pairs(num_segments)))
+        run(self.capacity, out=self.pairs)
+        self.count.copy_(count)
+        self.reference.copy_(x4)
+        self.stale.zero_()
+
+    def overflowed(self) -> bool:
+        """Whether the last build found more pairs than the buffer holds (reads the device)."""
+        return int(self.count) > self.capacity
+
+    def mark_stale(self, x: torch.Tensor) -> None:
+        """Stale = 1 if a vertex of hair x (B, M, N, 3) is more than 0.45 `skin` from `reference`
+        (graph-safe; stays 1 until the next build).
+        """
+        x4 = x.detach().reshape(*self.shape, 3).contiguous()
+        with _warp.launch_scope(x4.device):
+            _warp.launch(hh_kernels.pair_list_stale_kernel, dim=x4.numel() // 3,
+                         inputs=[_warp.as_warp(x4.reshape(-1, 3), vec3=True),
+                                 _warp.as_warp(self.reference.reshape(-1, 3), vec3=True),
+                                 _warp.scalar(0.45 * self.skin, x4.dtype)],
+                         outputs=[_warp.as_warp(self.stale)], device=_warp.warp_device(x4.device))
+
+    def add_energy(self, x4: torch.Tensor, energy: _PairEnergyArgs) -> None:
+        """Add the listed pairs' energies and gradients at x4 to `energy` (per segment: with_energy
+        3; graph-safe).
+        """
+        b, m, n, _ = x4.shape
+        x_wp = _warp.as_warp(x4.reshape(-1, 3), vec3=True)
+        wp_device = _warp.warp_device(x4.device)
+        per_segment = torch.zeros(b * m * (n - 1), dtype=torch.int32, device=x4.device)
+        with _warp.launch_scope(x4.device):
+            _warp.launch(hh_kernels.hair_hair_candidates_kernel, dim=self.capacity,
+                         inputs=[x_wp, _warp.as_warp(self.pairs), _warp.as_warp(self.count),
+                                 _warp.as_warp(self._none_queried), n, m, _warp.scalar(self.cutoff, x4.dtype), 0,
+                                 *_PairEnergyArgs.inputs(energy, x4, 3)],
+                         outputs=[_warp.as_warp(per_segment), _warp.as_warp(self.pairs),
+                                  *_PairEnergyArgs.outputs(energy, x4.dtype)], device=wp_device)
 
 
 def _pair_energies(x4, pairs, count, energy) -> None:
@@ -996,6 +1093,7 @@ def hair_hair_contact_energy(
     on_overflow: str = "grow",
     max_pairs: int | None = None,
     pair_cache: HairHairPairCache | None = None,
+    pair_list: HairHairPairList | None = None,
 ) -> tuple[torch.Tensor, HairHairContactInfo]:
     """Hair-hair contact energy L_hh of HairFormer Eq. 12, differentiable w.r.t. `x`.
 
@@ -1029,6 +1127,10 @@ def hair_hair_contact_energy(
             `on_overflow="grow"`; `capacity` is then ignored: the buffer follows the last
             call's count). The pairs, so the energy and gradient, are those of a call without
             it; calls on slowly moving hair (an optimizer's iterations) cost less.
+        pair_list: a built `HairHairPairList` of this hair's shape: the energy of its stored
+            pairs (any device, graph-safe; `capacity`, `on_overflow` and `max_pairs` are then
+            the list's own), exact while x is within its reach (`HairHairPairList.mark_stale`).
+            The info's pair count is the list's.
 
     Returns:
         (energy, info): energy of shape (B,) for batched input, () for (M, N, 3), dtype and
@@ -1049,6 +1151,24 @@ def hair_hair_contact_energy(
     variant_id = barrier_variant_id(variant)
     _check_options(capacity, skip_root_segments, on_overflow, max_pairs)
     x4c = x4.contiguous()
+    if pair_list is not None:
+        if not isinstance(pair_list, HairHairPairList):
+            raise ValueError(f"pair_list: expected None or a HairHairPairList, got {type(pair_list).__name__}")
+        if pair_cache is not None:
+            raise ValueError("pair_list, pair_cache: pass one of them")
+        if tuple(x4c.shape[:3]) != pair_list.shape or pair_list.cutoff != xi + dhat:
+            raise ValueError(f"pair_list: built for hair {pair_list.shape} and cutoff {pair_list.cutoff} m, got "
+                             f"{tuple(x4c.shape[:3])} and {xi + dhat} m")
+        b, m, n = x4c.shape[:3]
+        args = _PairEnergyArgs(xi, dhat, join_fraction_tensor(bp, x4c), weight, variant_id,
+                               torch.zeros(max(b * m * (n - 1), 1), dtype=torch.float64, device=x4c.device),
+                               torch.zeros_like(x4c, memory_format=torch.contiguous_format))
+        pair_list.add_energy(x4c.detach(), args)
+        energy = _PrecomputedContactEnergy.apply(x4c, args.energy[:b * m * (n - 1)].view(b, -1).sum(dim=1),
+                                                 args.gradient)
+        if x.dim() == 3:
+            energy = energy[0]
+        return energy, HairHairContactInfo(pair_list.count, pair_list.capacity)
     if pair_cache is not None:
         if not isinstance(pair_cache, HairHairPairCache):
             raise ValueError(f"pair_cache: expected None or a HairHairPairCache, got {type(pair_cache).__name__}")
@@ -1100,6 +1220,7 @@ __all__ = [
     "HairHairCapacityError",
     "HairHairContactInfo",
     "HairHairPairCache",
+    "HairHairPairList",
     "HairHairPairs",
     "hair_hair_contact_energy",
     "hair_hair_contact_pairs",

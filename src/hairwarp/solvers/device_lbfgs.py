@@ -34,8 +34,12 @@ rule, history, progress bar) and the largest hair-hair pair count; a pair count 
 buffer restores the chunk's starting state and captures again with a buffer twice the count.
 On the CPU the same iterations run eagerly (with the hair-hair pair cache). An iteration here
 is one energy evaluation; a rejected trial counts as one. Besides the energy an iteration is
-~25 kernels: the n-sized products by torch (cuBLAS), the decisions and the solves in Warp
-kernels (`hairwarp.kernels.device_lbfgs`).
+seven kernels on CUDA (`hairwarp.kernels.device_lbfgs`): four passes over the n-vectors, each
+summing in blocks what the next decision needs, and three single-thread kernels for the
+decisions and the m x m solves. Before, the n-sized products went through torch (cuBLAS), ~25
+kernels an iteration, ~285 us of a 0.97 ms iteration at full size on one H100 (a 3 x n by n x 3
+Gram product alone 71 us; docs/physics.md, section 2). On the CPU the passes stay torch
+products (`DeviceLBFGS(passes=...)`).
 
 Measured (docs/contact.md, sections 7-14): full-size Table 1 on one H100 reaches the accuracy of
 300 strong-Wolfe iterations (2.1-2.2 s with its energy in a CUDA graph) in 0.45-0.55 s, every run
@@ -97,12 +101,21 @@ def lbfgs_direction(g: torch.Tensor, S: torch.Tensor, Y: torch.Tensor, rho: torc
     return -(r + S.T @ c_rows)
 
 
+# Threads a block of the reductions on CUDA, and the blocks per memory row (each thread then
+# strides over ~n / (chunks * block) components; 1 024 x 98 x 3 = 301 056 of them at full size).
+_REDUCE_BLOCK_DIM = 256
+_ROW_CHUNKS = 64
+_POINT_CHUNKS = 128
+
+
 class DeviceLBFGS:
-    """The solver's state and one iteration of it (torch ops only, nothing read back).
+    """The solver's state and one iteration of it (Warp kernels and the caller's energy; nothing
+    read back).
 
     The memory is a ring buffer: a new pair overwrites the oldest row (no (m, n) shift), the
-    products s_i . y_j are kept as pairs enter (two (m, n) products per step), and a cleared
-    memory is rho = 0 (the rows stay, ignored).
+    products s_i . y_j are kept as pairs enter, and a cleared memory is rho = 0 (the rows stay,
+    ignored). An iteration is seven kernels besides the energy (`hairwarp.kernels.device_lbfgs`);
+    the direction it leaves for the next trial is `direction()`.
 
     Args:
         energy: `energy(x, graph_safe) -> (f, g, pair_count)`: the loss () and its gradient (n,)
@@ -117,6 +130,11 @@ class DeviceLBFGS:
         point_size: components per point of x (3: a step moves no point of x farther than
             `lbfgs_max_step`).
         graph_safe: evaluate with `graph_safe=True` in the iterations (CUDA graphs).
+        passes: who runs the four passes over the n-vectors: "warp" (kernels with block sums,
+            the CUDA default) or "torch" (matrix products on all cores, the CPU default: Warp's
+            CPU kernels run on one thread, 7.6 ms an iteration against ~2 ms at 256 x 100). The
+            decisions are the same single-thread kernels either way; "torch" reads them back, so
+            it runs on the CPU only.
 
     A caller that knows its problem's scales passes scaled variables instead of a preconditioner
     (`hairwarp.solvers.physics`: x = S z): L-BFGS on z is L-BFGS with H0 = gamma S^2, gamma still
@@ -124,12 +142,20 @@ class DeviceLBFGS:
     """
 
     def __init__(self, energy, x0: torch.Tensor, solver, *, chunk: int, point_size: int = 3,
-                 graph_safe: bool = False):
+                 graph_safe: bool = False, passes: str | None = None):
         self.energy, self.solver, self.point_size, self.graph_safe = energy, solver, point_size, graph_safe
+        if passes not in (None, "warp", "torch"):
+            raise ValueError(f"passes: expected None, 'warp' or 'torch', got {passes!r}")
+        self.passes = passes or ("warp" if x0.device.type == "cuda" else "torch")
+        if self.passes == "torch" and x0.device.type != "cpu":
+            raise ValueError(f"passes: 'torch' runs on the CPU only (it reads the decisions back), x0 is on {x0.device}")
         self.device, self.dtype = x0.device, x0.dtype
         x = x0.detach().reshape(-1).clone()
         n, m = x.numel(), solver.lbfgs_history
+        if n % point_size:
+            raise ValueError(f"x0: expected a multiple of point_size={point_size} components, got {n}")
         zeros = dict(device=self.device, dtype=self.dtype)
+        wide = dict(device=self.device, dtype=torch.float64)
         index = dict(device=self.device, dtype=torch.int64)
         self.x = x
         f, g, self.first_count = energy(x, False)
@@ -137,30 +163,44 @@ class DeviceLBFGS:
         self.S = torch.zeros(m, n, **zeros)
         self.Y = torch.zeros(m, n, **zeros)
         self.rho = torch.zeros(m, **zeros)
-        self.SY = torch.zeros(m, m, device=self.device, dtype=torch.float64)  # s_i . y_j, kept as rows enter
+        self.SY = torch.zeros(m, m, **wide)  # s_i . y_j, kept as rows enter
         self.head = torch.full((1,), m - 1, **index)  # the newest row
-        self.steps_back = torch.arange(m, **index)
-        self.gamma = self._first_scale(self.g)
-        self.d = -self.gamma * self.g
+        self.gamma = torch.zeros((), **zeros)
         self.t = torch.ones((), **zeros)
         self.rejections = torch.zeros((), device=self.device, dtype=torch.int32)
         self.trace = torch.zeros(chunk, **zeros)
         self.position = torch.zeros((1,), **index)  # where the next loss goes in trace
         self.pairs = torch.zeros((), **index)  # largest pair count met
-        self.gmax = self.g.abs().max().clone()
+        self.gmax = torch.zeros((), **zeros)  # |g|_inf
+        self.g_norm1 = torch.zeros(1, **wide)  # |g|_1
+        # The next direction's makings (`direction()`): the memory's candidate, its product with
+        # g and the largest squared point norms of it and of g (`kernels.device_lbfgs`'s
+        # CANDIDATE_* slots).
+        self.candidate = torch.zeros(n, **zeros)
+        self.candidate_sums = torch.zeros(3, **wide)
+        self.d = torch.zeros(n, **zeros)  # the last trial's direction
         # Scratch of an iteration (`iterate`).
+        self.trial = torch.zeros(n, **zeros)
+        self.r = torch.zeros(n, **zeros)
         self.t_trial = torch.ones((), **zeros)
-        self.first = torch.ones((), **zeros)
         self.flags = torch.zeros(2, device=self.device, dtype=torch.int32)  # accepted, stored
-        self.a = torch.zeros(m, device=self.device, dtype=torch.float64)
-        self.c = torch.zeros(m, device=self.device, dtype=torch.float64)
+        self.products = torch.zeros(4 * (m + 2), **wide)
+        self.row_sums = torch.zeros(m, **wide)
+        self.a = torch.zeros(m, **wide)
+        self.c = torch.zeros(m, **wide)
         self.a_rows = torch.zeros(m, **zeros)
         self.c_rows = torch.zeros(m, **zeros)
-        self.fallback = torch.zeros_like(self.g)  # the direction's fallback, before its sign and scale
+        on_cuda = self.device.type == "cuda"
+        self._block = _REDUCE_BLOCK_DIM  # one thread a block on the CPU (`_warp.launch`)
+        threads = _REDUCE_BLOCK_DIM if on_cuda else 1
+        self._row_chunks = max(1, min(_ROW_CHUNKS, -(-n // (threads * 8)))) if on_cuda else 1
+        self._point_chunks = max(1, min(_POINT_CHUNKS, -(-(n // point_size) // (threads * 4)))) if on_cuda else 1
         # Warp views of the state and scratch, made once (the tensors keep their addresses).
         self._warp = {name: _warp.as_warp(getattr(self, name)) for name in (
             "x", "f", "g", "d", "t", "S", "Y", "rho", "SY", "gamma", "head", "rejections", "trace", "position",
-            "t_trial", "first", "flags", "a", "c", "a_rows", "c_rows", "fallback")}
+            "gmax", "g_norm1", "candidate", "candidate_sums", "trial", "r", "t_trial", "flags", "products",
+            "row_sums", "a", "c", "a_rows", "c_rows")}
+        self._first_direction()
 
     def restart_at(self, x: torch.Tensor, *, keep_memory: bool = False) -> None:
         """Start again from `x` (n,), in place and graph-safe: evaluates the energy there (f, g),
@@ -177,19 +217,59 @@ class DeviceLBFGS:
             self.rho.zero_()
         self.t.fill_(1.0)
         self.rejections.zero_()
-        self.gamma.copy_(self._first_scale(self.g))
-        self.d.copy_(self.g).mul_(-self.gamma)
-        torch.linalg.vector_norm(self.g, float("inf"), out=self.gmax)
+        self._first_direction()
 
-    @staticmethod
-    def _first_scale(g: torch.Tensor) -> torch.Tensor:
-        """min(1, 1 / |g|_1): torch's first L-BFGS step, and ours after a clear."""
-        return torch.clamp(1.0 / g.abs().sum().clamp_min(1e-30), max=1.0)
+    def refresh(self) -> None:
+        """The energy at the iterate again (f, g; the caller changed the energy a little: a pair
+        list built anew) and the memory's direction from the new g, t = 1 (graph-safe; torch ops:
+        `lbfgs_direction`). The memory stays: its pairs span the change.
+        """
+        f, g, count = self.energy(self.x, self.graph_safe)
+        if isinstance(count, torch.Tensor):
+            self.pairs.copy_(torch.maximum(self.pairs, count.reshape(()).to(torch.int64)))
+        self.f.copy_(f.reshape(()))
+        self.g.copy_(g.reshape(-1))
+        self.t.fill_(1.0)
+        self.rejections.zero_()
+        g64 = self.g.to(torch.float64)
+        self.g_norm1.copy_(g64.abs().sum().reshape(1))
+        torch.linalg.vector_norm(self.g, float("inf"), out=self.gmax)
+        m = self.rho.shape[0]
+        order = (self.head - torch.arange(m, device=self.device)) % m
+        # An empty memory gives -gamma g: gamma then the first step's scale, as `iterate` has it.
+        first = torch.clamp(1.0 / self.g_norm1.clamp_min(1e-30), max=1.0).to(self.dtype).reshape(())
+        gamma = torch.where(self.rho[self.head[0]] == 0, first, self.gamma)
+        self.gamma.copy_(gamma)
+        self.candidate.copy_(lbfgs_direction(self.g, self.S, self.Y, self.rho, gamma, self.SY, order))
+        points = torch.stack([self.candidate, self.g]).to(torch.float64).view(2, -1, self.point_size)
+        self.candidate_sums.copy_(torch.cat([torch.dot(g64, self.candidate.to(torch.float64)).reshape(1),
+                                             points.square().sum(dim=2).amax(dim=1)]))
+
+    def _first_direction(self) -> None:
+        """The next trial's direction -min(1, 1/|g|_1) g, torch's first step (graph-safe), as a
+        candidate that descends (so the memory stays, `restart_at`'s keep_memory); gamma that scale.
+        """
+        g = self.g.to(torch.float64)
+        self.g_norm1.copy_(g.abs().sum().reshape(1))
+        first = torch.clamp(1.0 / self.g_norm1.clamp_min(1e-30), max=1.0)
+        torch.linalg.vector_norm(self.g, float("inf"), out=self.gmax)
+        self.gamma.copy_(first.reshape(()))
+        torch.mul(self.g, -first.to(self.dtype), out=self.candidate)
+        self.d.copy_(self.candidate)
+        points = g.view(-1, self.point_size).square().sum(dim=1).max()
+        self.candidate_sums.copy_(torch.stack([-first[0] * g.square().sum(), first[0] ** 2 * points, points]))
+
+    def direction(self) -> torch.Tensor:
+        """(n,) the direction the next trial takes: the memory's candidate where it descends,
+        else -min(1, 1/|g|_1) g (what `lbfgs_trial_kernel` chooses; a new tensor).
+        """
+        first = torch.clamp(1.0 / self.g_norm1.clamp_min(1e-30), max=1.0).to(self.dtype)
+        return torch.where(self.candidate_sums[0] < 0, self.candidate, -first * self.g)
 
     def state(self) -> list[torch.Tensor]:
         """The tensors an iteration changes (saved and restored around a chunk)."""
         return [self.x, self.f, self.g, self.d, self.t, self.S, self.Y, self.rho, self.SY, self.head, self.gamma,
-                self.rejections]
+                self.rejections, self.gmax, self.g_norm1, self.candidate, self.candidate_sums]
 
     def start_chunk(self) -> None:
         """The next iteration's loss goes to trace[0]."""
@@ -198,56 +278,89 @@ class DeviceLBFGS:
     def iterate(self) -> None:
         """One trial step and the masked update; appends the new loss to `trace`.
 
-        About 25 kernels: the n-sized products through torch (cuBLAS), the decisions and the
-        memory's m x m solves in single-thread Warp kernels (`kernels.device_lbfgs`), the masked
-        updates in one kernel over n. The same steps as torch ops were ~180 operations, most on
-        0-d tensors, each its own kernel (docs/contact.md 13).
+        Seven kernels besides the energy: four passes over the n-vectors, each with the block
+        sums the next decision needs, and three single-thread kernels for the decisions and the
+        memory's m x m solves (`hairwarp.kernels.device_lbfgs`).
         """
         s_cfg = self.solver
         m, n = self.rho.shape[0], self.x.numel()
         w = self._warp
         device = _warp.warp_device(self.device)
+        block = self._block
         with _warp.launch_scope(self.device):
-            # The trial step, every point moved at most max_step.
-            step_max = torch.linalg.vector_norm(self.d.view(-1, self.point_size), dim=1).max()
-            _warp.launch(lbfgs_kernels.lbfgs_trial_scale_kernel, dim=1,
-                         inputs=[w["t"], _warp.as_warp(step_max), wp.float64(s_cfg.lbfgs_max_step)],
-                         outputs=[w["t_trial"]], device=device)
-            trial = torch.addcmul(self.x, self.t_trial, self.d)
-        f_t, g_t, count = self.energy(trial, self.graph_safe)
+            _warp.launch(lbfgs_kernels.lbfgs_trial_kernel, dim=n,
+                         inputs=[w["x"], w["g"], w["candidate"], w["candidate_sums"], w["g_norm1"], w["t"],
+                                 wp.float64(s_cfg.lbfgs_max_step), m],
+                         outputs=[w["d"], w["trial"], w["t_trial"], w["rho"], w["products"]], device=device)
+        f_t, g_t, count = self.energy(self.trial, self.graph_safe)
         if isinstance(count, torch.Tensor):
             self.pairs.copy_(torch.maximum(self.pairs, count.reshape(()).to(torch.int64)))
+        f_wp = _warp.as_warp(f_t.reshape(1))
         g_t = g_t.reshape(-1)
+        g_wp = _warp.as_warp(g_t)
+        by_warp = self.passes == "warp"
         with _warp.launch_scope(self.device):
-            y = g_t - self.g
-            products = torch.stack([self.g, y, self.d])
-            gram = products @ products.T  # g.d, y.d, y.y, d.d among them
+            if by_warp:
+                _warp.launch(lbfgs_kernels.lbfgs_products_kernel, dim=(m + 2) * self._row_chunks,
+                             inputs=[w["g"], g_wp, w["d"], w["S"], w["Y"], n, m, self._row_chunks],
+                             outputs=[w["products"]], device=device, block_dim=block)
+            else:
+                self._products(g_t)
             _warp.launch(lbfgs_kernels.lbfgs_accept_kernel, dim=1,
-                         inputs=[_warp.as_warp(f_t.reshape(1)), _warp.as_warp(gram), w["t_trial"], m, wp.float64(ARMIJO_C1),
+                         inputs=[f_wp, w["products"], w["t_trial"], m, wp.float64(ARMIJO_C1),
                                  wp.float64(s_cfg.lbfgs_curvature_eps), int(s_cfg.lbfgs_restart or 0),
                                  w["f"], w["t"], w["rho"], w["gamma"], w["head"], w["rejections"], w["trace"],
-                                 w["position"]],
-                         outputs=[w["flags"]], device=device)
-            _warp.launch(lbfgs_kernels.lbfgs_update_kernel, dim=n,
-                         inputs=[w["flags"], w["t_trial"], w["d"], _warp.as_warp(y), _warp.as_warp(trial),
-                                 _warp.as_warp(g_t), w["head"], n, w["x"], w["g"], w["S"], w["Y"]], device=device)
-            # The stored row's products with every pair, then the direction from the new g.
-            Yd, Sy, Sg = self.Y @ self.d, self.S @ y, self.S @ self.g
-            g_norm1 = torch.linalg.vector_norm(self.g, 1)
-            _warp.launch(lbfgs_kernels.lbfgs_first_loop_kernel, dim=1,
-                         inputs=[w["flags"], w["t_trial"], _warp.as_warp(Yd), _warp.as_warp(Sy), _warp.as_warp(Sg),
-                                 _warp.as_warp(g_norm1), w["rho"], w["head"], m, w["SY"], w["gamma"]],
-                         outputs=[w["first"], w["a"], w["a_rows"]], device=device)
-            r = torch.addmv(self.g, self.Y.T, self.a_rows, alpha=-1.0)
-            r.mul_(self.gamma)
-            self.fallback.copy_(self.g)
-            Yr = self.Y @ r
+                                 w["position"], w["SY"], w["g_norm1"], w["gmax"]],
+                         outputs=[w["flags"], w["a"], w["a_rows"], w["row_sums"], w["candidate_sums"]], device=device)
+            if by_warp:
+                _warp.launch(lbfgs_kernels.lbfgs_update_kernel, dim=n,
+                             inputs=[w["flags"], w["t_trial"], w["d"], w["trial"], g_wp, w["head"], w["a_rows"],
+                                     w["gamma"], n, m, w["x"], w["g"], w["S"], w["Y"]],
+                             outputs=[w["r"]], device=device)
+                _warp.launch(lbfgs_kernels.lbfgs_rows_dot_kernel, dim=m * self._row_chunks,
+                             inputs=[w["Y"], w["r"], n, self._row_chunks], outputs=[w["row_sums"]], device=device,
+                             block_dim=block)
+            else:
+                self._update(g_t)
             _warp.launch(lbfgs_kernels.lbfgs_second_loop_kernel, dim=1,
-                         inputs=[w["a"], _warp.as_warp(Yr), w["rho"], w["SY"], w["head"], m],
+                         inputs=[w["a"], w["row_sums"], w["rho"], w["SY"], w["head"], m],
                          outputs=[w["c_rows"], w["c"]], device=device)
-            candidate = torch.addmv(r, self.S.T, self.c_rows, beta=-1.0, alpha=-1.0)  # -(r + S^T c)
-            _warp.launch(lbfgs_kernels.lbfgs_direction_kernel, dim=n,
-                         inputs=[_warp.as_warp(candidate), _warp.as_warp(torch.dot(self.g, candidate)), w["fallback"],
-                                 w["first"], m],
-                         outputs=[w["d"], w["rho"]], device=device)
-            torch.linalg.vector_norm(self.g, float("inf"), out=self.gmax)
+            if by_warp:
+                _warp.launch(lbfgs_kernels.lbfgs_candidate_kernel, dim=self._point_chunks,
+                             inputs=[w["r"], w["g"], w["S"], w["c_rows"], n, m, self.point_size, self._point_chunks],
+                             outputs=[w["candidate"], w["candidate_sums"]], device=device, block_dim=block)
+            else:
+                self._candidate()
+
+    # -- the passes over n as torch ops (`passes="torch"`): the same sums as the kernels ----------
+    def _products(self, g_t: torch.Tensor) -> None:
+        """`lbfgs_products_kernel`'s sums (its docstring gives the layout)."""
+        m = self.rho.shape[0]
+        y = g_t - self.g
+        rows = torch.cat([(self.Y @ self.d)[:, None], self.S @ torch.stack([y, g_t, self.g], dim=1)], dim=1)
+        vectors = torch.stack([self.g, y, self.d, g_t])
+        gram = vectors @ torch.stack([self.d, y]).T  # g.d, y.d, d.d, g_t.d in column 0; y.y in column 1
+        trial = torch.stack([gram[0, 0], gram[1, 0], gram[1, 1], gram[2, 0]])
+        gradient = torch.stack([gram[3, 0], g_t.abs().sum(), g_t.abs().max(), torch.zeros_like(gram[0, 0])])
+        self.products.view(m + 2, 4).copy_(torch.cat([rows, trial[None], gradient[None]]))
+
+    def _update(self, g_t: torch.Tensor) -> None:
+        """`lbfgs_update_kernel` and `lbfgs_rows_dot_kernel` (the flags read on the host: CPU only)."""
+        accepted, stored = self.flags.tolist()
+        if stored:
+            row = int(self.head)
+            torch.mul(self.d, self.t_trial, out=self.S[row])
+            torch.sub(g_t, self.g, out=self.Y[row])
+        if accepted:
+            self.x.copy_(self.trial)
+            self.g.copy_(g_t)
+        torch.addmv(self.g, self.Y.T, self.a_rows, alpha=-1.0, out=self.r)
+        self.r.mul_(self.gamma)
+        self.row_sums.copy_(self.Y @ self.r)
+
+    def _candidate(self) -> None:
+        """`lbfgs_candidate_kernel`: the candidate, its product with g, the largest squared point norms."""
+        torch.addmv(self.r, self.S.T, self.c_rows, out=self.candidate)
+        self.candidate.neg_()
+        points = torch.stack([self.candidate, self.g]).view(2, -1, self.point_size).square().sum(dim=2).amax(dim=1)
+        self.candidate_sums.copy_(torch.cat([torch.dot(self.g, self.candidate).reshape(1), points]))
