@@ -68,8 +68,12 @@ def _variants(specs: list[str], base) -> dict:
             if key not in fields:
                 raise SystemExit(f"--variant {spec!r}: {key!r} is not a PhysicsConfig field")
             kind = type(getattr(base, key))
-            changes[key] = (value.lower() in ("1", "true", "on")) if kind is bool or getattr(base, key) is None \
-                else kind(float(value)) if kind is int else float(value)
+            if kind is bool or getattr(base, key) is None:
+                changes[key] = value.lower() in ("1", "true", "on")
+            elif kind is str:
+                changes[key] = value
+            else:
+                changes[key] = kind(float(value)) if kind is int else float(value)
         variants[name or f"variant{len(variants)}"] = replace(base, **changes)
     return variants
 
@@ -118,13 +122,13 @@ def main(argv=None) -> dict:
         rest = scene.rest_lengths.to(device)
         steps = range(2, min(len(frames), 2 + args.per_step))
         if variants:
-            runs = {name: [] for name in variants}
+            runs = {variant: [] for variant in variants}
             for _ in range(max(1, args.rounds) + 1):  # the first round warms up (compiles, captures)
-                for name, config in variants.items():
-                    runs[name].append(simulate_physics(scene, frames, device=device, config=config, initial=x0))
+                for variant, config in variants.items():
+                    runs[variant].append(simulate_physics(scene, frames, device=device, config=config, initial=x0))
             entry = {"strands": strands, "vertices": vertices, "frames": len(frames), "variants": {}}
-            for name, config in variants.items():
-                timed = runs[name][1:]
+            for variant, config in variants.items():
+                timed = runs[variant][1:]
                 body = BodyMesh(posed.posed.vertices[:1], scene.body.faces.to(device=device, dtype=torch.int32),
                                 bvh="lbvh")
                 solver = PhysicsSolver(rest, posed.rigid.positions[:1], posed.rigid.normals[:1], body, energy_config,
@@ -132,7 +136,7 @@ def main(argv=None) -> dict:
                 per_step, per_step_iterations = _per_step(solver, posed, tight, steps)
                 medians = [statistics.median(run.frame_ms[1:]) for run in timed]
                 trajectory = [_mean_distance_mm(a, b) for a, b in zip(timed[-1].positions, tight.positions)]
-                entry["variants"][name] = {
+                entry["variants"][variant] = {
                     "ms_per_frame_median_by_round": medians,
                     "iterations": [run.iterations[1:] for run in timed],
                     "rebuilds": [[r.rebuilds for r in run.reports[1:]] for run in timed],
@@ -142,7 +146,7 @@ def main(argv=None) -> dict:
                 }
                 rebuilds = statistics.mean(r.rebuilds for run in timed for r in run.reports[1:])
                 its = statistics.mean(i for run in timed for i in run.iterations[1:])
-                print(f"  {name}: {' / '.join(f'{m:.1f}' for m in medians)} ms/frame (median by round), "
+                print(f"  {variant}: {' / '.join(f'{m:.1f}' for m in medians)} ms/frame (median by round), "
                       f"{its:.1f} iterations, {rebuilds:.2f} rebuilds a step; 10 frames max "
                       f"{max(trajectory[:10]):.3f} mm, all max {max(trajectory):.3f} mm, per step max "
                       f"{max(per_step):.3f} mm", flush=True)

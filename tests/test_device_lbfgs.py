@@ -266,3 +266,41 @@ def test_torch_passes_are_refused_off_the_cpu():
     with pytest.raises(ValueError, match="passes"):
         DeviceLBFGS(_rosenbrock, torch.zeros(4, dtype=torch.float64), DirectOptimizationConfig(), chunk=1,
                     point_size=2, passes="numpy")
+
+
+def test_refresh_gives_the_memorys_direction_at_the_iterate():
+    """`refresh` (the physics' pair-list rebuild): the energy at x again and the two-loop direction
+    from the kept memory, equal to `lbfgs_direction` on that state; t back to 1."""
+    gen = torch.Generator().manual_seed(5)
+    x0 = 3 * torch.randn(3 * 20, generator=gen, dtype=torch.float64)
+    solver = DirectOptimizationConfig(lbfgs_line_search="backtracking", lbfgs_history=4, lbfgs_max_step=2.0)
+    opt = DeviceLBFGS(_stiff_quartic, x0, solver, chunk=1)
+    for _ in range(11):  # a full ring, wrapped
+        opt.iterate()
+    f_before = float(opt.f)
+    opt.t.fill_(0.25)
+    opt.refresh()
+    m = opt.rho.shape[0]
+    order = (opt.head - torch.arange(m)) % m
+    expected = lbfgs_direction(opt.g, opt.S, opt.Y, opt.rho, opt.gamma, opt.SY, order)
+    torch.testing.assert_close(opt.direction(), expected, rtol=1e-9, atol=1e-12)
+    assert float(opt.f) == pytest.approx(f_before, rel=1e-12) and float(opt.t) == 1.0
+    assert bool((opt.rho > 0).all())
+
+
+def test_a_restart_without_memory_repeats_a_fresh_solver_bit_for_bit():
+    """`restart_at` with the memory cleared starts the ring where a new solver does, so a solver
+    reused for a second problem (a teacher's second start, a static drape's restart) takes the
+    steps a fresh one takes, to the bit (the products over the ring's rows run in row order)."""
+    gen = torch.Generator().manual_seed(7)
+    first, second = (torch.randn(3 * 4000, generator=gen) for _ in range(2))
+    solver = DirectOptimizationConfig(lbfgs_line_search="backtracking", lbfgs_history=8, lbfgs_max_step=2.0)
+    reused = DeviceLBFGS(_stiff_quartic, first, solver, chunk=1)
+    for _ in range(13):  # the ring part filled, its head moved on
+        reused.iterate()
+    reused.restart_at(second)
+    fresh = DeviceLBFGS(_stiff_quartic, second, solver, chunk=1)
+    for _ in range(30):
+        reused.iterate()
+        fresh.iterate()
+    assert torch.equal(reused.x, fresh.x) and torch.equal(reused.f, fresh.f)

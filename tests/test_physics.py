@@ -164,6 +164,8 @@ def test_bad_config():
         PhysicsConfig(tolerance=0.0)
     with pytest.raises(ValueError, match="max_iterations"):
         PhysicsConfig(max_iterations=0)
+    with pytest.raises(ValueError, match="hair_hair_list_skin"):
+        PhysicsConfig(hair_hair_list_skin=0.0)
     with pytest.raises(ValueError, match="frame_indices"):
         simulate_physics(comparison_scene("whiplash", strand_stride=64, num_vertices=8).scene, [])
     with pytest.raises(ValueError, match="consecutive"):

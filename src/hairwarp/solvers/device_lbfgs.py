@@ -214,7 +214,10 @@ class DeviceLBFGS:
         self.f.copy_(f.reshape(()))
         self.g.copy_(g.reshape(-1))
         if not keep_memory:
+            # The ring starts again where a new solver's does: the sums over its rows run in row
+            # order, so a solve from a reused solver then repeats a fresh one's bit for bit.
             self.rho.zero_()
+            self.head.fill_(self.rho.shape[0] - 1)
         self.t.fill_(1.0)
         self.rejections.zero_()
         self._first_direction()
@@ -238,9 +241,21 @@ class DeviceLBFGS:
         order = (self.head - torch.arange(m, device=self.device)) % m
         # An empty memory gives -gamma g: gamma then the first step's scale, as `iterate` has it.
         first = torch.clamp(1.0 / self.g_norm1.clamp_min(1e-30), max=1.0).to(self.dtype).reshape(())
-        gamma = torch.where(self.rho[self.head[0]] == 0, first, self.gamma)
-        self.gamma.copy_(gamma)
-        self.candidate.copy_(lbfgs_direction(self.g, self.S, self.Y, self.rho, gamma, self.SY, order))
+        # (index_select, not rho[head[0]]: indexing by a 0-d device tensor reads it back, which a
+        # CUDA graph's capture forbids.)
+        newest = torch.index_select(self.rho, 0, self.head).reshape(())
+        self.gamma.copy_(torch.where(newest == 0, first, self.gamma))
+        # The textbook two-loop recursion, newest row first (rows with rho = 0 add nothing).
+        S, Y, rho = (torch.index_select(t, 0, order) for t in (self.S, self.Y, self.rho))
+        q = self.g.clone()
+        a = []
+        for k in range(m):
+            a.append(rho[k] * torch.dot(S[k], q))
+            q.sub_(a[k] * Y[k])
+        q.mul_(self.gamma)
+        for k in reversed(range(m)):
+            q.add_((a[k] - rho[k] * torch.dot(Y[k], q)) * S[k])
+        torch.neg(q, out=self.candidate)
         points = torch.stack([self.candidate, self.g]).to(torch.float64).view(2, -1, self.point_size)
         self.candidate_sums.copy_(torch.cat([torch.dot(g64, self.candidate.to(torch.float64)).reshape(1),
                                              points.square().sum(dim=2).amax(dim=1)]))

@@ -18,6 +18,9 @@ What makes it fast:
   (energy, first direction) and one iteration are two CUDA graphs captured once and
   replayed for every frame (`hairwarp.solvers.device_lbfgs.DeviceLBFGS`); on the CPU the same
   calls run eagerly with the hair-hair pair cache;
+- a step's hair-hair pairs in a device list (`PhysicsConfig.hair_hair_list`, with the graphs):
+  built at the step's start within a skin of the cutoff, built again (a third graph) after a
+  chunk that left the iterate out of its reach, where the broad phase ran at every call;
 - variables scaled by the stiffness (`PhysicsConfig.stiffness_scaling`): root alignment (Eq. 15)
   turns the first millimetre-long segments three orders of magnitude stiffer than a vertex's
   inertia, which doubled the iterations a step takes; the solver's variable of each vertex is
