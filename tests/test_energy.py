@@ -119,3 +119,19 @@ def test_unbatched_input_gives_one_value(device):
     x, inputs = _scene(device, batch=1)
     r = total_energy(x[0], replace(inputs, rigid=inputs.rigid[0]), _config())
     assert r.total.shape == (1,)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("chunks", [1, 3])
+def test_kernel_row_sums_equal_torch_sums(dtype, chunks):
+    """The block row sums the energies use on CUDA (`hairwarp.ops.reductions`), run on the CPU:
+    each row's sum, whatever the blocks a row is split into (float64 accumulation)."""
+    from hairwarp.ops.reductions import kernel_row_sums, row_sums
+
+    gen = torch.Generator().manual_seed(chunks)
+    values = torch.randn(7, 1001, generator=gen, dtype=torch.float64).to(dtype)
+    expected = values.double().sum(dim=1)
+    got = kernel_row_sums(values, chunks)
+    assert got.dtype == dtype and got.shape == (7,)
+    torch.testing.assert_close(got.double(), expected, rtol=1e-6 if dtype == torch.float32 else 1e-12, atol=1e-5)
+    torch.testing.assert_close(row_sums(values).double(), expected, rtol=1e-5, atol=1e-4)

@@ -32,6 +32,7 @@ from hairwarp import _warp
 from hairwarp._validate import check_positive, check_tensor
 from hairwarp.kernels import hair_body_contact as kernels
 from hairwarp.ops.barrier import barrier_variant_id, check_barrier_parameters, join_fraction_tensor
+from hairwarp.ops.reductions import row_sums
 
 INDEX_DTYPES = (torch.int32, torch.int64)
 
@@ -1283,7 +1284,7 @@ def _energy_forward(x, body, xi, dhat, bp, weight, variant_id, strategy, cache=N
             _warp.launch(kernels.hair_body_energy_far_kernel, dim=count, inputs=common + [hit_distance] + deep,
                          outputs=outputs, device=device)
     # Per-strand (or per-vertex) partial sums, reduced per batch item here: no atomics.
-    return partial.view(batch, -1).sum(dim=1), gradient, queries
+    return row_sums(partial.view(batch, -1)), gradient, queries
 
 
 class _HairBodyContactEnergy(torch.autograd.Function):

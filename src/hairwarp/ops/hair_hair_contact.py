@@ -54,6 +54,7 @@ from hairwarp._validate import check_positive, check_tensor
 from hairwarp.config import EnergyConfig
 from hairwarp.kernels import hair_hair_contact as hh_kernels
 from hairwarp.ops.barrier import barrier_variant_id, check_barrier_parameters, join_fraction_tensor
+from hairwarp.ops.reductions import row_sums
 from hairwarp.runtime import StreamFork
 
 OVERFLOW_POLICIES = ("grow", "raise", "warn", "defer")
@@ -1164,7 +1165,7 @@ def hair_hair_contact_energy(
                                torch.zeros(max(b * m * (n - 1), 1), dtype=torch.float64, device=x4c.device),
                                torch.zeros_like(x4c, memory_format=torch.contiguous_format))
         pair_list.add_energy(x4c.detach(), args)
-        energy = _PrecomputedContactEnergy.apply(x4c, args.energy[:b * m * (n - 1)].view(b, -1).sum(dim=1),
+        energy = _PrecomputedContactEnergy.apply(x4c, row_sums(args.energy[:b * m * (n - 1)].view(b, -1)),
                                                  args.gradient)
         if x.dim() == 3:
             energy = energy[0]
@@ -1203,7 +1204,7 @@ def hair_hair_contact_energy(
         run(0)
         count = per_segment.sum(dtype=torch.int32).reshape(1)
         requested = _overflow_policy(count, capacity, num_segments, on_overflow, max_pairs)
-        energy = _PrecomputedContactEnergy.apply(x4c, args.energy.view(b, -1).sum(dim=1), args.gradient)
+        energy = _PrecomputedContactEnergy.apply(x4c, row_sums(args.energy.view(b, -1)), args.gradient)
         if x.dim() == 3:
             energy = energy[0]
         return energy, HairHairContactInfo(count, requested)

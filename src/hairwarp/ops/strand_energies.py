@@ -31,6 +31,7 @@ from hairwarp import _validate, _warp
 from hairwarp._validate import check_positive, check_same_dtype, check_tensor
 from hairwarp.config import STRAND_TERMS, EnergyConfig
 from hairwarp.kernels import strand_energies as strand_kernels
+from hairwarp.ops.reductions import row_sums
 
 LAYOUTS = ("auto", "strand", "vertex")
 
@@ -291,7 +292,7 @@ def _launch(x4, inputs, scales, layout, *, compute_gradient):
         tensors.append(gradient)
     # Every tensor here is torch's: the launch goes on torch's stream without `launch_scope`.
     plan.launch(tensors, _warp.torch_stream(device))
-    return energy.sum(dim=2).t(), gradient
+    return row_sums(energy.view(-1, rows)).view(len(STRAND_TERMS), batch).t(), gradient
 
 
 def _evaluate(
