@@ -40,10 +40,10 @@ AUTO_FALLBACK_ITERATIONS = 50
 # L-BFGS iterations "auto" gives a drape without a network (when `options.max_iterations` is None).
 AUTO_LBFGS_ITERATIONS = 200
 # Hair vertices (strands x vertices) up to which the physics simulation meets its speed goal, per
-# device type: 1.5 s a frame at 256 x 100 on the 2-core CPU (measured on 12 frames, 0.97 s on
-# whiplash, 1.38 s on torso_bend: `benchmarks/bm_physics.py --device cpu --strand-stride 4
+# device type: 1.5 s a frame at 256 x 100 on the 2-core CPU (measured on 12 frames, 1.14 s on
+# whiplash, 1.37 s on torso_bend: `benchmarks/bm_physics.py --device cpu --strand-stride 4
 # --frames 12`, docs/physics.md section 2). The H100's goal, 30 ms a frame at 1024 x 100, is not
-# met (152-156 ms), so no CUDA entry.
+# met (92-101 ms on whiplash, 60-63 on torso_bend), so no CUDA entry.
 PHYSICS_INTERACTIVE_VERTICES = {"cpu": 256 * 100}
 
 
