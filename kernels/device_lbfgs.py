@@ -41,6 +41,8 @@ from typing import Any
 
 import warp as wp
 
+from hairwarp.kernels.reductions import row_chunk_start
+
 wp.set_module_options({"enable_backward": False})
 
 FLAG_ACCEPT = wp.constant(0)
@@ -153,9 +155,7 @@ def lbfgs_products_kernel(
     |g_t|_inf (a max), 0). Blocks (m + 2) * chunks.
     """
     block, lane = wp.tid()
-    row = block // chunks
-    stride = chunks * wp.block_dim()
-    i = (block - row * chunks) * wp.block_dim() + lane
+    row, i, stride = row_chunk_start(block, lane, chunks)
     acc = wp.vec4d()
     if row < num_memory:
         base = row * n
@@ -361,9 +361,7 @@ def lbfgs_rows_dot_kernel(
 ):
     """row_sums[j] += y_j . r (blocks m * chunks; zeroed by `lbfgs_accept_kernel`)."""
     block, lane = wp.tid()
-    row = block // chunks
-    stride = chunks * wp.block_dim()
-    i = (block - row * chunks) * wp.block_dim() + lane
+    row, i, stride = row_chunk_start(block, lane, chunks)
     base = row * n
     acc = wp.float64(0.0)
     while i < n:

@@ -15,6 +15,15 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})
 
 
+@wp.func
+def row_chunk_start(block: int, lane: int, chunks: int):
+    """(row, first index, stride) of a thread of a launch of rows * chunks blocks: block b serves
+    row b // chunks and its chunk b % chunks, each thread striding over the row by chunks *
+    block_dim (`row_sums_kernel`, the L-BFGS's row products)."""
+    row = block // chunks
+    return row, (block - row * chunks) * wp.block_dim() + lane, chunks * wp.block_dim()
+
+
 @wp.kernel
 def row_sums_kernel(
     # In:
@@ -26,9 +35,7 @@ def row_sums_kernel(
 ):
     """sums_out[r] += sum of values[r * row_length:(r + 1) * row_length] (blocks rows * chunks)."""
     block, lane = wp.tid()
-    row = block // chunks
-    stride = chunks * wp.block_dim()
-    i = (block - row * chunks) * wp.block_dim() + lane
+    row, i, stride = row_chunk_start(block, lane, chunks)
     base = row * row_length
     acc = wp.float64(0.0)
     while i < row_length:
