@@ -19,7 +19,8 @@ wp.set_module_options({"enable_backward": False})
 def row_chunk_start(block: int, lane: int, chunks: int):
     """(row, first index, stride) of a thread of a launch of rows * chunks blocks: block b serves
     row b // chunks and its chunk b % chunks, each thread striding over the row by chunks *
-    block_dim (`row_sums_kernel`, the L-BFGS's row products)."""
+    block_dim (`row_sums_kernel`, the L-BFGS's row products).
+    """
     row = block // chunks
     return row, (block - row * chunks) * wp.block_dim() + lane, chunks * wp.block_dim()
 
