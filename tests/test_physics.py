@@ -247,3 +247,33 @@ def test_a_static_drape_does_not_stop_where_a_fresh_solve_still_descends():
     assert first.iterations > 2 * PhysicsConfig().static_chunk  # restarted at least once
     again = solver.solve(solver.positions().detach().clone(), 2000)
     assert again.energy >= first.energy - 10 * STALL_RELATIVE_DECREASE * abs(first.energy), (first, again)
+
+
+def test_a_pair_list_too_small_grows_and_the_step_is_solved_again():
+    """The device pair list's buffer (rows = the solver's `capacity`) found more pairs than it
+    holds: the step is solved again with a buffer of twice the count, landing where a step with
+    room from the start does."""
+    from hairwarp.config import EnergyConfig
+    from hairwarp.ops import BodyMesh
+    from hairwarp.solvers.physics import PhysicsSolver
+
+    scene = comparison_scene("whiplash", strand_stride=16, num_vertices=24).scene
+    posed = scene.frames([0, 1, 2], build_body=False)
+    config = PhysicsConfig(hair_hair_list=True)
+    energy_config = EnergyConfig().replace(time_step=1.0 / float(scene.motion.fps))
+    runs = []
+    for capacity in (None, 1):
+        body = BodyMesh(posed.posed.vertices[:1], scene.body.faces.to(torch.int32), bvh="lbvh")
+        solver = PhysicsSolver(scene.rest_lengths, posed.rigid.positions[:1], posed.rigid.normals[:1], body,
+                               energy_config, config)
+        if capacity is not None:
+            solver.capacity = capacity
+        for t in (1, 2):
+            solver.set_frame(posed.rigid.positions[t:t + 1], posed.rigid.normals[t:t + 1],
+                             posed.posed.vertices[t:t + 1])
+            solver.step()
+        runs.append((solver.positions(), solver.capacity, int(solver.pair_list.count)))
+    (roomy, _, found), (grown, capacity, found_again) = runs
+    assert found > 1 and found_again == found  # the hair touches itself
+    assert capacity >= found  # the buffer grew to hold the list
+    torch.testing.assert_close(grown, roomy, atol=1e-6, rtol=0)
