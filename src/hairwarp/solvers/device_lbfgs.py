@@ -200,7 +200,7 @@ class DeviceLBFGS:
             "x", "f", "g", "d", "t", "S", "Y", "rho", "SY", "gamma", "head", "rejections", "trace", "position",
             "gmax", "g_norm1", "candidate", "candidate_sums", "trial", "r", "t_trial", "flags", "products",
             "row_sums", "a", "c", "a_rows", "c_rows")}
-        self._first_direction()
+        self._first_step(self._gradient_norms())
 
     def restart_at(self, x: torch.Tensor, *, keep_memory: bool = False) -> None:
         """Start again from `x` (n,), in place and graph-safe: evaluates the energy there (f, g),
@@ -208,39 +208,22 @@ class DeviceLBFGS:
         curvature pairs then serve the new start, as a warm start across similar problems).
         """
         self.x.copy_(x.reshape(-1))
-        f, g, count = self.energy(self.x, self.graph_safe)
-        if isinstance(count, torch.Tensor):
-            self.pairs.copy_(torch.maximum(self.pairs, count.reshape(()).to(torch.int64)))
-        self.f.copy_(f.reshape(()))
-        self.g.copy_(g.reshape(-1))
         if not keep_memory:
             # The ring starts again where a new solver's does: the sums over its rows run in row
             # order, so a solve from a reused solver then repeats a fresh one's bit for bit.
             self.rho.zero_()
             self.head.fill_(self.rho.shape[0] - 1)
-        self.t.fill_(1.0)
-        self.rejections.zero_()
-        self._first_direction()
+        self._first_step(self._evaluate())
 
     def refresh(self) -> None:
         """The energy at the iterate again (f, g; the caller changed the energy a little: a pair
-        list built anew) and the memory's direction from the new g, t = 1 (graph-safe; torch ops:
-        `lbfgs_direction`). The memory stays: its pairs span the change.
+        list built anew) and the memory's direction from the new g, t = 1 (graph-safe). The
+        memory stays: its pairs span the change.
         """
-        f, g, count = self.energy(self.x, self.graph_safe)
-        if isinstance(count, torch.Tensor):
-            self.pairs.copy_(torch.maximum(self.pairs, count.reshape(()).to(torch.int64)))
-        self.f.copy_(f.reshape(()))
-        self.g.copy_(g.reshape(-1))
-        self.t.fill_(1.0)
-        self.rejections.zero_()
-        g64 = self.g.to(torch.float64)
-        self.g_norm1.copy_(g64.abs().sum().reshape(1))
-        torch.linalg.vector_norm(self.g, float("inf"), out=self.gmax)
+        first = self._evaluate()
         m = self.rho.shape[0]
         order = (self.head - torch.arange(m, device=self.device)) % m
         # An empty memory gives -gamma g: gamma then the first step's scale, as `iterate` has it.
-        first = torch.clamp(1.0 / self.g_norm1.clamp_min(1e-30), max=1.0).to(self.dtype).reshape(())
         # (index_select, not rho[head[0]]: indexing by a 0-d device tensor reads it back, which a
         # CUDA graph's capture forbids.)
         newest = torch.index_select(self.rho, 0, self.head).reshape(())
@@ -256,23 +239,43 @@ class DeviceLBFGS:
         for k in reversed(range(m)):
             q.add_((a[k] - rho[k] * torch.dot(Y[k], q)) * S[k])
         torch.neg(q, out=self.candidate)
-        points = torch.stack([self.candidate, self.g]).to(torch.float64).view(2, -1, self.point_size)
-        self.candidate_sums.copy_(torch.cat([torch.dot(g64, self.candidate.to(torch.float64)).reshape(1),
-                                             points.square().sum(dim=2).amax(dim=1)]))
+        self._candidate_sums()
 
-    def _first_direction(self) -> None:
-        """The next trial's direction -min(1, 1/|g|_1) g, torch's first step (graph-safe), as a
-        candidate that descends (so the memory stays, `restart_at`'s keep_memory); gamma that scale.
+    def _evaluate(self) -> torch.Tensor:
+        """f, g at x, t = 1, no rejections (graph-safe); returns `_gradient_norms()`."""
+        f, g, count = self.energy(self.x, self.graph_safe)
+        if isinstance(count, torch.Tensor):
+            self.pairs.copy_(torch.maximum(self.pairs, count.reshape(()).to(torch.int64)))
+        self.f.copy_(f.reshape(()))
+        self.g.copy_(g.reshape(-1))
+        self.t.fill_(1.0)
+        self.rejections.zero_()
+        return self._gradient_norms()
+
+    def _gradient_norms(self) -> torch.Tensor:
+        """|g|_1 and |g|_inf into the state; returns the first step's scale min(1, 1/|g|_1) ()
+        in the state's dtype (graph-safe).
         """
-        g = self.g.to(torch.float64)
-        self.g_norm1.copy_(g.abs().sum().reshape(1))
-        first = torch.clamp(1.0 / self.g_norm1.clamp_min(1e-30), max=1.0)
+        self.g_norm1.copy_(self.g.to(torch.float64).abs().sum().reshape(1))
         torch.linalg.vector_norm(self.g, float("inf"), out=self.gmax)
-        self.gamma.copy_(first.reshape(()))
-        torch.mul(self.g, -first.to(self.dtype), out=self.candidate)
+        return torch.clamp(1.0 / self.g_norm1.clamp_min(1e-30), max=1.0).to(self.dtype).reshape(())
+
+    def _first_step(self, first: torch.Tensor) -> None:
+        """The next trial's direction -first g (torch's first step), as a candidate that descends
+        (so a kept memory stays, `restart_at`); gamma = first.
+        """
+        self.gamma.copy_(first)
+        torch.mul(self.g, -first, out=self.candidate)
         self.d.copy_(self.candidate)
-        points = g.view(-1, self.point_size).square().sum(dim=1).max()
-        self.candidate_sums.copy_(torch.stack([-first[0] * g.square().sum(), first[0] ** 2 * points, points]))
+        self._candidate_sums()
+
+    def _candidate_sums(self) -> None:
+        """`candidate_sums` of the candidate and g: g . candidate, the largest squared point norms
+        of each (what `lbfgs_candidate_kernel` sums; graph-safe).
+        """
+        both = torch.stack([self.candidate, self.g]).to(torch.float64)
+        points = both.view(2, -1, self.point_size).square().sum(dim=2).amax(dim=1)
+        self.candidate_sums.copy_(torch.cat([torch.dot(both[1], both[0]).reshape(1), points]))
 
     def direction(self) -> torch.Tensor:
         """(n,) the direction the next trial takes: the memory's candidate where it descends,
@@ -377,5 +380,4 @@ class DeviceLBFGS:
         """`lbfgs_candidate_kernel`: the candidate, its product with g, the largest squared point norms."""
         torch.addmv(self.r, self.S.T, self.c_rows, out=self.candidate)
         self.candidate.neg_()
-        points = torch.stack([self.candidate, self.g]).view(2, -1, self.point_size).square().sum(dim=2).amax(dim=1)
-        self.candidate_sums.copy_(torch.cat([torch.dot(self.g, self.candidate).reshape(1), points]))
+        self._candidate_sums()
