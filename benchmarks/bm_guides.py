@@ -16,6 +16,10 @@ the K guides with L-BFGS at one frame of a motion, then measures, side by side i
   (alternated in three rounds);
 - on CUDA the interpolation + body pass also without its CUDA graph (`GuideConfig.cuda_graph`:
   the timed calls reuse one body, so from the second call on they replay a graph);
+- with `--rounds-hints 0,1 --rounds-skips 0,1`, the rounds with their face hint
+  (`ROUNDS_FACE_HINT`) and their skip of settled strands (`ROUNDS_SKIP_SETTLED`) off and on
+  (crossed), and
+  with `--rounds-passes 2` with that many rounds (`GuideConfig.body_passes`);
 - with `--walk-block-dims 32,64,128,256`, the interpolation + body pass with the walk's CUDA
   threads per block (`WALK_THREADS_PER_BLOCK`), without the graph, alternated in three rounds;
 - the followers' curl: per wavy or curly follower, the mean |turning angle - rest turning angle|
@@ -160,7 +164,7 @@ def measure_groom(num_strands: int, args, device: torch.device) -> dict:
     row["interpolation_ms"] = _timed(lambda: scene.full_groom(draped, frames, body_pass=False), device, args.repeats)
     row["interpolation_and_body_pass_ms"] = _timed(
         lambda: scene.full_groom(draped, frames, guide_signed_distance=sd_draped), device, args.repeats)
-    row["schedule"] = guides.config.body_schedule
+    row["schedule"] = guides.body_schedule(device)
     if device.type == "cuda":
         # The same call with every launch made from Python (no CUDA graph), beside the replay.
         config = guides.config
@@ -176,20 +180,35 @@ def measure_groom(num_strands: int, args, device: torch.device) -> dict:
                   {"body_schedule": "walk", "body_settle": float(t or 0.0), "hint": bool(int(v))})
                  for v in filter(None, args.face_hints.split(","))
                  for t in (filter(None, args.settles.split(",")) if args.settles else [None])]
+    # "rounds_hint", "rounds_skip": the module's `ROUNDS_FACE_HINT`, `ROUNDS_SKIP_SETTLED`.
+    if args.rounds_hints or args.rounds_skips:
+        import hairwarp.ops.guide_interpolation as ops_guides
+
+        def listed(text, default):
+            return [bool(int(v)) for v in filter(None, text.split(","))] or [default]
+
+        variants += [(f"rounds, face hint {int(h)}, skip settled {int(k)}",
+                      {"body_schedule": "rounds", "rounds_hint": h, "rounds_skip": k})
+                     for h in listed(args.rounds_hints, ops_guides.ROUNDS_FACE_HINT)
+                     for k in listed(args.rounds_skips, ops_guides.ROUNDS_SKIP_SETTLED)]
+    variants += [(f"rounds, {int(v)} passes", {"body_schedule": "rounds", "body_passes": int(v)})
+                 for v in filter(None, args.rounds_passes.split(","))]
     if variants:
         # Each body-pass variant on the same drape; the timings alternated in three rounds (the
         # median round), so that a machine's drift within the run falls on all of them alike.
         import hairwarp.ops.guide_interpolation as ops_guides
 
-        config, kept_hint = guides.config, ops_guides.WALK_FACE_HINT
+        switches = {"hint": "WALK_FACE_HINT", "rounds_hint": "ROUNDS_FACE_HINT", "rounds_skip": "ROUNDS_SKIP_SETTLED"}
+        config, kept = guides.config, {key: getattr(ops_guides, name) for key, name in switches.items()}
         row["schedules"] = {}
 
         def use(change):
             change = dict(change)
-            hint = change.pop("hint", kept_hint)
-            if hint != ops_guides.WALK_FACE_HINT:
-                ops_guides.WALK_FACE_HINT = hint
-                guides.__dict__.pop("_graphs", None)
+            for key, name in switches.items():
+                value = change.pop(key, kept[key])
+                if value != getattr(ops_guides, name):
+                    setattr(ops_guides, name, value)
+                    guides.__dict__.pop("_graphs", None)
             guides.config = dataclasses.replace(config, **change)
 
         for name, change in variants:
@@ -213,7 +232,7 @@ def measure_groom(num_strands: int, args, device: torch.device) -> dict:
             use(change)
             o["interpolation_ms"] = _timed(lambda: scene.full_groom(draped, frames, body_pass=False), device,
                                            args.repeats)
-        use({"hint": kept_hint})
+        use(kept)
         guides.config = config
     if args.walk_block_dims:
         # The walk's CUDA threads per block, alternated in rounds on the same drape.
@@ -279,6 +298,12 @@ def main(argv=None) -> int:
                    "comma-separated (e.g. 0,0.0005), each on the same drape")
     p.add_argument("--face-hints", default="", help="also time the walk with its face hint off / on "
                    "(`WALK_FACE_HINT`), comma-separated 0,1; crossed with --settles")
+    p.add_argument("--rounds-hints", default="", help="also time the rounds with their face hint off / on "
+                   "(`ROUNDS_FACE_HINT`), comma-separated 0,1; crossed with --rounds-skips (default: the module's)")
+    p.add_argument("--rounds-skips", default="", help="also time the rounds with the settled strands walked "
+                   "again / skipped (`ROUNDS_SKIP_SETTLED`), comma-separated 0,1")
+    p.add_argument("--rounds-passes", default="", help="also time the rounds with these `GuideConfig.body_passes`, "
+                   "comma-separated (e.g. 2,3)")
     p.add_argument("--walk-block-dims", default="", help="also time the walk's CUDA threads per block, "
                    "comma-separated (e.g. 32,64,128,256), alternated in three rounds on the same drape")
     p.add_argument("--seed", type=int, default=0)

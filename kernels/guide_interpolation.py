@@ -41,7 +41,7 @@ import warp as wp
 
 from hairwarp.config import NUM_FIXED_VERTICES
 from hairwarp.kernels.distances import point_triangle_closest_barycentric
-from hairwarp.kernels.hair_body_contact import body_signed_distance, body_signed_distance_face, winding_signed
+from hairwarp.kernels.hair_body_contact import body_signed_distance_face, winding_signed
 
 wp.set_module_options({"enable_backward": False})
 
@@ -460,7 +460,8 @@ def follower_targets_kernel(
 # the last positions, each vertex placed at its rest length from its predecessor and moved out of
 # the tangent plane its last query found (`onto_plane_side`)]. A plane is wrong where the body is
 # concave and stale where a vertex's predecessors moved: the rounds leave more vertices inside
-# than the walk (docs/guides.md).
+# than the walk (docs/guides.md). After the first round only the strands a round found within the
+# margin are walked and queried again (`strand_state`).
 
 
 @wp.func
@@ -487,6 +488,13 @@ def onto_plane_side(leader: wp.vec3, x: wp.vec3, rest: float, normal: wp.vec3, s
 # Threads a block of `follower_walk_tiled_kernel`: they load and store the strand together; the
 # walk is one chain that every thread runs in step from shared memory.
 WALK_BLOCK_DIM = 32
+# A strand's state between the rounds (`strand_state`): left where it was by the last walk, walked
+# by it, or given a vertex within the margin by the round's queries since (to be walked again).
+STRAND_SETTLED = wp.constant(0)
+STRAND_WALKED = wp.constant(1)
+STRAND_CHANGED = wp.constant(2)
+# `clearance` of a vertex not queried in this call (its `cleared_at` and plane are not set).
+NEVER_QUERIED = wp.constant(-1.0e30)
 
 
 @functools.lru_cache(maxsize=None)
@@ -502,19 +510,35 @@ def follower_walk_tiled_kernel(num_vertices: int):
     block loads the strand before it stores it). On one H200 a block per strand walked 10 000
     strands in 104 us and 100 000 in 855 us, a thread per strand in 131 / 1 036 us.
 
+    Unless `every_strand`, a strand is walked again only where the last round's queries found a
+    vertex of it within the margin (`strand_state` STRAND_CHANGED): elsewhere its planes leave
+    every vertex where it is (each new plane passes at the vertex's queried distance, >= the
+    margin, below it), so the walk would return its positions up to rounding. It is marked
+    STRAND_SETTLED and keeps its positions and its last walk's `pushed`; the next round's queries
+    skip it (its bounds are those that cleared it). On the 10 000-strand groom about one strand
+    in six touches the body.
+
     targets, x (B*M*N,) vec3 [m]; rest_lengths (M*(N-1),) [m]; guide_slot (M,); surface, normal
-    (B*M*N,) vec3 from `follower_body_query_kernel` (normal zero: no plane); pushed (B*M,): the
-    vertices the planes moved in this walk.
+    (B*M*N,) vec3 from `follower_body_query_kernel` (normal zero: no plane); strand_state (B*M,)
+    int32, in and out (STRAND_WALKED after a walk); pushed (B*M,): the vertices the planes moved
+    in the strand's last walk.
     """
     n = int(num_vertices)
     segments = n - 1
 
     def walk(guide_slot: wp.array(dtype=wp.int32), rest_lengths: wp.array(dtype=float),
              targets: wp.array(dtype=wp.vec3), surface: wp.array(dtype=wp.vec3), normal: wp.array(dtype=wp.vec3),
-             num_followers: int, margin: float, x: wp.array(dtype=wp.vec3), pushed: wp.array(dtype=wp.int32)):
+             num_followers: int, margin: float, every_strand: int, x: wp.array(dtype=wp.vec3),
+             pushed: wp.array(dtype=wp.int32), strand_state: wp.array(dtype=wp.int32)):
         strand, lane = wp.tid()
         m = strand % num_followers
-        if guide_slot[m] < 0:
+        # Read by every lane before lane 0 writes it: a lane that reads lane 0's STRAND_SETTLED
+        # takes the same branch, and lane 0 writes STRAND_WALKED only past the loads' barrier.
+        walked = every_strand != 0 or strand_state[strand] == STRAND_CHANGED
+        if guide_slot[m] < 0 and not walked:
+            if lane == 0:
+                strand_state[strand] = STRAND_SETTLED
+        if guide_slot[m] < 0 and walked:
             base = strand * n
             q = wp.tile_load(targets, shape=n, offset=base, storage="shared")
             rest = wp.tile_load(rest_lengths, shape=segments, offset=m * segments, storage="shared")
@@ -541,6 +565,7 @@ def follower_walk_tiled_kernel(num_vertices: int):
             wp.tile_store(x, out, offset=base)
             if lane == 0:
                 pushed[strand] = count
+                strand_state[strand] = STRAND_WALKED
 
     return wp.kernel(enable_backward=False, module="unique")(walk)
 
@@ -572,11 +597,14 @@ def follower_body_query_kernel(
     margin: float,
     reach_segments: float,
     zero_dist: float,
+    face_hint: int,
     x: wp.array(dtype=wp.vec3),
     cleared_at: wp.array(dtype=wp.vec3),
     clearance: wp.array(dtype=float),
     surface: wp.array(dtype=wp.vec3),
     normal: wp.array(dtype=wp.vec3),
+    closest_face: wp.array(dtype=wp.int32),
+    strand_state: wp.array(dtype=wp.int32),
 ):
     """One round's body query of one follower vertex (thread = (frame * M + strand) * N + i).
 
@@ -584,31 +612,50 @@ def follower_body_query_kernel(
     clearance found at `cleared_at`, less how far it has moved since: the signed distance is
     1-Lipschitz). Below the margin it is queried where it is: the bound's cache keeps the place
     and the signed distance (on a miss, the query's reach); a face found replaces the tangent
-    plane the walk pushes out of (its closest point and outward gradient). A miss keeps the last
-    plane: a vertex the plane pushed clear would otherwise fall back in at the next walk. x
-    (B*M*N,); cleared_at, surface, normal (B*M*N,) vec3, clearance (B*M*N,) (-1e30: never
-    queried; normal zero: no plane).
+    plane the walk pushes out of (its closest point and outward gradient) and, within the margin,
+    marks the strand STRAND_CHANGED (`follower_walk_tiled_kernel` walks it again). A miss keeps
+    the last plane: a vertex the plane pushed clear would otherwise fall back in at the next
+    walk. A strand the last walk left STRAND_SETTLED is skipped: none of its vertices moved, and
+    each was cleared by its bound or its last query. With `face_hint` a vertex that found a face
+    in an earlier round caps its query at the distance to that face (`closest_face`), as the
+    walk's hint does: the same faces are found, a vertex moved by a push of a millimetre or
+    less queries a ball of about that size instead of a segment's. x (B*M*N,); cleared_at,
+    surface, normal (B*M*N,) vec3, clearance (B*M*N,) (NEVER_QUERIED: cleared_at, the plane and
+    closest_face not set; normal zero: no plane, closest_face not set); closest_face (B*M*N,)
+    int32; strand_state (B*M,) int32.
     """
     tid = wp.tid()
     i = tid % num_vertices
     fm = tid // num_vertices
     b = fm // num_followers
     m = fm - b * num_followers
-    if i < FIXED_VERTICES or guide_slot[m] >= 0:
+    if i < FIXED_VERTICES or guide_slot[m] >= 0 or strand_state[fm] == STRAND_SETTLED:
         return
     p = x[tid]
-    bound = wp.max(distance_bound(guides_now, guide_signed_distance, p, follower_guides, follower_weights,
-                                  follower_ratios, m * neighbours, b, i, num_guides, num_vertices, neighbours),
-                   clearance[tid] - wp.length(p - cleared_at[tid]))
+    bound = distance_bound(guides_now, guide_signed_distance, p, follower_guides, follower_weights, follower_ratios,
+                           m * neighbours, b, i, num_guides, num_vertices, neighbours)
+    carried = clearance[tid]
+    if carried > NEVER_QUERIED:
+        bound = wp.max(bound, carried - wp.length(p - cleared_at[tid]))
     if bound >= margin:
         return
     body = b * body_batch_stride
+    vo = body * body_vertex_count
     # Unlike the walk's, this vertex's predecessor may be inside too, so a miss proves it outside
     # only where the query reaches past its bound's depth: d >= bound, and a miss means |d| >= reach.
     reach = wp.max(reach_segments * rest_lengths[m * (num_vertices - 1) + i - 1], -bound) + margin
-    found, d, g = body_signed_distance(
-        mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides,
-        body * body_vertex_count, body * body_face_count * 3, p, reach, zero_dist,
+    up = normal[tid]
+    if face_hint != 0 and wp.dot(up, up) > 0.0:
+        # The last closest face lies within this ball (no miss, so no clearance claimed from it);
+        # the closest one can only be nearer.
+        hint = closest_face[tid]
+        u, v, w, hint_d2 = point_triangle_closest_barycentric(
+            p, body_vertices[vo + faces[3 * hint + 0]], body_vertices[vo + faces[3 * hint + 1]],
+            body_vertices[vo + faces[3 * hint + 2]])
+        reach = wp.min(reach, wp.sqrt(hint_d2) * HINT_SLACK + HINT_PAD)
+    found, d, g, face = body_signed_distance_face(
+        mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides, vo,
+        body * body_face_count * 3, p, reach, zero_dist,
     )
     d, g = winding_signed(winding_ids[body], p, found, d, g, zero_dist)
     cleared_at[tid] = p
@@ -618,3 +665,6 @@ def follower_body_query_kernel(
         clearance[tid] = d
         surface[tid] = p - d * g
         normal[tid] = g
+        closest_face[tid] = face
+        if d < margin:
+            strand_state[fm] = STRAND_CHANGED

@@ -163,24 +163,30 @@ def test_bad_inputs_name_the_argument():
         GuideConfig(body_schedule="parallel")
 
 
-def test_follow_names_the_input_that_holds_a_nan(rng):
-    """`GuideSet.follow` scans its inputs for NaN/Inf in one read-back and names the culprit."""
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="needs a CUDA device"))])
+def test_follow_names_the_input_that_holds_a_nan(rng, device):
+    """`GuideSet.follow` scans its inputs for NaN/Inf in one read-back and names the culprit (on
+    CUDA read after the pass is queued, replayed from its graph from the third clean call on)."""
     from hairwarp._validate import check_finite
 
     groom = _hanging_groom(rng)
     v, f = icosphere(8, radius=0.05, center=(0.03, 0.0, 0.0))
-    body = BodyMesh(torch.tensor(v, dtype=torch.float32), torch.tensor(f, dtype=torch.int32))
+    body = BodyMesh(torch.tensor(v, dtype=torch.float32, device=device),
+                    torch.tensor(f, dtype=torch.int32, device=device))
     guides = GuideSet.build(groom, GuideConfig(num_guides=8))
-    positions = groom.strands[guides.guide_indices][None].float()
+    positions = groom.strands[guides.guide_indices][None].float().to(device)
     sd = hair_body_signed_distance(positions, body)
-    head = torch.eye(3)[None]
+    head = torch.eye(3, device=device)[None]
+    for _ in range(3):  # eager, captured, replayed
+        guides.follow(positions, head, body, guide_signed_distance=sd)
     bad = positions.clone()
     bad[0, 3, 5, 1] = float("nan")
     for kwargs, name in ((dict(guide_positions=bad, head_rotation=head), "guide_positions"),
                          (dict(guide_positions=positions, head_rotation=head * float("inf")), "head_rotation"),
                          (dict(guide_positions=bad, head_rotation=head, body=body), "guide_positions"),
                          (dict(guide_positions=positions, head_rotation=head, body=body,
-                               guide_signed_distance=sd.index_fill(2, torch.tensor([4]), float("nan"))),
+                               guide_signed_distance=sd.index_fill(2, torch.tensor([4], device=device), float("nan"))),
                           "guide_signed_distance")):
         with pytest.raises(ValueError, match=name):
             guides.follow(**kwargs)
@@ -309,6 +315,31 @@ def test_the_walks_face_hint_changes_no_position(rng, shape, monkeypatch):
     assert int(results[False][1]["pushed"].sum()) > 0
     torch.testing.assert_close(results[True][0], results[False][0], atol=1e-6, rtol=0)
     assert torch.equal(results[True][1]["pushed"], results[False][1]["pushed"])
+
+
+@pytest.mark.parametrize("shape", ["sphere", "box"])
+def test_the_rounds_face_hint_and_skipped_settled_strands_change_no_position(rng, shape, monkeypatch):
+    """The rounds' query capped at the vertex's last closest face finds the same faces (the same
+    positions and pushes); walking again only the strands whose round found a vertex within the
+    margin leaves the others where a walk would put them, to float32 rounding (their pushes are
+    those of the last walk that ran on them, so they are not compared)."""
+    import hairwarp.ops.guide_interpolation as ops_guides
+
+    groom = _hanging_groom(rng)
+    body = _sphere_or_box(shape)
+    guides = GuideSet.build(groom, GuideConfig(num_guides=8, body_schedule="rounds", body_passes=4))
+    now = torch.tensor(bend(groom.strands[guides.guide_indices].double().numpy(), 0.3), dtype=torch.float32)[None]
+    results = {}
+    for hint, skip in ((False, False), (True, False), (False, True), (True, True)):
+        monkeypatch.setattr(ops_guides, "ROUNDS_FACE_HINT", hint)
+        monkeypatch.setattr(ops_guides, "ROUNDS_SKIP_SETTLED", skip)
+        results[hint, skip] = guides.follow(now, torch.eye(3)[None], body)
+    x, facts = results[False, False]
+    assert int(facts["pushed"].sum()) > 0
+    for key, (y, other) in results.items():
+        torch.testing.assert_close(y, x, atol=1e-6, rtol=0, msg=f"face hint, skip settled: {key}")
+    assert torch.equal(results[True, False][1]["pushed"], facts["pushed"])
+    assert torch.equal(results[True, True][1]["pushed"], results[False, True][1]["pushed"])
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")

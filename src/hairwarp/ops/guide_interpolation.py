@@ -42,6 +42,18 @@ WALK_THREADS_PER_BLOCK = 32
 # interpolation + body pass from the graph: 10 000 strands 4.51 -> 4.10 ms, 100 000 strands
 # 9.17 -> 8.64 ms (docs/guides.md, tenth session).
 WALK_FACE_HINT = True
+# The rounds cap a vertex's query at the distance to the face its last round's query found
+# (`face_hint` of `follower_body_query_kernel`): the same faces, a ball of about a push's size.
+# One H100, interpolation + body pass, median of three alternated rounds: 10 000 strands 2.36 ->
+# 2.29 ms alone, 1.99 -> 2.01 ms beside ROUNDS_SKIP_SETTLED; 100 000 10.62 -> 10.68, 8.17 -> 8.07
+# (`guides_rounds_hint_skip_session12_h100.json`): within the runs' spread. Kept: the same
+# positions, for one point-triangle distance per vertex queried again.
+ROUNDS_FACE_HINT = True
+# The rounds walk again only the strands whose round found a vertex within the margin, and query
+# only theirs (`every_strand` of `follower_walk_tiled_kernel`): the others' walk would return
+# their positions up to rounding. Same run: 10 000 strands 2.36 -> 1.99 ms, 30 000 4.05 -> 3.30,
+# 100 000 10.62 -> 8.17 (about one strand in six touches the body).
+ROUNDS_SKIP_SETTLED = True
 # How `follow_guides` orders its work (its docstring).
 SCHEDULES = ("walk", "rounds")
 
@@ -228,9 +240,11 @@ def follow_guides(guides_rest: torch.Tensor, guides_now: torch.Tensor, rotations
       its time is its longest strand's chain of queries.
     - "rounds": `passes` rounds of [every vertex near the body queried at once; the walk again
       from the last positions, moving each vertex out of the tangent plane its query found, no
-      query in it]. On one H100, 10 000 strands: 3.0 ms against the walk's 4.9 ms, but 0.06 % of
-      the followers' vertices left inside against 0.007 %; 100 000 strands: 11.0 ms against
-      9.3 ms (docs/guides.md).
+      query in it], the walk and the next round's queries only on the strands whose round found
+      a vertex within the margin (`ROUNDS_SKIP_SETTLED`). On one H100 from the CUDA graph
+      (`GuideSet.follow`), 10 000 strands: 1.9-2.3 ms against the walk's 4.1-4.4 ms, but 0.06 %
+      of the followers' vertices left inside against 0.007 %; 100 000 strands: 8.0-8.4 ms
+      against 8.5-8.9 ms, 0.083 % against 0.011 % (docs/guides.md, twelfth session).
 
     Args:
         guides_rest, guides_now, rotations, followers_rest, follower_guides, follower_weights,
@@ -318,27 +332,34 @@ def follow_guides(guides_rest: torch.Tensor, guides_now: torch.Tensor, rotations
                   float(settle), int(WALK_FACE_HINT)]
         _run_shared(kernels.follow_guides_kernel, batch * m, device, inputs, [x, pushed_wp], WALK_THREADS_PER_BLOCK)
         return out, pushed
-    cleared_at, surface, normal = torch.zeros_like(out), torch.zeros_like(out), torch.zeros_like(out)
-    clearance = torch.full((batch, m, n), -1.0e30, dtype=torch.float32, device=device)
+    # Only `normal` (zero: no plane) and `clearance` (NEVER_QUERIED) are read before they are
+    # written: the rest is set by a vertex's first query.
+    cleared_at, surface, normal = torch.empty_like(out), torch.empty_like(out), torch.zeros_like(out)
+    clearance = torch.full((batch, m, n), kernels.NEVER_QUERIED, dtype=torch.float32, device=device)
+    closest_face = torch.empty((batch, m, n), dtype=torch.int32, device=device)
+    strand_state = torch.empty((batch, m), dtype=torch.int32, device=device)  # set by the first walk
     planes = [_warp.as_warp(surface, vec3=True), _warp.as_warp(normal, vec3=True)]
+    state_wp = _warp.as_warp(strand_state)
     walk = kernels.follower_walk_tiled_kernel(n)
 
-    def follow_the_leader(source):
+    def follow_the_leader(source, every_strand: bool):
         if batch * m:
             with _warp.launch_scope(device):
-                _warp.launch(walk, dim=batch * m, inputs=[slot, lengths_wp, source, *planes, m, float(margin)],
-                             outputs=[x, pushed_wp], device=_warp.warp_device(device),
+                _warp.launch(walk, dim=batch * m,
+                             inputs=[slot, lengths_wp, source, *planes, m, float(margin), int(every_strand)],
+                             outputs=[x, pushed_wp, state_wp], device=_warp.warp_device(device),
                              block_dim=kernels.WALK_BLOCK_DIM)
 
-    follow_the_leader(targets_wp)
+    follow_the_leader(targets_wp, True)
     if body is None:
         return out, pushed
     inputs = [now, sd_wp, *link, slot, lengths_wp, *body_arrays, num_guides, m, n, k, float(margin),
-              float(reach_segments), float(_ZERO_DISTANCE[torch.float32]), x]
+              float(reach_segments), float(_ZERO_DISTANCE[torch.float32]), int(ROUNDS_FACE_HINT), x]
+    found = [_warp.as_warp(cleared_at, vec3=True), _warp.as_warp(clearance), *planes, _warp.as_warp(closest_face),
+             state_wp]
     for _ in range(passes):
-        _run(kernels.follower_body_query_kernel, batch * m * n, device, inputs,
-             [_warp.as_warp(cleared_at, vec3=True), _warp.as_warp(clearance), *planes])
-        follow_the_leader(x)
+        _run(kernels.follower_body_query_kernel, batch * m * n, device, inputs, found)
+        follow_the_leader(x, not ROUNDS_SKIP_SETTLED)
     return out, pushed
 
 

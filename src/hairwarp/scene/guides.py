@@ -22,8 +22,8 @@ strand) places each vertex at its rest length from its predecessor (follow-the-l
 inside the body or within `body_margin` of it is pushed out along the signed distance's gradient
 and back onto its rest length, so the strand slides over the body. Only the vertices whose guides
 do not prove them clear (the signed distance is 1-Lipschitz) are queried. `body_schedule =
-"rounds"` takes the queries out of the walk (faster on a GPU for a few thousand strands, more
-vertices left inside: docs/guides.md).
+"rounds"` takes the queries out of the walk (faster on a GPU up to tens of thousands of strands,
+more vertices left inside: docs/guides.md); "auto", the default, picks by device and strand count.
 
 Contact between guides. The energy's per-vertex constants (mass, stiffnesses, contact weights)
 stand for a whole bundle: scaling all of them by the same bundle size leaves the minimiser
@@ -46,6 +46,13 @@ from hairwarp._validate import check_finite, check_tensor
 SHAPE_SAMPLES = 4
 # The guides of a larger groom are chosen among this many of its strands (`select_guides`).
 MAX_GUIDE_CANDIDATES = 16384
+# `GuideConfig(body_schedule="auto")` runs the rounds on CUDA up to this many strands x frames, the
+# walk above. One H100, interpolation + body pass from the CUDA graph (docs/guides.md, twelfth
+# session): 10 000 strands rounds 1.9-2.3 ms against the walk's 4.1-4.4; 30 000 rounds 3.3
+# against 5.4; 100 000 rounds 8.0-8.4 against 8.5-8.9, but 0.083 % of the followers' vertices
+# inside (down to 11.6 mm) against the walk's 0.011 %: there the walk meets the 10 ms goal with
+# a seventh of the vertices inside. The switch between 30 000 and 100 000 is not measured.
+ROUNDS_MAX_STRANDS = 30000
 # Width [m] a strand is written with (USD `widths`) when it stands for a guide's bundle alone.
 GUIDE_WIDTH = 1.0e-3
 
@@ -73,9 +80,15 @@ class GuideConfig:
         body_passes: push-out and length projection rounds per vertex of the body pass (0: no
             body pass).
         body_schedule: how the body pass orders its queries, "walk" (vertex after vertex, a
-            thread per strand) or "rounds" (all queries of a round at once; faster on a GPU at
-            10 000 strands, with more vertices left inside;
-            `hairwarp.ops.guide_interpolation.follow_guides`, docs/guides.md).
+            thread per strand), "rounds" (all queries of a round at once; faster on a GPU for a
+            few strands, with more vertices left inside;
+            `hairwarp.ops.guide_interpolation.follow_guides`, docs/guides.md) or "auto" (the
+            default): the rounds on CUDA for at most `ROUNDS_MAX_STRANDS` (30 000) strands x
+            frames, the walk elsewhere (`GuideSet.body_schedule`). On one H100 at 10 000 strands
+            the rounds take 1.9-2.3 ms against the walk's 4.1-4.4 (both leave the followers
+            less inside than their guides: 0.06 % / 0.007 % against 0.24 %); at 100 000 the walk
+            takes 8.5-8.9 ms (goal 10) with a seventh of the rounds' vertices inside; on the CPU
+            the rounds are 3x slower than the walk.
         body_settle: the walk does not query a pushed vertex again where the length projection
             moved it less than this from where the push put it [m]; 0: it is queried again, up
             to `body_passes` times (`follow_guides`' `settle`).
@@ -91,7 +104,7 @@ class GuideConfig:
     shape_weight: float = 1.0
     body_margin: float = 1.0e-3
     body_passes: int = 3
-    body_schedule: str = "walk"
+    body_schedule: str = "auto"
     body_settle: float = 0.0
     cuda_graph: bool = True
 
@@ -108,8 +121,8 @@ class GuideConfig:
             raise ValueError(f"body_margin: expected a number >= 0 [m], got {self.body_margin}")
         from hairwarp.ops.guide_interpolation import SCHEDULES
 
-        if self.body_schedule not in SCHEDULES:
-            raise ValueError(f"body_schedule: expected one of {SCHEDULES}, got {self.body_schedule!r}")
+        if self.body_schedule not in ("auto", *SCHEDULES):
+            raise ValueError(f"body_schedule: expected one of {('auto', *SCHEDULES)}, got {self.body_schedule!r}")
 
 
 def strand_features(strands: torch.Tensor, shape_weight: float = 1.0) -> torch.Tensor:
@@ -170,6 +183,29 @@ def nearest_guides(features: torch.Tensor, guide_features: torch.Tensor,
     distance, index = cKDTree(guide_features.double().numpy()).query(features.double().numpy(), k=k)
     index, distance = np.asarray(index).reshape(len(features), k), np.asarray(distance).reshape(len(features), k)
     return torch.from_numpy(index.astype(np.int64)), torch.from_numpy(distance)
+
+
+def _finite_scan(tensors: dict, device: torch.device):
+    """Start the NaN/Inf scan of the named CUDA tensors: (pinned host flag, the event after its
+    copy), True once the event has passed if the sum of all their values is finite; None when
+    finite checks are off (`hairwarp._validate.set_finite_checks`) or nothing is to be scanned.
+
+    A NaN or Inf makes the sum NaN or infinite; a sum that overflows with every value finite
+    only sends the caller to the exact scan (`check_finite`), which then passes. Five launches:
+    `isfinite(t).all()` per tensor took ~0.3 ms of host time a call at 10 000 strands on one
+    H100 (torch.profiler, `tools/profile_guides.py`), a sixth of the 2 ms goal.
+    """
+    from hairwarp._validate import finite_checks_enabled
+
+    named = [t for t in tensors.values() if t.is_floating_point() and t.numel() > 0]
+    if not finite_checks_enabled() or not named:
+        return None
+    total = torch.cat([t.reshape(-1).to(torch.float32) for t in named]).sum()
+    flag = torch.empty((), dtype=torch.bool, pin_memory=True)
+    flag.copy_((total - total) == 0, non_blocking=True)  # inf - inf and NaN - NaN are NaN
+    done = torch.cuda.Event()
+    done.record(torch.cuda.current_stream(device))
+    return flag, done
 
 
 @dataclass(eq=False)
@@ -306,12 +342,30 @@ class GuideSet:
             inputs = (guides, head, guide_signed_distance.to(torch.float32))
         else:
             body, inputs = None, (guides, head)
-        check_finite(**finite)
-        if device.type == "cuda" and self.config.cuda_graph:
-            x, pushed = self._replayed(inputs, body)
-        else:
+        if device.type != "cuda":
+            check_finite(**finite)
             x, pushed = self._launches(body, *inputs)
+        else:
+            # The scan's answer is read once the pass is queued behind it: the device runs both
+            # back to back and the host waits for the scan only, not for the pass (on NaN or Inf
+            # the pass's result is dropped and the exact scan names the tensor).
+            scanned = _finite_scan(finite, device)
+            x, pushed = self._replayed(inputs, body) if self.config.cuda_graph else self._launches(body, *inputs)
+            if scanned is not None:
+                scanned[1].synchronize()
+                if not bool(scanned[0]):
+                    check_finite(**finite)
         return x.to(guide_positions.dtype), ({"pushed": pushed} if use_body else {})
+
+    def body_schedule(self, device: torch.device, frames: int = 1) -> str:
+        """The body pass's schedule ("walk" or "rounds") for `frames` frames on `device`:
+        `GuideConfig.body_schedule`, with "auto" resolved.
+        """
+        schedule = self.config.body_schedule
+        if schedule != "auto":
+            return schedule
+        few = self.num_strands * frames <= ROUNDS_MAX_STRANDS
+        return "rounds" if torch.device(device).type == "cuda" and few else "walk"
 
     def _launches(self, body, guides: torch.Tensor, head: torch.Tensor,
                   guide_signed_distance: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -323,7 +377,8 @@ class GuideSet:
         return follow_guides(on["guides_rest"], guides, rotations, on["rest"], *on["link"], guide_slot=on["guide_slot"],
                              body=body, guide_signed_distance=guide_signed_distance,
                              margin=self.config.body_margin, passes=self.config.body_passes,
-                             schedule=self.config.body_schedule, rest_lengths=on["rest_lengths"],
+                             schedule=self.body_schedule(guides.device, guides.shape[0]),
+                             rest_lengths=on["rest_lengths"],
                              settle=self.config.body_settle, check=False)
 
     def _replayed(self, inputs: tuple, body) -> tuple[torch.Tensor, torch.Tensor]:
@@ -382,4 +437,5 @@ class GuideSet:
         return out
 
 
-__all__ = ["GUIDE_WIDTH", "GuideConfig", "GuideSet", "strand_width", "nearest_guides", "select_guides", "strand_features"]
+__all__ = ["GUIDE_WIDTH", "ROUNDS_MAX_STRANDS", "GuideConfig", "GuideSet", "strand_width", "nearest_guides",
+           "select_guides", "strand_features"]
