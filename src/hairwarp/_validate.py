@@ -59,11 +59,12 @@ def check_tensor(
             ok = t.dim() >= len(tail) and all(
                 e is None or e == s for e, s in zip(tail, t.shape[t.dim() - len(tail):])
             )
-            want = "(..., " + ", ".join("*" if e is None else str(e) for e in tail) + ")"
         else:
             ok = t.dim() == len(dims) and all(e is None or e == s for e, s in zip(dims, t.shape))
-            want = "(" + ", ".join("*" if e is None else str(e) for e in dims) + ")"
-        if not ok:
+        if not ok:  # the message is built only here: a hot caller checks a few tensors per call
+            ellipsis = bool(dims) and dims[0] == "..."
+            listed = ", ".join("*" if e is None else str(e) for e in (dims[1:] if ellipsis else dims))
+            want = f"({'..., ' if ellipsis else ''}{listed})"
             raise ValueError(f"{name}: expected shape {want}, got {tuple(t.shape)}")
     if dtypes is not None and t.dtype not in dtypes:
         names = " or ".join(str(d).replace("torch.", "") for d in dtypes)

@@ -35,12 +35,14 @@ apart in the rest pose itself; the bundles keep apart because their guides do.
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
-from hairwarp._validate import check_finite, check_tensor
+from hairwarp._validate import check_finite, check_tensor, finite_checks_enabled
+from hairwarp.runtime import CapturedCall
 
 # Quarters of a strand whose mean positions describe its shape in the guide choice.
 SHAPE_SAMPLES = 4
@@ -185,27 +187,37 @@ def nearest_guides(features: torch.Tensor, guide_features: torch.Tensor,
     return torch.from_numpy(index.astype(np.int64)), torch.from_numpy(distance)
 
 
-def _finite_scan(tensors: dict, device: torch.device):
-    """Start the NaN/Inf scan of the named CUDA tensors: (pinned host flag, the event after its
-    copy), True once the event has passed if the sum of all their values is finite; None when
-    finite checks are off (`hairwarp._validate.set_finite_checks`) or nothing is to be scanned.
+class _FiniteScan:
+    """The NaN/Inf scan of `GuideSet.follow`'s CUDA inputs, on a side stream of high priority,
+    made once per set and device (its stream, two events and a pinned flag: none is made per
+    call).
 
-    A NaN or Inf makes the sum NaN or infinite; a sum that overflows with every value finite
-    only sends the caller to the exact scan (`check_finite`), which then passes. Five launches:
-    `isfinite(t).all()` per tensor took ~0.3 ms of host time a call at 10 000 strands on one
-    H100 (torch.profiler, `tools/profile_guides.py`), a sixth of the 2 ms goal.
+    `start` marks the inputs as ready on the current stream before the pass is queued; `finite`,
+    called once the pass is queued, sums every input on the side stream (it waits for the mark
+    only, not for the pass) and reads whether the sum is finite. A NaN or Inf makes the sum NaN
+    or infinite; a sum that overflows with every value finite only sends the caller to the exact
+    scan (`check_finite`), which then passes. Queued before the pass, the scan's launches, its
+    pinned flag and its event delayed the pass's first kernel by their host time; queued behind
+    it, they run while the GPU works. (`isfinite(t).all()` per tensor took ~0.3 ms of host time
+    a call at 10 000 strands on one H100: torch.profiler, `tools/profile_guides.py`.)
     """
-    from hairwarp._validate import finite_checks_enabled
 
-    named = [t for t in tensors.values() if t.is_floating_point() and t.numel() > 0]
-    if not finite_checks_enabled() or not named:
-        return None
-    total = torch.cat([t.reshape(-1).to(torch.float32) for t in named]).sum()
-    flag = torch.empty((), dtype=torch.bool, pin_memory=True)
-    flag.copy_((total - total) == 0, non_blocking=True)  # inf - inf and NaN - NaN are NaN
-    done = torch.cuda.Event()
-    done.record(torch.cuda.current_stream(device))
-    return flag, done
+    def __init__(self, device: torch.device):
+        self.stream = torch.cuda.Stream(device=device, priority=-1)
+        self.ready, self.done = torch.cuda.Event(), torch.cuda.Event()
+        self.flag = torch.empty((), dtype=torch.bool, pin_memory=True)
+
+    def start(self, device: torch.device) -> None:
+        self.ready.record(torch.cuda.current_stream(device))
+
+    def finite(self, tensors: list) -> bool:
+        self.stream.wait_event(self.ready)
+        with torch.cuda.stream(self.stream):
+            total = torch.cat([t.reshape(-1).to(torch.float32) for t in tensors]).sum()
+            self.flag.copy_(torch.isfinite(total), non_blocking=True)
+            self.done.record(self.stream)
+        self.done.synchronize()
+        return bool(self.flag)
 
 
 @dataclass(eq=False)
@@ -319,8 +331,6 @@ class GuideSet:
             exactly theirs; facts: "pushed", a (B, M) int32 tensor of the vertices the body pass
             moved per strand, on the device: read it only when needed, it waits for the GPU).
         """
-        from hairwarp.ops import hair_body_signed_distance
-
         device = guide_positions.device
         on = self._on(device)
         guides = guide_positions.to(torch.float32)
@@ -333,6 +343,8 @@ class GuideSet:
         use_body = body is not None and self.config.body_passes > 0
         if use_body:
             if guide_signed_distance is None:
+                from hairwarp.ops import hair_body_signed_distance
+
                 check_finite(**finite)
                 finite = {}
                 guide_signed_distance = hair_body_signed_distance(guides, body)
@@ -346,15 +358,19 @@ class GuideSet:
             check_finite(**finite)
             x, pushed = self._launches(body, *inputs)
         else:
-            # The scan's answer is read once the pass is queued behind it: the device runs both
-            # back to back and the host waits for the scan only, not for the pass (on NaN or Inf
-            # the pass's result is dropped and the exact scan names the tensor).
-            scanned = _finite_scan(finite, device)
+            # The scan is queued once the pass is, beside it (`_FiniteScan`): the host waits for
+            # the scan only, not for the pass (on NaN or Inf the pass's result is dropped and the
+            # exact scan names the tensor).
+            scanned = [t for t in finite.values() if t.is_floating_point() and t.numel() > 0]
+            scan = None
+            if scanned and finite_checks_enabled():
+                if "finite_scan" not in on:
+                    on["finite_scan"] = _FiniteScan(device)
+                scan = on["finite_scan"]
+                scan.start(device)
             x, pushed = self._replayed(inputs, body) if self.config.cuda_graph else self._launches(body, *inputs)
-            if scanned is not None:
-                scanned[1].synchronize()
-                if not bool(scanned[0]):
-                    check_finite(**finite)
+            if scan is not None and not scan.finite(scanned):
+                check_finite(**finite)
         return x.to(guide_positions.dtype), ({"pushed": pushed} if use_body else {})
 
     def body_schedule(self, device: torch.device, frames: int = 1) -> str:
@@ -387,13 +403,9 @@ class GuideSet:
         buffers where they are, so it follows `BodyMesh.update`; another body object is another
         key. One frame only (a batch's buffers would be held for good), and one key at a time.
         """
-        import weakref
-
-        from hairwarp.runtime import CapturedCall
-
         if inputs[0].shape[0] != 1:
             return self._launches(body, *inputs)
-        key = (str(inputs[0].device), tuple((tuple(t.shape), t.dtype) for t in inputs), self.config)
+        key = (inputs[0].device, *[(t.shape, t.dtype) for t in inputs], self.config)
         graphs = self.__dict__.setdefault("_graphs", {})
         entry = graphs.get(key)
         if entry is None or (entry["body"]() if entry["body"] is not None else None) is not body:
