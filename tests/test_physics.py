@@ -1,6 +1,7 @@
 """The physics simulation (implicit Euler on the device L-BFGS) and the `physics` method."""
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -68,8 +69,11 @@ def test_stiffness_scaling_reaches_the_unscaled_steps_in_fewer_iterations():
     steps take fewer iterations (root alignment's stiff first segments no longer set the pace)."""
     scene = comparison_scene("whiplash", strand_stride=64, num_vertices=40).scene
     frames = range(0, 8)
-    tight = simulate_physics(scene, frames, config=PhysicsConfig(stiffness_scaling=0.0).tight())
-    runs = {a: simulate_physics(scene, frames, config=PhysicsConfig(stiffness_scaling=a), initial=tight.positions[0])
+    # At 1e-5 m, where the scaling was measured: at the looser default (1e-4 m) both settings stop
+    # in their first chunks on this 16-strand scene, before the path matters.
+    base = PhysicsConfig(tolerance=1e-5)
+    tight = simulate_physics(scene, frames, config=replace(base, stiffness_scaling=0.0).tight())
+    runs = {a: simulate_physics(scene, frames, config=replace(base, stiffness_scaling=a), initial=tight.positions[0])
             for a in (0.0, 0.125)}
     for run in runs.values():
         distance = (run.positions - tight.positions).norm(dim=-1)[..., 2:].mean(dim=(1, 2, 3))
@@ -123,8 +127,6 @@ def test_steps_on_the_device_pair_list_land_where_the_pair_cache_steps_do():
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device; this machine has none")
 def test_cuda_graph_steps_match_eager_steps(whiplash):
-    from dataclasses import replace
-
     config = PhysicsConfig()
     graph = simulate_physics(whiplash, range(5), device="cuda", config=config)
     # Eager steps keep the graphs' device pair list (`hair_hair_list`), so both take one path.
@@ -162,6 +164,8 @@ def test_physics_method_drapes_and_simulates():
 def test_bad_config():
     with pytest.raises(ValueError, match="tolerance"):
         PhysicsConfig(tolerance=0.0)
+    with pytest.raises(ValueError, match="static_tolerance"):
+        PhysicsConfig(static_tolerance=float("nan"))
     with pytest.raises(ValueError, match="max_iterations"):
         PhysicsConfig(max_iterations=0)
     with pytest.raises(ValueError, match="hair_hair_list_skin"):
@@ -175,6 +179,7 @@ def test_bad_config():
         x[0, 0, 3, 1] = float("nan")
         PhysicsSolver((x[0, :, 1:] - x[0, :, :-1]).norm(dim=-1), x, None, None, EnergyConfig(), PhysicsConfig())
     assert math.isclose(PhysicsConfig().tight().tolerance, PhysicsConfig().tolerance / 100)
+    assert math.isclose(PhysicsConfig().tight().static_tolerance, PhysicsConfig().static_tolerance / 100)
 
 
 def test_states_are_checked_once_and_a_non_finite_trial_is_rejected_not_passed_to_the_kernels():

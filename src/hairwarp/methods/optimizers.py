@@ -82,7 +82,7 @@ class OptimizerMethod(Method):
 class PhysicsMethod(Method):
     """The physics simulation (`hairwarp.solvers.physics`): a motion by implicit-Euler steps on
     the device L-BFGS (variables scaled by the stiffness), a single frame draped as the static optimum, each solve
-    stopped at `PhysicsConfig.tolerance`.
+    stopped at `PhysicsConfig.tolerance` (a drape: `static_tolerance`).
     """
 
     name = "physics"
@@ -111,7 +111,7 @@ class PhysicsMethod(Method):
         synchronize(x0.device)
         elapsed = time.perf_counter() - t0
         info = {"iterations": report.iterations, "stop_reason": report.stop_reason, "loss": report.energy,
-                "tolerance_m": self.config.tolerance}
+                "tolerance_m": self.config.static_tolerance}
         return MethodResult(positions=positions, time_ms=elapsed * 1e3 / x0.shape[0], info=info)
 
     def simulate(self, frames) -> MethodResult:
