@@ -105,6 +105,9 @@ def main(argv=None):
     parser.add_argument("--steps", default="12,18", help="frames whose step is checked")
     parser.add_argument("--caps", default="32,64,96")
     parser.add_argument("--group-strands", default="0,128", help="strands a group (0: one group), comma-separated")
+    parser.add_argument("--max-steps", default="0.02",
+                        help="the farthest a trial moves a variable's point [m] (`PhysicsConfig.max_step`), "
+                             "comma-separated, crossed with --group-strands")
     parser.add_argument("--out", default="hairwarp-out")
     args = parser.parse_args(argv)
     from hairwarp.config import NUM_FIXED_VERTICES, EnergyConfig
@@ -127,7 +130,8 @@ def main(argv=None):
                            PhysicsConfig())
     m, n = rest.shape[0], rest.shape[1] + 1
     rows = []
-    for spec in [int(g) for g in args.group_strands.split(",")]:
+    runs = [(int(g), float(s)) for g in args.group_strands.split(",") for s in args.max_steps.split(",")]
+    for spec, max_step in runs:
         per_group = m if spec <= 0 else spec
         strand_group = torch.arange(m) // per_group
         groups = strand_group[:, None].expand(m, (n - NUM_FIXED_VERTICES) * 3).reshape(-1)
@@ -148,12 +152,12 @@ def main(argv=None):
             def record(cap, z):
                 x = solver._assemble(z.to(start.dtype)).detach()
                 distance = float((x - tight.positions[t]).norm(dim=-1)[..., NUM_FIXED_VERTICES:].mean()) * 1e3
-                rows.append({"group_strands": per_group, "groups": num_groups, "step": t, "cap": cap,
-                             "mean_mm": distance})
-                print(f"{per_group:5d} strands a group ({num_groups} groups), step {t}, {cap} it.: {distance:.3f} mm",
-                      flush=True)
+                rows.append({"group_strands": per_group, "groups": num_groups, "max_step": max_step, "step": t,
+                             "cap": cap, "mean_mm": distance})
+                print(f"{per_group:5d} strands a group ({num_groups} groups), max step {max_step:g} m, step {t}, "
+                      f"{cap} it.: {distance:.3f} mm", flush=True)
 
-            grouped_lbfgs(energy, z0, groups, num_groups, caps, record)
+            grouped_lbfgs(energy, z0, groups, num_groups, caps, record, max_step=max_step)
     os.makedirs(args.out, exist_ok=True)
     with open(os.path.join(args.out, "physics_grouped_lbfgs.json"), "w") as f:
         json.dump({"motion": args.motion, "strand_stride": args.strand_stride, "rows": rows}, f, indent=1)
