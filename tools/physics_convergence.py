@@ -94,6 +94,39 @@ def root_block_solver_class():
 ROOT_BLOCK = 4
 
 
+class TightSteps:
+    """A motion's first frames, simulated at the tight setting (1e-7 m: the steps' 1e-5 m / 100, as
+    the session-12 result files were made), and what a step from its states needs: the posed
+    frames, one body, the rest lengths and the energy at the motion's frame spacing. Shared by
+    this tool and `tools/physics_grouped_lbfgs.py`.
+    """
+
+    def __init__(self, motion: str, strand_stride: int, last_step: int, device: torch.device):
+        from hairwarp.config import EnergyConfig
+        from hairwarp.evaluation.scenes import comparison_scene
+        from hairwarp.ops import BodyMesh
+        from hairwarp.solvers.physics import PhysicsConfig, simulate_physics
+
+        self.scene = comparison_scene(motion, reduced=False, strand_stride=strand_stride).scene
+        frames = list(range(last_step + 1))
+        self.energy = EnergyConfig().replace(time_step=1.0 / float(self.scene.motion.fps))
+        self.config = PhysicsConfig(tolerance=1e-5).tight()
+        self.tight = simulate_physics(self.scene, frames, device=device, config=self.config)
+        self.posed = self.scene.frames(frames, device=device, build_body=False)
+        self.body = BodyMesh(self.posed.posed.vertices[:1],
+                             self.scene.body.faces.to(device=device, dtype=torch.int32), bvh="lbvh")
+        self.rest = self.scene.rest_lengths.to(device)
+
+    def place(self, solver, t: int) -> None:
+        """Put `solver` (of any float type) at step t: the frames t-2..t (the warm start reads the
+        rigid placements' history) and the tight states t-1, t-2."""
+        d = solver.rigid.dtype
+        for k in (t - 2, t - 1, t):
+            solver.set_frame(self.posed.rigid.positions[k:k + 1].to(d), self.posed.rigid.normals[k:k + 1].to(d),
+                             self.posed.posed.vertices[k:k + 1])
+        solver.set_state(self.tight.positions[t - 1].to(d), self.tight.positions[t - 2].to(d))
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--device", default="cuda")
@@ -111,39 +144,24 @@ def main(argv=None):
                         help="the tight solves' float type (default: --dtype)")
     parser.add_argument("--out", default="hairwarp-out")
     args = parser.parse_args(argv)
-    from hairwarp.config import EnergyConfig
-    from hairwarp.evaluation.scenes import comparison_scene
-    from hairwarp.ops import BodyMesh, hair_body_signed_distance
-    from hairwarp.solvers.physics import PhysicsConfig, PhysicsSolver, simulate_physics
+    from hairwarp.ops import hair_body_signed_distance
+    from hairwarp.solvers.physics import PhysicsConfig, PhysicsSolver
 
     device = torch.device(args.device)
-    scene = comparison_scene(args.motion, reduced=False, strand_stride=args.strand_stride).scene
     steps = [int(s) for s in args.steps.split(",")]
     caps = [int(c) for c in args.caps.split(",")]
-    frames = list(range(max(steps) + 1))
-    base_energy = EnergyConfig().replace(time_step=1.0 / float(scene.motion.fps))
-    # The tight solves at 1e-7 m (the steps' tolerance of 1e-5 m / 100, as the session-12 files were made).
-    tight_config = PhysicsConfig(tolerance=1e-5).tight()
-    tight = simulate_physics(scene, frames, device=device, config=tight_config)
-    posed = scene.frames(frames, device=device, build_body=False)
-    body = BodyMesh(posed.posed.vertices[:1], scene.body.faces.to(device=device, dtype=torch.int32), bvh="lbvh")
-    rest = scene.rest_lengths.to(device)
+    setup = TightSteps(args.motion, args.strand_stride, max(steps), device)
+    base_energy, tight_config, body, place = setup.energy, setup.config, setup.body, setup.place
+    posed, rest = setup.posed, setup.rest
     dtype = getattr(torch, args.dtype)
     reference_dtype = getattr(torch, args.reference_dtype or args.dtype)
     rigid_all = {d: posed.rigid.positions.to(d) for d in {dtype, reference_dtype}}
     normals_all = {d: posed.rigid.normals.to(d) for d in {dtype, reference_dtype}}
-    states = {d: tight.positions.to(d) for d in {dtype, reference_dtype}}
     n = rest.shape[1] + 1
     bins = {"2-5": (2, 6), "6-20": (6, 21), "21-60": (21, 61), "61-": (61, n)}
     off = {"all": {}, "no_hair_hair": {"hair_hair_weight": 0.0}, "no_hair_body": {"hair_body_weight": 0.0},
            "no_root_alignment": {"root_alignment_weight": 0.0},
            "no_contact": {"hair_hair_weight": 0.0, "hair_body_weight": 0.0}, "root_block": {}}
-
-    def place(solver, t):
-        d = solver.rigid.dtype
-        for k in (t - 2, t - 1, t):  # the rigid placements' history too (the warm start reads it)
-            solver.set_frame(rigid_all[d][k:k + 1], normals_all[d][k:k + 1], posed.posed.vertices[k:k + 1])
-        solver.set_state(states[d][t - 1], states[d][t - 2])
 
     solver_variants = {}
     for spec in args.solver_variant:

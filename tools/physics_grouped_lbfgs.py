@@ -110,23 +110,17 @@ def main(argv=None):
                              "comma-separated, crossed with --group-strands")
     parser.add_argument("--out", default="hairwarp-out")
     args = parser.parse_args(argv)
-    from hairwarp.config import NUM_FIXED_VERTICES, EnergyConfig
-    from hairwarp.evaluation.scenes import comparison_scene
-    from hairwarp.ops import BodyMesh
-    from hairwarp.solvers.physics import PhysicsConfig, PhysicsSolver, simulate_physics
+    from physics_convergence import TightSteps
+
+    from hairwarp.config import NUM_FIXED_VERTICES
+    from hairwarp.solvers.physics import PhysicsConfig, PhysicsSolver
 
     device = torch.device(args.device)
-    scene = comparison_scene(args.motion, reduced=False, strand_stride=args.strand_stride).scene
     steps = [int(s) for s in args.steps.split(",")]
     caps = [int(c) for c in args.caps.split(",")]
-    frames = list(range(max(steps) + 1))
-    energy_config = EnergyConfig().replace(time_step=1.0 / float(scene.motion.fps))
-    # The tight solves at 1e-7 m, as tools/physics_convergence.py's.
-    tight = simulate_physics(scene, frames, device=device, config=PhysicsConfig(tolerance=1e-5).tight())
-    posed = scene.frames(frames, device=device, build_body=False)
-    body = BodyMesh(posed.posed.vertices[:1], scene.body.faces.to(device=device, dtype=torch.int32), bvh="lbvh")
-    rest = scene.rest_lengths.to(device)
-    solver = PhysicsSolver(rest, posed.rigid.positions[:1], posed.rigid.normals[:1], body, energy_config,
+    setup = TightSteps(args.motion, args.strand_stride, max(steps), device)
+    posed, rest, tight = setup.posed, setup.rest, setup.tight
+    solver = PhysicsSolver(rest, posed.rigid.positions[:1], posed.rigid.normals[:1], setup.body, setup.energy,
                            PhysicsConfig())
     m, n = rest.shape[0], rest.shape[1] + 1
     rows = []
@@ -137,10 +131,7 @@ def main(argv=None):
         groups = strand_group[:, None].expand(m, (n - NUM_FIXED_VERTICES) * 3).reshape(-1)
         num_groups = int(strand_group.max()) + 1
         for t in steps:
-            for k in (t - 2, t - 1, t):
-                solver.set_frame(posed.rigid.positions[k:k + 1], posed.rigid.normals[k:k + 1],
-                                 posed.posed.vertices[k:k + 1])
-            solver.set_state(tight.positions[t - 1], tight.positions[t - 2])
+            setup.place(solver, t)
             start = solver.prediction()
             start[:, :, :NUM_FIXED_VERTICES] = solver.rigid[:, :, :NUM_FIXED_VERTICES]
             z0 = solver._variables(start).reshape(-1).double()
