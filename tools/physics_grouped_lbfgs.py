@@ -23,9 +23,11 @@ import torch
 
 
 def grouped_lbfgs(energy, z0: torch.Tensor, groups: torch.Tensor, num_groups: int, caps: list[int], record, *,
-                  history: int = 8, max_step: float = 0.02, c1: float = 1e-4, restart: int = 5):
+                  history: int = 8, max_step: float = 0.02, c1: float = 1e-4, restart: int = 5, precondition=None):
     """Minimise `energy(z) -> (f, g)` from z0 (n,) with a memory per group (`groups`: (n,) group of
-    each entry); calls `record(evaluations, z)` when the evaluation count reaches each cap."""
+    each entry); calls `record(evaluations, z)` when the evaluation count reaches each cap.
+    `precondition(q) -> H0 q` (an inverse Hessian's approximation) replaces H0 = gamma I, and the
+    first direction -g / max(1, |g|_1) becomes -H0 g."""
     z = z0.clone()
     f, g = energy(z)
     evaluations = 1
@@ -40,9 +42,14 @@ def grouped_lbfgs(energy, z0: torch.Tensor, groups: torch.Tensor, num_groups: in
     def group_dot(a, b):
         return torch.zeros(num_groups, dtype=torch.float64).index_add_(0, groups, a * b)
 
+    def steepest(grad):
+        if precondition is not None:
+            return -precondition(grad)
+        return -grad * min(1.0, 1.0 / float(grad.abs().sum()))
+
     def direction(grad):
         if not bool((rho != 0).any()):
-            return -grad * min(1.0, 1.0 / float(grad.abs().sum())), True
+            return steepest(grad), True
         q = grad.clone()
         alphas = []
         order = [(head - k) % history for k in range(history)]
@@ -50,13 +57,13 @@ def grouped_lbfgs(energy, z0: torch.Tensor, groups: torch.Tensor, num_groups: in
             a = rho[k] * group_dot(S[k], q)
             alphas.append(a)
             q -= a[groups] * Y[k]
-        q *= gamma[groups]
+        q = q * gamma[groups] if precondition is None else precondition(q)
         for k, a in zip(reversed(order), reversed(alphas)):
             b = rho[k] * group_dot(Y[k], q)
             q += (a - b)[groups] * S[k]
         d = -q
         if float(torch.dot(d, grad)) >= 0:
-            return -grad * min(1.0, 1.0 / float(grad.abs().sum())), True
+            return steepest(grad), True
         return d, False
 
     d, _ = direction(g)

@@ -297,22 +297,25 @@ _views: dict = {}
 _MAX_VIEWS = 1024
 
 
-def as_warp(t: torch.Tensor, vec3: bool = False, quat: bool = False) -> wp.array:
+def as_warp(t: torch.Tensor, vec3: bool = False, quat: bool = False, mat33: bool = False) -> wp.array:
     """Zero-copy Warp view of a tensor, flat; `vec3=True` views (..., 3) as vec3, `quat=True` a
-    float32 (..., 4) as quaternions (x, y, z, w). A non-contiguous tensor is copied first (pass
+    float32 (..., 4) as quaternions (x, y, z, w), `mat33=True` (..., 3, 3) as row-major 3x3
+    blocks. A non-contiguous tensor is copied first (pass
     only inputs so). The view keeps the tensor alive.
     """
     init()
     t = t.detach()
     if not t.is_contiguous():
         t = t.contiguous()
-    key = (t.data_ptr(), t.numel(), t.dtype, vec3, quat, t.device)
+    key = (t.data_ptr(), t.numel(), t.dtype, vec3, quat, mat33, t.device)
     template = _views.get(key)
     if template is None:
         if len(_views) >= _MAX_VIEWS:
             _views.clear()
         if quat:
             flat, dtype = t.reshape(-1, 4), wp.quat
+        elif mat33:
+            flat, dtype = t.reshape(-1, 3, 3), _MAT33[t.dtype]
         else:
             flat = t.reshape(-1, 3) if vec3 else t.reshape(-1)
             dtype = _VEC3[t.dtype] if vec3 else _SCALAR.get(t.dtype)
