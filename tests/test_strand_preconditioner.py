@@ -84,15 +84,22 @@ def test_the_factor_and_its_walks_match_dense_float64(dtype, tolerance):
         expected.abs().max())
 
 
-def test_an_indefinite_block_is_held_at_the_floor_not_passed_on_as_nan():
-    pre = StrandPreconditioner(1, 6, "cpu", torch.float64)
-    dense = -torch.eye(3 * pre.moving, dtype=torch.float64)  # negative definite
+def test_an_indefinite_strand_is_factored_with_a_shift_not_passed_on_as_nan():
+    """P = -I (negative definite): the strand is factored again as P + mu I with mu growing from the
+    floor until every pivot clears floor / 2 (1 fails, 8 passes), and its walks stay finite."""
+    pre = StrandPreconditioner(2, 6, "cpu", torch.float64)
+    eye = torch.eye(3 * pre.moving, dtype=torch.float64)
+    generator = torch.Generator().manual_seed(5)
+    dense = torch.stack([-eye, _banded_spd(1, pre.moving, generator)[0]])  # one bad strand, one good
     _set_bands(pre, dense)
     pre.factor_bands(floor=1.0)
     assert torch.isfinite(pre.factor).all()
     u = _dense_factor(pre)
-    # every pivot held at the floor: U = I
-    assert torch.allclose(u, torch.eye(3 * pre.moving, dtype=torch.float64))
+    product = u @ u.transpose(1, 2)
+    assert torch.allclose(product[0], 7.0 * eye)  # -I + 8 I
+    assert torch.allclose(product[1], dense[1])  # the good strand is not shifted
+    t = pre.targets(torch.ones(2, pre.moving, 3, dtype=torch.float64))
+    assert torch.isfinite(t).all()
 
 
 def test_build_reads_the_hessian_of_a_banded_energy_and_the_tension_of_a_hanging_chain():
