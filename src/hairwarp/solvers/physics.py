@@ -100,7 +100,7 @@ class PhysicsConfig:
             at 8 iterations came 37x closer to the tight one than with the diagonal scaling, but
             at full size, where hair-hair contact couples the strands, the steps took more
             iterations, rebuilt the pair list 4x as often and drifted from the tight trajectory
-            (docs/physics.md, section 1).
+            (docs/physics.md, section 2, "Thirteenth session").
     """
 
     tolerance: float = 1.0e-4
