@@ -94,6 +94,14 @@ def root_block_solver_class():
 ROOT_BLOCK = 4
 
 
+def add_step_arguments(parser: argparse.ArgumentParser, *, device: str, strand_stride: int, steps: str) -> None:
+    """The options every experiment on `TightSteps` takes: --device, --motion, --strand-stride, --steps."""
+    parser.add_argument("--device", default=device)
+    parser.add_argument("--motion", default="whiplash")
+    parser.add_argument("--strand-stride", type=int, default=strand_stride)
+    parser.add_argument("--steps", default=steps, help="frames whose step is checked")
+
+
 class TightSteps:
     """A motion's first frames, simulated at the tight setting (1e-7 m: the steps' 1e-5 m / 100, as
     the session-12 result files were made), and what a step from its states needs: the posed
@@ -130,10 +138,7 @@ class TightSteps:
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--device", default="cuda")
-    parser.add_argument("--motion", default="whiplash")
-    parser.add_argument("--strand-stride", type=int, default=1)
-    parser.add_argument("--steps", default="6,12,18", help="frames whose step is checked")
+    add_step_arguments(parser, device="cuda", strand_stride=1, steps="6,12,18")
     parser.add_argument("--caps", default="8,16,32,48,64,96,128,192")
     parser.add_argument("--variants", default="all,no_hair_hair,no_hair_body,no_root_alignment,no_contact",
                         help="energy variants: all, no_hair_hair, no_hair_body, no_root_alignment, no_contact, no_bending")

@@ -105,11 +105,10 @@ def grouped_lbfgs(energy, z0: torch.Tensor, groups: torch.Tensor, num_groups: in
 
 
 def main(argv=None):
+    from physics_convergence import add_step_arguments
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--device", default="cpu")
-    parser.add_argument("--motion", default="whiplash")
-    parser.add_argument("--strand-stride", type=int, default=2)
-    parser.add_argument("--steps", default="12,18", help="frames whose step is checked")
+    add_step_arguments(parser, device="cpu", strand_stride=2, steps="12,18")
     parser.add_argument("--caps", default="32,64,96")
     parser.add_argument("--group-strands", default="0,128", help="strands a group (0: one group), comma-separated")
     parser.add_argument("--max-steps", default="0.02",

@@ -70,7 +70,9 @@ def banded_hessian(gradient, x_free: torch.Tensor, h: float) -> torch.Tensor:
 
 
 def tension_stiffness(x: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
-    """The rest lengths' share of the Hessian of the Lagrangian, (M, 3V, 3V) over the moving vertices.
+    """The rest lengths' share of the Hessian of the Lagrangian, (M, 3V, 3V) over the moving vertices:
+    the dense float64 form, for this experiment, of what the solver's
+    `hairwarp.kernels.strand_preconditioner.segment_tension_stiffness_kernel` adds to its bands.
 
     On the rest lengths a segment's tension lambda_e (the multiplier of |x_{e+1} - x_e| = l_e) stiffens
     the strand across the segment by lambda_e / l_e (I - u u^T): a hanging strand is a pendulum
@@ -130,11 +132,10 @@ def string_matrix(energy, x: torch.Tensor, g: torch.Tensor, rest: torch.Tensor) 
 
 
 def main(argv=None):
+    from physics_convergence import add_step_arguments
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--device", default="cpu")
-    parser.add_argument("--motion", default="whiplash")
-    parser.add_argument("--strand-stride", type=int, default=2)
-    parser.add_argument("--steps", default="6,12")
+    add_step_arguments(parser, device="cpu", strand_stride=2, steps="6,12")
     parser.add_argument("--iterations", type=int, default=12)
     parser.add_argument("--lbfgs-caps", default="16,32,64")
     parser.add_argument("--preconditioners", default="",
