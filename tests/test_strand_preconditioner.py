@@ -152,3 +152,60 @@ def test_build_reads_the_hessian_of_a_banded_energy_and_the_tension_of_a_hanging
     # and its factor reproduces it
     u = _dense_factor(pre)
     assert float((u @ u.transpose(1, 2) - got).abs().max()) < 1e-10 * float(got.abs().max())
+
+
+def test_hair_hair_blocks_are_each_strands_own_gauss_newton_share_of_the_barrier():
+    """HairHairBlocks adds, per listed pair, weight B''(d) g g^T over each strand's own segment
+    (g = dd/d(its two vertices)) into P's diagonal and first off-diagonal bands; the reference
+    is float64 torch (segment distance by autograd, B'' by the barrier's double backward)."""
+    from hairwarp.ops.strand_preconditioner import HairHairBlocks
+    from hairwarp.torch_reference.barrier import barrier as barrier_reference
+    from hairwarp.torch_reference.hair_hair_contact import edge_edge_distance, pairs_bruteforce
+
+    xi, dhat, bp, weight = 5e-4, 7.5e-4, 0.01, 1e3
+    n = 7
+    s = torch.linspace(0.0, 1.0, n, dtype=torch.float64)[:, None]
+    # Two strands crossing near their middles, 0.6-0.9 mm apart there, and a third far away.
+    a = torch.tensor([0.0, 0.0, 0.0]) + s * torch.tensor([0.006, 0.0, 0.0])
+    b = torch.tensor([0.003, -0.003, 0.0008]) + s * torch.tensor([0.0, 0.006, 0.0003])
+    c = torch.tensor([0.1, 0.1, 0.1]) + s * torch.tensor([0.0, -0.006, 0.0])
+    x = torch.stack([a, b, c])[None].double()  # (1, 3, N, 3)
+    pairs = pairs_bruteforce(x, xi + dhat + 1e-3).to(torch.int32)
+    assert pairs.shape[0] > 0
+    moving = n - NUM_FIXED_VERTICES
+    bands = torch.zeros(3, 3 * moving, 3, 3, dtype=torch.float64)
+    blocks = HairHairBlocks(pairs.contiguous(), torch.tensor([pairs.shape[0]], dtype=torch.int32), xi, dhat, bp,
+                            weight, "quadratic")
+    blocks.add_to(bands, x.float(), n, 2.0)
+    blocks.add_to(bands, x, n, 2.0)  # float32 and float64 positions: the blocks are float64 either way
+
+    diag = torch.zeros(3, moving, 3, 3, dtype=torch.float64)
+    off1 = torch.zeros(3, moving, 3, 3, dtype=torch.float64)
+    flat = x[0].reshape(-1, 3)
+    touched = 0
+    for i, j in pairs.long().tolist():
+        ends = []
+        for seg in (i, j):
+            strand, k = divmod(seg, n - 1)
+            ends.append((strand, k, flat[strand * n + k].clone().requires_grad_(True),
+                         flat[strand * n + k + 1].clone().requires_grad_(True)))
+        (si, ki, p0, p1), (sj, kj, q0, q1) = ends
+        d = edge_edge_distance(p0, p1, q0, q1)
+        g = torch.autograd.grad(d, (p0, p1, q0, q1))
+        dd = d.detach().clone().requires_grad_(True)
+        (b1,) = torch.autograd.grad(barrier_reference(dd, xi, dhat, bp), dd, create_graph=True)
+        (b2,) = torch.autograd.grad(b1, dd)
+        h = 2.0 * 2.0 * weight * float(b2)  # two add_to calls, scale 2 each
+        touched += h > 0
+        for strand, k, g0, g1 in ((si, ki, g[0], g[1]), (sj, kj, g[2], g[3])):
+            if k >= NUM_FIXED_VERTICES:
+                diag[strand, k - NUM_FIXED_VERTICES] += h * torch.outer(g0, g0)
+                off1[strand, k - NUM_FIXED_VERTICES] += h * torch.outer(g0, g1)
+            diag[strand, k + 1 - NUM_FIXED_VERTICES] += h * torch.outer(g1, g1)
+    assert touched > 0 and float(diag.abs().max()) > 0
+    assert torch.allclose(bands[0], diag.reshape(-1, 3, 3), rtol=1e-4, atol=1e-9 * float(diag.abs().max()))
+    assert torch.allclose(bands[1], off1.reshape(-1, 3, 3), rtol=1e-4, atol=1e-9 * float(diag.abs().max()))
+    assert float(bands[2].abs().max()) == 0.0
+    # the far strand gets nothing, and every diagonal block is positive semi-definite
+    assert float(bands[0].reshape(3, moving, 3, 3)[2].abs().max()) == 0.0
+    assert float(torch.linalg.eigvalsh(bands[0]).min()) >= -1e-9 * float(diag.abs().max())

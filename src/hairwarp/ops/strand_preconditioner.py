@@ -24,6 +24,8 @@ dominates).
 
 from __future__ import annotations
 
+import dataclasses
+
 import torch
 
 from hairwarp import _warp
@@ -52,6 +54,42 @@ class _SolveTransposed(torch.autograd.Function):
         w = torch.empty_like(grad_t)
         ctx.preconditioner._walk(kernels.strand_band_solve_kernel, grad_t.contiguous(), w)
         return w, None
+
+
+@dataclasses.dataclass
+class HairHairBlocks:
+    """Listed hair-hair pairs for P: each strand's own share of the pair's barrier curvature.
+
+    Args:
+        pairs: (capacity, 2) int32 flat segment ids (`HairHairPairList.pairs`).
+        count: (1,) int32 pairs listed (rows past it are ignored).
+        xi, dhat, join_fraction, weight, variant: the hair-hair barrier of Eq. 12 (config units).
+    """
+
+    pairs: torch.Tensor
+    count: torch.Tensor
+    xi: float
+    dhat: float
+    join_fraction: float
+    weight: float
+    variant: str
+
+    def add_to(self, bands: torch.Tensor, x: torch.Tensor, num_vertices: int, scale: float) -> None:
+        """bands[0], bands[1] += scale x the blocks at positions x (B, M, N, 3)."""
+        from hairwarp.ops.barrier import barrier_variant_id
+
+        x64 = x.detach().double().contiguous().reshape(-1, 3)
+        device = _warp.warp_device(x.device)
+        f64 = torch.float64
+        with _warp.launch_scope(x.device):
+            _warp.launch(kernels.hair_hair_gauss_newton_kernel, dim=self.pairs.shape[0],
+                         inputs=[_warp.as_warp(x64, vec3=True), _warp.as_warp(self.pairs.reshape(-1)),
+                                 _warp.as_warp(self.count), self.pairs.shape[0], int(num_vertices),
+                                 _warp.scalar(self.xi, f64), _warp.scalar(self.dhat, f64),
+                                 _warp.scalar(self.join_fraction, f64), _warp.scalar(self.weight * scale, f64),
+                                 barrier_variant_id(self.variant)],
+                         outputs=[_warp.as_warp(bands[0].view(-1)), _warp.as_warp(bands[1].view(-1))],
+                         device=device)
 
 
 class StrandPreconditioner:
@@ -115,7 +153,8 @@ class StrandPreconditioner:
         return z
 
     # -- the stiffness and its factor ----------------------------------------------------------
-    def build(self, x: torch.Tensor, gradient, stiffness: float, stretch: float) -> None:
+    def build(self, x: torch.Tensor, gradient, stiffness: float, stretch: float,
+              contact: torch.Tensor | None = None, pairs: HairHairBlocks | None = None) -> None:
         """P at positions x on the rest lengths, divided by `stiffness` [J/m^2], and its factor.
 
         Args:
@@ -125,6 +164,10 @@ class StrandPreconditioner:
             stiffness: the inertia's stiffness per vertex [J/m^2] (the eigenvalues' floor after
                 the division is 1).
             stretch: stretch's stiffness along a segment, 2 k_s / (M (N-1)) [J/m^2] (Eq. 7).
+            contact: optional (M*V, 3, 3) [J/m^2] blocks added to P's diagonal as they are
+                (undivided): a contact's Gauss-Newton curvature, B'' n n^T, positive
+                semi-definite where a difference of its gradient is not.
+            pairs: optional listed hair-hair pairs whose own-strand Gauss-Newton blocks enter P.
         """
         m, v = self.strands, self.moving
         x = x.detach()
@@ -146,6 +189,10 @@ class StrandPreconditioner:
         off1[:, :-1] = 0.5 * (full[:, :-1, 3] + full[:, 1:, 1].transpose(-1, -2))
         off2[:, :-2] = 0.5 * (full[:, :-2, 4] + full[:, 2:, 0].transpose(-1, -2))
         self.bands[0].copy_(diag.reshape(-1, 3, 3))
+        if contact is not None:
+            self.bands[0].add_(contact.reshape(-1, 3, 3).double() / stiffness)
+        if pairs is not None:
+            pairs.add_to(self.bands, x, self.num_vertices, 1.0 / stiffness)
         self.bands[1].copy_(off1.reshape(-1, 3, 3))
         self.bands[2].copy_(off2.reshape(-1, 3, 3))
         device = _warp.warp_device(self.device)
@@ -184,4 +231,4 @@ class StrandPreconditioner:
         return P.reshape(m, 3 * v, 3 * v)
 
 
-__all__ = ["StrandPreconditioner", "COLOURS", "DIFFERENCE_STEP"]
+__all__ = ["StrandPreconditioner", "HairHairBlocks", "COLOURS", "DIFFERENCE_STEP"]
