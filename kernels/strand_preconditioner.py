@@ -26,8 +26,6 @@ from typing import Any
 import warp as wp
 
 from hairwarp.config import NUM_FIXED_VERTICES
-from hairwarp.kernels.barrier import barrier_hessian
-from hairwarp.kernels.distances import edge_edge_closest_parameters, edge_edge_distance_gradient_at
 
 wp.set_module_options({"enable_backward": False})
 
@@ -214,69 +212,3 @@ def segment_tension_stiffness_kernel(
         if i - 1 >= FIXED_VERTICES:
             diag[b - 1] = diag[b - 1] + block
             off1[b - 1] = off1[b - 1] - block
-
-
-@wp.func
-def _add_outer(bands: wp.array(dtype=wp.float64), row: int, a: wp.vec3d, b: wp.vec3d, h: wp.float64):
-    """bands[row] += h a b^T, the (M*V, 3, 3) float64 bands seen flat (9 atomics: any device)."""
-    for r in range(3):
-        for c in range(3):
-            wp.atomic_add(bands, row * 9 + r * 3 + c, h * a[r] * b[c])
-
-
-@wp.func
-def _add_segment_blocks(diag: wp.array(dtype=wp.float64), off1: wp.array(dtype=wp.float64), strand: int,
-                        v0: int, g0: wp.vec3d, g1: wp.vec3d, h: wp.float64, num_vertices: int):
-    """A segment's own Gauss-Newton blocks h g g^T (g = (g0, g1), its vertices v0, v0 + 1 along
-    the strand) into P's diagonal and first off-diagonal band; fixed vertices have no row.
-    """
-    moving = num_vertices - FIXED_VERTICES
-    base = strand * moving - FIXED_VERTICES
-    if v0 >= FIXED_VERTICES:
-        _add_outer(diag, base + v0, g0, g0, h)
-        _add_outer(off1, base + v0, g0, g1, h)
-    if v0 + 1 >= FIXED_VERTICES:
-        _add_outer(diag, base + v0 + 1, g1, g1, h)
-
-
-@wp.kernel
-def hair_hair_gauss_newton_kernel(
-    x_in: wp.array(dtype=wp.vec3d),
-    pairs_in: wp.array(dtype=wp.int32),
-    count_in: wp.array(dtype=wp.int32),
-    capacity: int,
-    num_vertices: int,
-    xi: wp.float64,
-    dhat: wp.float64,
-    join_fraction: wp.float64,
-    weight: wp.float64,
-    variant: int,
-    diag: wp.array(dtype=wp.float64),
-    off1: wp.array(dtype=wp.float64),
-):
-    """Per listed pair of segments (k < count): each strand's own blocks of the pair's barrier
-    curvature, weight B''(d) (dd/dx)(dd/dx)^T (Eq. 12, Gauss-Newton: positive semi-definite),
-    into P's bands (flat float64, undivided). The blocks that couple the two strands stay out:
-    P is per strand. x_in: (B*M*N,) positions; pairs_in: flat segment ids as the pair list's.
-    """
-    k = wp.tid()
-    if k >= wp.min(count_in[0], capacity):
-        return
-    i = pairs_in[2 * k]
-    j = pairs_in[2 * k + 1]
-    segments = num_vertices - 1
-    strand_i = i // segments
-    strand_j = j // segments
-    vi = strand_i * num_vertices + i % segments
-    vj = strand_j * num_vertices + j % segments
-    p0 = x_in[vi]
-    p1 = x_in[vi + 1]
-    q0 = x_in[vj]
-    q1 = x_in[vj + 1]
-    s, t, dist2 = edge_edge_closest_parameters(p0, p1, q0, q1)
-    d, g_p0, g_p1, g_q0, g_q1 = edge_edge_distance_gradient_at(p0, p1, q0, q1, s, t)
-    h = weight * barrier_hessian(d, xi, dhat, join_fraction, variant)
-    if not (h > wp.float64(0.0)):
-        return
-    _add_segment_blocks(diag, off1, strand_i, i % segments, g_p0, g_p1, h, num_vertices)
-    _add_segment_blocks(diag, off1, strand_j, j % segments, g_q0, g_q1, h, num_vertices)

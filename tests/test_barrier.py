@@ -117,24 +117,6 @@ def test_bridge_gradgradcheck_float64(device):
         torch.testing.assert_close(h, ref, rtol=1e-6, atol=1e-6 * float(ref.abs().max()))
 
 
-def test_second_derivative_of_non_contiguous_distances():
-    """`barrier_second_derivative` (the preconditioner's contact curvature) is B'' of the
-    reference, also for a strided input (a transposed query result)."""
-    from hairwarp.ops.barrier import barrier_second_derivative
-
-    xi, dhat, bp = 1e-3, 1.5e-3, 0.01
-    d = torch.tensor([[-0.01, 1.2e-3], [0.0, 1.6e-3], [1.05e-3, 3e-3]], dtype=torch.float64).T  # (2, 3) strided
-    assert not d.is_contiguous()
-    for variant in VARIANTS:
-        got = barrier_second_derivative(d, xi, dhat, bp, variant)
-        ref = torch.tensor([[reference_hessian(float(v), xi, dhat, bp, variant) for v in row] for row in d],
-                           dtype=torch.float64)
-        assert float(ref.abs().max()) > 0.0
-        torch.testing.assert_close(got, ref, rtol=1e-5, atol=1e-6 * float(ref.abs().max()))
-    float32 = barrier_second_derivative(d.float(), xi, dhat, bp)
-    assert float32.dtype == torch.float32 and float32.shape == d.shape
-
-
 def reference_hessian(d, xi, dhat, bp, variant, h=1e-8):
     """B''(d) by central differences of the float64 torch reference's B'."""
     from hairwarp.torch_reference.barrier import barrier as torch_barrier

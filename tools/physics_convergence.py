@@ -145,8 +145,7 @@ def main(argv=None):
                         help="energy variants: all, no_hair_hair, no_hair_body, no_root_alignment, no_contact, no_bending")
     parser.add_argument("--solver-variant", action="append", default=[],
                         help="NAME:FIELD=VALUE,... a PhysicsConfig variant (repeatable); EnergyConfig fields "
-                             "switch terms (hair_hair_weight=0), precondition_body=1 and precondition_hair_hair=1 "
-                             "put the contacts' Gauss-Newton blocks into the strand preconditioner")
+                             "switch terms off (hair_hair_weight=0)")
     parser.add_argument("--dtype", default="float32", choices=("float32", "float64"),
                         help="the solves' float type (the tight solves of each step too)")
     parser.add_argument("--reference-dtype", default=None, choices=("float32", "float64"),
@@ -174,18 +173,13 @@ def main(argv=None):
            "no_bending": {"bending_weight": 0.0}}
 
     solver_variants = {}
-    # variant -> {precondition_body / precondition_hair_hair: 0 or 1}: the contacts its strand
-    # preconditioner puts into P (both out by default)
-    toggled = {}
     for spec in args.solver_variant:
         label, _, fields = spec.partition(":")
         pairs = {k: float(v) for k, v in (f.split("=") for f in fields.split(",") if f)}
         # Fields of PhysicsConfig set the solver; the rest switch energy terms (e.g. hair_hair_weight=0).
         solver_fields = {f.name for f in dataclasses.fields(PhysicsConfig)}
         solver_variants[label] = {k: v for k, v in pairs.items() if k in solver_fields}
-        toggles = ("precondition_body", "precondition_hair_hair")
-        off[label] = {k: v for k, v in pairs.items() if k not in solver_fields and k not in toggles}
-        toggled[label] = {k: v for k, v in pairs.items() if k in toggles}
+        off[label] = {k: v for k, v in pairs.items() if k not in solver_fields}
     rows = []
     for name in [v for v in args.variants.split(",") if v] + list(solver_variants):
         energy = base_energy.replace(**off[name])
@@ -217,8 +211,6 @@ def main(argv=None):
             config = replace(PhysicsConfig(), max_iterations=cap, tolerance=1e-12, **solver_variants.get(name, {}))
             solver_class = root_block_solver_class() if name.startswith("root_block") else PhysicsSolver
             solver = solver_class(rest.to(dtype), rigid_all[dtype][:1], normals_all[dtype][:1], body, energy, config)
-            for toggle, on in toggled.get(name, {}).items():
-                setattr(solver, toggle.replace("precondition_", "preconditioner_"), bool(on))
             for t in steps:
                 place(solver, t)
                 solver.step()

@@ -110,24 +110,6 @@ class _BarrierGradient(torch.autograd.Function):
         return grad_gradient * hessian, None, None, None, None, None
 
 
-@torch.no_grad()
-def barrier_second_derivative(d: torch.Tensor, xi: float, dhat: float, bp: float,
-                              variant: str = "quadratic") -> torch.Tensor:
-    """d^2B/dd^2 of Eq. 12-14 element-wise (no autograd; graph-safe: no host reads): the
-    curvature a Newton-type solver or preconditioner gives a contact along its normal.
-
-    Args: as `barrier` (bp a float).
-
-    Returns:
-        Tensor like `d` (zero for d >= xi + dhat).
-    """
-    xi, dhat, bp = check_barrier_parameters(xi, dhat, bp)
-    d = d.contiguous()
-    out = torch.empty_like(d)
-    _launch(barrier_kernels.barrier_hessian_kernel, d, xi, dhat, float(bp), barrier_variant_id(variant), (out,))
-    return out
-
-
 def barrier(d: torch.Tensor, xi: float, dhat: float, bp: float, variant: str = "quadratic") -> torch.Tensor:
     """Contact barrier B(d) of Eq. 12, element-wise, differentiable w.r.t. `d`.
 

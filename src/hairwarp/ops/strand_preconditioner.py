@@ -10,21 +10,22 @@ pendulum modes the L-BFGS memory learns a few at a time. Here the step's stiffne
 strand is built once at the step's start and factored, P = U U^T (block-banded, bandwidth two),
 and the solver's variables become z = U^T t (t the free targets): L-BFGS on z starts from
 H0 = P^-1, the strand's own Newton step. An option of the physics solver
-(`PhysicsConfig.strand_preconditioner`), off by default: 37x closer to the tight step after 8
-iterations on 64 strands, but on a full-size groom, where hair-hair contact couples the strands,
-slower than the diagonal scaling (docs/physics.md, section 2, "Thirteenth session").
+(`PhysicsConfig.strand_preconditioner`), off by default: on 64 strands 10-30x closer to the tight
+step after 8 iterations; at 512 strands closer after 16 and 32 iterations and mixed at 64; at full
+size on the GPU fewer iterations on torso_bend (62 against 85) but each ~2x the cost, and more on
+whiplash: slower than the diagonal scaling (docs/physics.md, section 2, "Thirteenth session" and
+"Fourteenth session").
 
-P is assembled from the energy's gradient in the positions (hair-hair contact left out: it couples
-strands), by one-sided differences in five vertex colours x three coordinates (15 gradients: a
-vertex couples with the two on each side), plus each segment's tension and stretch stiffness
-(stretch's k_s, ~10^5 x the inertia, is not differenced: in float32 its rounding would drown the
-soft terms), divided by the inertia's stiffness (so that z is in metres where the inertia
-dominates).
+P is assembled from the energy's gradient in the positions without contact (a contact's
+curvature at the step's start models the step badly: measured worse whether differenced or as
+Gauss-Newton blocks, and hair-hair contact couples strands), by one-sided differences in five
+vertex colours x three coordinates (15 gradients: a vertex couples with the two on each side),
+plus each segment's tension and stretch stiffness (stretch's k_s, ~10^5 x the inertia, is not
+differenced: in float32 its rounding would drown the soft terms), divided by the inertia's
+stiffness (so that z is in metres where the inertia dominates).
 """
 
 from __future__ import annotations
-
-import dataclasses
 
 import torch
 
@@ -54,42 +55,6 @@ class _SolveTransposed(torch.autograd.Function):
         w = torch.empty_like(grad_t)
         ctx.preconditioner._walk(kernels.strand_band_solve_kernel, grad_t.contiguous(), w)
         return w, None
-
-
-@dataclasses.dataclass
-class HairHairBlocks:
-    """Listed hair-hair pairs for P: each strand's own share of the pair's barrier curvature.
-
-    Args:
-        pairs: (capacity, 2) int32 flat segment ids (`HairHairPairList.pairs`).
-        count: (1,) int32 pairs listed (rows past it are ignored).
-        xi, dhat, join_fraction, weight, variant: the hair-hair barrier of Eq. 12 (config units).
-    """
-
-    pairs: torch.Tensor
-    count: torch.Tensor
-    xi: float
-    dhat: float
-    join_fraction: float
-    weight: float
-    variant: str
-
-    def add_to(self, bands: torch.Tensor, x: torch.Tensor, num_vertices: int, scale: float) -> None:
-        """bands[0], bands[1] += scale x the blocks at positions x (B, M, N, 3)."""
-        from hairwarp.ops.barrier import barrier_variant_id
-
-        x64 = x.detach().double().contiguous().reshape(-1, 3)
-        device = _warp.warp_device(x.device)
-        f64 = torch.float64
-        with _warp.launch_scope(x.device):
-            _warp.launch(kernels.hair_hair_gauss_newton_kernel, dim=self.pairs.shape[0],
-                         inputs=[_warp.as_warp(x64, vec3=True), _warp.as_warp(self.pairs.reshape(-1)),
-                                 _warp.as_warp(self.count), self.pairs.shape[0], int(num_vertices),
-                                 _warp.scalar(self.xi, f64), _warp.scalar(self.dhat, f64),
-                                 _warp.scalar(self.join_fraction, f64), _warp.scalar(self.weight * scale, f64),
-                                 barrier_variant_id(self.variant)],
-                         outputs=[_warp.as_warp(bands[0].view(-1)), _warp.as_warp(bands[1].view(-1))],
-                         device=device)
 
 
 class StrandPreconditioner:
@@ -153,21 +118,16 @@ class StrandPreconditioner:
         return z
 
     # -- the stiffness and its factor ----------------------------------------------------------
-    def build(self, x: torch.Tensor, gradient, stiffness: float, stretch: float,
-              contact: torch.Tensor | None = None, pairs: HairHairBlocks | None = None) -> None:
+    def build(self, x: torch.Tensor, gradient, stiffness: float, stretch: float) -> None:
         """P at positions x on the rest lengths, divided by `stiffness` [J/m^2], and its factor.
 
         Args:
             x: (B, M, N, 3) positions [m] on the rest lengths.
             gradient: positions (B, M, N, 3) -> the energy's gradient there (B, M, N, 3) [J/m],
-                without stretch and without the terms that couple strands.
+                without stretch and without contact.
             stiffness: the inertia's stiffness per vertex [J/m^2] (the eigenvalues' floor after
                 the division is 1).
             stretch: stretch's stiffness along a segment, 2 k_s / (M (N-1)) [J/m^2] (Eq. 7).
-            contact: optional (M*V, 3, 3) [J/m^2] blocks added to P's diagonal as they are
-                (undivided): a contact's Gauss-Newton curvature, B'' n n^T, positive
-                semi-definite where a difference of its gradient is not.
-            pairs: optional listed hair-hair pairs whose own-strand Gauss-Newton blocks enter P.
         """
         m, v = self.strands, self.moving
         x = x.detach()
@@ -189,10 +149,6 @@ class StrandPreconditioner:
         off1[:, :-1] = 0.5 * (full[:, :-1, 3] + full[:, 1:, 1].transpose(-1, -2))
         off2[:, :-2] = 0.5 * (full[:, :-2, 4] + full[:, 2:, 0].transpose(-1, -2))
         self.bands[0].copy_(diag.reshape(-1, 3, 3))
-        if contact is not None:
-            self.bands[0].add_(contact.reshape(-1, 3, 3).double() / stiffness)
-        if pairs is not None:
-            pairs.add_to(self.bands, x, self.num_vertices, 1.0 / stiffness)
         self.bands[1].copy_(off1.reshape(-1, 3, 3))
         self.bands[2].copy_(off2.reshape(-1, 3, 3))
         device = _warp.warp_device(self.device)
@@ -231,4 +187,4 @@ class StrandPreconditioner:
         return P.reshape(m, 3 * v, 3 * v)
 
 
-__all__ = ["StrandPreconditioner", "HairHairBlocks", "COLOURS", "DIFFERENCE_STEP"]
+__all__ = ["StrandPreconditioner", "COLOURS", "DIFFERENCE_STEP"]

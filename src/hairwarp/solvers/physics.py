@@ -94,13 +94,14 @@ class PhysicsConfig:
             pairs tested at every call.
         strand_preconditioner: the implicit-Euler steps solve for z = U^T (t - t_0), P = U U^T each
             strand's stiffness at the step's start t_0 (`hairwarp.ops.strand_preconditioner`: the
-            energy's block-banded Hessian along the strand without hair-hair contact, plus the
-            segments' tension): L-BFGS with H0 = P^-1, each strand's Newton step. Replaces
+            energy's block-banded Hessian along the strand without contact, plus the segments'
+            tension): L-BFGS with H0 = P^-1, each strand's Newton step. Replaces
             `stiffness_scaling` where on. Off by default: on sparse hair (64 strands) a step capped
-            at 8 iterations came 37x closer to the tight one than with the diagonal scaling, but
-            at full size, where hair-hair contact couples the strands, the steps took more
-            iterations, rebuilt the pair list 4x as often and drifted from the tight trajectory
-            (docs/physics.md, section 2, "Thirteenth session").
+            at 8 iterations came 10-30x closer to the tight one than with the diagonal scaling,
+            but at full size on one H100 it was slower (whiplash 214 against 80 ms a frame,
+            torso_bend 92 against 58: fewer iterations on torso_bend, each ~2x the cost), as
+            contact, not the strands' stiffness, sets the pace there (docs/physics.md, section 2,
+            "Thirteenth session" and "Fourteenth session").
     """
 
     tolerance: float = 1.0e-4
@@ -280,19 +281,15 @@ class PhysicsSolver:
             # the stiffness the bands are divided by: the inertia's per moving vertex (Eq. 16) [J/m^2]
             self.inertia_stiffness = (energy_config.inertia_weight * energy_config.vertex_mass
                                       / (strands * (vertices - NUM_FIXED_VERTICES) * energy_config.time_step ** 2))
-            # Contact stays out of P. Measured at 512 strands (docs/physics.md, fourteenth
-            # session): hair-body differenced into P (B' times the surface's curvature: indefinite,
-            # and one indefinite vertex shifts its strand's whole P) left steps 0.27 mm from the
-            # tight ones after 64 iterations, out of P 0.04 mm; its Gauss-Newton blocks B'' n n^T
-            # (`preconditioner_body`) 0.49 mm, and with the hair-hair pairs' own-strand blocks
-            # (`preconditioner_hair_hair`) 0.42 mm. A contact's curvature at the step's start
-            # models the step badly, and a per-strand block of a pair stiffens the two strands'
-            # common motion, which is free. Both switches stay for that experiment.
+            # Contact stays out of P (docs/physics.md, fourteenth session). At 512 strands, after 64
+            # iterations a step was 0.27 mm from the tight one with hair-body differenced into P (B'
+            # times the surface's curvature: indefinite, and one indefinite vertex shifted its
+            # strand's whole P), 0.49 mm with its Gauss-Newton blocks B'' n n^T, 0.42 mm with those
+            # and the hair-hair pairs' own-strand blocks, 0.04 mm with no contact in P. A contact's
+            # curvature at the step's start models the step badly, and a pair's per-strand block
+            # stiffens the two strands' common motion, which is free (the blocks: commit 0181ff7).
             self.preconditioner_terms = tuple(t for t in ALL_TERMS
-                                              if t not in ("hair_hair_contact", "stretch", "hair_body_contact"))
-            self.preconditioner_body = False
-            self.preconditioner_hair_hair = False
-            self.preconditioner_pairs = None
+                                              if t not in ("hair_hair_contact", "hair_body_contact", "stretch"))
             self.stretch_stiffness = 2.0 * energy_config.stretch_weight / (strands * (vertices - 1))
         elif config.stiffness_scaling > 0 and dynamic and rest_lengths.dim() != 2:
             raise ValueError("rest_lengths: per-sample (B, M, N-1) rest lengths need stiffness_scaling = 0 in "
@@ -352,9 +349,8 @@ class PhysicsSolver:
         return f.detach(), grad.reshape(-1), count
 
     def _position_gradient(self, x: torch.Tensor) -> torch.Tensor:
-        """The energy's gradient (B, M, N, 3) [J/m] at positions x, stretch and hair-hair contact
-        left out (the strand preconditioner's differences: the other terms within a strand, and
-        hair-body).
+        """The energy's gradient (B, M, N, 3) [J/m] at positions x, stretch and contact left out
+        (the strand preconditioner's differences: the other terms within a strand).
         """
         from hairwarp._validate import set_finite_checks
 
@@ -369,47 +365,6 @@ class PhysicsSolver:
         finally:
             set_finite_checks(previous)
         return grad
-
-    def _body_contact_blocks(self, x: torch.Tensor) -> torch.Tensor:
-        """(B*M*V, 3, 3) float64 hair-body Gauss-Newton blocks lambda_hb B''(d) n n^T [J/m^2] of the
-        moving vertices at positions x (Eq. 12; n the signed distance's gradient; zero beyond the
-        barrier's reach).
-        """
-        from hairwarp._validate import set_finite_checks
-        from hairwarp.ops.barrier import barrier_second_derivative
-        from hairwarp.ops.hair_body_contact import hair_body_signed_distance_and_normal
-
-        c = self.energy_config
-        reach = c.hair_body_xi + c.hair_body_dhat
-        previous = set_finite_checks(False)
-        try:
-            d, n = hair_body_signed_distance_and_normal(x.detach(), self.body, max_distance=2.0 * reach)
-            curvature = barrier_second_derivative(d.double(), c.hair_body_xi, c.hair_body_dhat,
-                                                  c.barrier_join_fraction, c.barrier_variant)
-        finally:
-            set_finite_checks(previous)
-        n = n.double()
-        blocks = c.hair_body_weight * curvature[..., None, None] * n[..., :, None] * n[..., None, :]
-        return blocks[:, :, NUM_FIXED_VERTICES:].reshape(-1, 3, 3)
-
-    def _hair_hair_blocks(self, x: torch.Tensor):
-        """The pairs at positions x (the steps' pair list built there, or on the CPU a list of
-        the preconditioner's own) as `HairHairBlocks` for P.
-        """
-        from hairwarp.ops.hair_hair_contact import HairHairPairList
-        from hairwarp.ops.strand_preconditioner import HairHairBlocks
-
-        c = self.energy_config
-        listed = self.pair_list
-        if listed is None:
-            if self.preconditioner_pairs is None:
-                self.preconditioner_pairs = HairHairPairList(self.shape[:3], c.hair_diameter + c.hair_hair_dhat,
-                                                             self.config.hair_hair_list_skin, self.capacity,
-                                                             self.device, self.rigid.dtype)
-            listed = self.preconditioner_pairs
-        listed.build(x)
-        return HairHairBlocks(listed.pairs, listed.count, c.hair_diameter, c.hair_hair_dhat, c.barrier_join_fraction,
-                              c.hair_hair_weight, c.barrier_variant)
 
     def _make_solver(self) -> None:
         from hairwarp.solvers.device_lbfgs import DeviceLBFGS
@@ -431,13 +386,10 @@ class PhysicsSolver:
             from hairwarp.ops.strand_projection import follow_the_leader
 
             x0 = follow_the_leader(self.rigid, self.start, check=False) if self.config.inextensible else self.start
-            contact = self._body_contact_blocks(x0) if self.preconditioner_body else None
-            pairs = self._hair_hair_blocks(x0) if self.preconditioner_hair_hair else None
-            self.preconditioner.build(x0, self._position_gradient, self.inertia_stiffness, self.stretch_stiffness,
-                                      contact=contact, pairs=pairs)
+            self.preconditioner.build(x0, self._position_gradient, self.inertia_stiffness, self.stretch_stiffness)
             self.origin.copy_(self.start[:, :, NUM_FIXED_VERTICES:])
         z = self._variables(self.start)
-        if self.pair_list is not None and not (self.preconditioner is not None and self.preconditioner_hair_hair):
+        if self.pair_list is not None:
             self.pair_list.build(self._assemble(z))
         self.lbfgs.restart_at(z, keep_memory=self.config.keep_memory)
         self.residual.fill_(math.inf)
