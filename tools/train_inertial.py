@@ -15,8 +15,9 @@ the comparison scenes whiplash and torso_bend, and scenes unlike the training cl
 nod, sway walk and arm raise on other hairstyles, and an AMASS-format file written by
 tools/foreign_scenes.py). Per scene: the physics once, then rigid, static, dynamic (the paper's
 network) and inertial against it: distance to the physics, tip swing, its amplitude ratio and
-correlation, penetration, length change, ms/frame. Writes OUT/evaluate_inertial.json and .md and
-one swing plot per scene.
+correlation, penetration, length change, ms/frame (`--oracle`: also each frame's static optimum,
+alone and as the step's equilibrium). Writes OUT/evaluate_inertial.json and .md and one swing
+plot per scene.
 """
 
 from __future__ import annotations
@@ -63,6 +64,7 @@ def train(args) -> int:
         model = dict(item.split("=", 1) for item in args.model.split(",")) if args.model else {}
         config = InertialTrainingConfig(clips=clips, held_out=[ClipSpec(*c) for c in HELD_OUT_CURVE],
                                         strand_stride=args.strand_stride, steps=args.steps,
+                                        equilibrium=args.equilibrium,
                                         learning_rate=args.lr, eval_every=args.eval_every, model=model)
         trainer = InertialTrainer(config, out=run, device=args.device, seed=args.seed, clip_cache=cache)
     start = time.perf_counter()
@@ -116,6 +118,16 @@ def _evaluation_scene(label, style, pose, start, duration, stride, out):
     return hw.build_scene(style, pose=pose, strand_stride=stride, start=start, num_frames=frames)
 
 
+class _Given:
+    """An equilibrium already computed (`--oracle`): `simulate` returns it."""
+
+    def __init__(self, result):
+        self.result = result
+
+    def simulate(self, frames):
+        return self.result
+
+
 def evaluate(args) -> int:
     from hairwarp.evaluation.charts import swing_plot
     from hairwarp.methods import MethodOptions, make
@@ -135,11 +147,24 @@ def evaluate(args) -> int:
         rigid = frames.rigid.positions
         positions, rows = {"physics": physics.positions}, {}
         variants = dict(item.split("=", 1) for item in args.variants.split(",")) if args.variants else {}
-        for name in (*METHODS, *variants):
-            checkpoint = {"inertial": args.checkpoint, "static": args.static_checkpoint, **variants}.get(name)
-            method = make("inertial" if name in variants else name, MethodOptions(checkpoint=checkpoint))
+        if args.oracle:
+            # What a perfect static network would give: each frame's static optimum (the physics'
+            # drape from the rigid placement), alone and as the step's equilibrium.
+            optimum = make("physics").drape(frames)
+            positions["optimum"] = optimum.positions
+            fid = motion_fidelity(optimum.positions, physics.positions, rigid)
+            rows["optimum"] = {k: fid[k] for k in ("mean_distance_mm", "max_distance_mm", "swing_mm",
+                                                   "physics_swing_mm", "swing_amplitude_ratio", "swing_correlation")}
+            rows["optimum"]["ms_per_frame"] = optimum.time_ms
+        for name in (*METHODS, *variants, *(("inertial_optimum",) if args.oracle else ())):
+            checkpoint = {"inertial": args.checkpoint, "inertial_optimum": args.checkpoint, "static": args.static_checkpoint,
+                          **variants}.get(name)
+            step_row = name in variants or name == "inertial_optimum"
+            method = make("inertial" if step_row else name, MethodOptions(checkpoint=checkpoint))
             if (name == "inertial" or name in variants) and args.static_checkpoint:
                 method.equilibrium = make("static", MethodOptions(checkpoint=args.static_checkpoint))
+            if name == "inertial_optimum":
+                method.equilibrium = _Given(optimum)
             result = method.simulate(frames)
             positions[name] = result.positions
             fid = motion_fidelity(result.positions, physics.positions, rigid)
@@ -199,6 +224,8 @@ def main(argv=None) -> int:
     t.add_argument("--resume", default=None, help="a run folder or checkpoint.pt to continue")
     t.add_argument("--run-name", default="run", help="OUT/<name>/ holds the run, OUT/<name>_inertial.pt the step")
     t.add_argument("--model", default="", help="InertialConfig fields, e.g. damping=absolute")
+    t.add_argument("--equilibrium", default="static", choices=("static", "optimum"),
+                   help="E(t) of the clips: the static network, or each frame's static optimum")
     e = sub.add_parser("evaluate", help="held-out motions against the physics")
     e.add_argument("--checkpoint", default=None, help="the step (None: the shipped one)")
     e.add_argument("--static-checkpoint", default=None,
@@ -206,6 +233,9 @@ def main(argv=None) -> int:
     e.add_argument("--strand-stride", type=int, default=1)
     e.add_argument("--scenes", default=None, help="comma-separated labels (default: all)")
     e.add_argument("--variants", default="", help="more inertial steps as rows: name=checkpoint,...")
+    e.add_argument("--oracle", action="store_true",
+                   help="also the rows optimum (each frame's static optimum, the physics' drape) and "
+                        "inertial_optimum (the step with those as its equilibrium)")
     for p in (t, e):
         p.add_argument("--device", default="cpu")
         p.add_argument("--seed", type=int, default=0)

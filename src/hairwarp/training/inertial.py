@@ -74,7 +74,9 @@ class InertialTrainingConfig:
         held_out: the clips of the learning curve, never trained on.
         strand_stride: keep every this-many-th root of the 32 x 32 scalp (4: 256 strands).
         num_vertices: vertices per strand.
-        equilibrium: the method giving E(t) per frame ("static": the static network).
+        equilibrium: the method giving E(t) per frame ("static": the static network), or
+            "optimum": each frame's static optimum (the physics' drape of the frame; what a
+            perfect static network would give).
         steps: Adam steps.
         learning_rate: Adam's.
         swing_weight, position_weight: the loss's two terms (module docstring).
@@ -144,13 +146,19 @@ def clip_scene(spec: ClipSpec, strand_stride: int, num_vertices: int):
 
 
 def clip_trajectories(scene, equilibrium: str = "static", device: torch.device | str = "cpu") -> dict:
-    """{"rigid", "physics", "equilibrium"}: (T, M, N, 3) float32 CPU tensors [m] of a scene's frames."""
+    """{"rigid", "physics", "equilibrium"}: (T, M, N, 3) float32 CPU tensors [m] of a scene's frames
+    (`InertialTrainingConfig.equilibrium` names E(t)).
+    """
     from hairwarp.methods import make
 
     frames = scene.frames(device=device)
+    if equilibrium == "optimum":
+        balance = make("physics").drape(frames)
+    else:
+        balance = make(equilibrium).simulate(frames)
     return {"rigid": frames.rigid.positions.detach().float().cpu(),
             "physics": make("physics").simulate(frames).positions.detach().float().cpu(),
-            "equilibrium": make(equilibrium).simulate(frames).positions.detach().float().cpu()}
+            "equilibrium": balance.positions.detach().float().cpu()}
 
 
 def swing_of(x: torch.Tensor, rigid: torch.Tensor) -> torch.Tensor:
