@@ -257,3 +257,24 @@ def test_relative_damping_carries_hair_at_a_steady_speed_without_drag():
             out = step.rollout(rigid.clone(), rigid)
         lag[damping] = float((out[-1, :, -1] - rigid[-1, :, -1]).norm(dim=-1).max())
     assert lag["relative"] < 1e-4 < 1e-3 < lag["absolute"], lag
+
+
+def test_the_optimum_equilibrium_is_each_frames_static_drape():
+    """`equilibrium="optimum"` gives each clip frame its static optimum (the physics' drape of the
+    frame): no higher in static energy than the rigid placement, and not the static network's."""
+    from hairwarp.energy import total_energy
+    from hairwarp.training.inertial import ClipSpec, clip_scene, clip_trajectories
+
+    torch.set_num_threads(1)
+    scene = clip_scene(ClipSpec("bob", "head_moves", 5, 0.0, 0.05), **TOY)
+    optimum = clip_trajectories(scene, "optimum")
+    static = clip_trajectories(scene, "static")
+    assert optimum["equilibrium"].shape == optimum["rigid"].shape == static["equilibrium"].shape
+    assert torch.equal(optimum["physics"], static["physics"])  # the same clip either way
+    frames = scene.frames()
+    with torch.no_grad():
+        e_opt = total_energy(optimum["equilibrium"], frames.inputs).total
+        e_rigid = total_energy(optimum["rigid"], frames.inputs).total
+    assert e_opt.shape == (optimum["rigid"].shape[0],)
+    assert bool((e_opt <= e_rigid).all()), (e_opt, e_rigid)
+    assert float((optimum["equilibrium"] - static["equilibrium"]).norm(dim=-1).max()) > 1e-4
