@@ -173,11 +173,11 @@ def main(argv=None):
            "no_bending": {"bending_weight": 0.0}}
 
     solver_variants = {}
+    solver_fields = {f.name for f in dataclasses.fields(PhysicsConfig)}
     for spec in args.solver_variant:
         label, _, fields = spec.partition(":")
         pairs = {k: float(v) for k, v in (f.split("=") for f in fields.split(",") if f)}
         # Fields of PhysicsConfig set the solver; the rest switch energy terms (e.g. hair_hair_weight=0).
-        solver_fields = {f.name for f in dataclasses.fields(PhysicsConfig)}
         solver_variants[label] = {k: v for k, v in pairs.items() if k in solver_fields}
         off[label] = {k: v for k, v in pairs.items() if k not in solver_fields}
     rows = []

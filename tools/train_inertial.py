@@ -128,10 +128,21 @@ class _Given:
         return self.result
 
 
+def _fidelity_row(result, physics, rigid) -> dict:
+    """A method's motion metrics against the physics (`motion_fidelity`) and its ms/frame."""
+    from hairwarp.metrics import motion_fidelity
+
+    fid = motion_fidelity(result.positions, physics, rigid)
+    row = {k: fid[k] for k in ("mean_distance_mm", "max_distance_mm", "swing_mm", "physics_swing_mm",
+                               "swing_amplitude_ratio", "swing_correlation")}
+    row["ms_per_frame"] = result.time_ms
+    return row
+
+
 def evaluate(args) -> int:
     from hairwarp.evaluation.charts import swing_plot
     from hairwarp.methods import MethodOptions, make
-    from hairwarp.metrics import frame_metrics_of, mean_tip_offset, motion_fidelity
+    from hairwarp.metrics import frame_metrics_of, mean_tip_offset
 
     device = torch.device(args.device)
     records = []
@@ -152,10 +163,7 @@ def evaluate(args) -> int:
             # drape from the rigid placement), alone and as the step's equilibrium.
             optimum = make("physics").drape(frames)
             positions["optimum"] = optimum.positions
-            fid = motion_fidelity(optimum.positions, physics.positions, rigid)
-            rows["optimum"] = {k: fid[k] for k in ("mean_distance_mm", "max_distance_mm", "swing_mm",
-                                                   "physics_swing_mm", "swing_amplitude_ratio", "swing_correlation")}
-            rows["optimum"]["ms_per_frame"] = optimum.time_ms
+            rows["optimum"] = _fidelity_row(optimum, physics.positions, rigid)
         for name in (*METHODS, *variants, *(("inertial_optimum",) if args.oracle else ())):
             checkpoint = {"inertial": args.checkpoint, "inertial_optimum": args.checkpoint, "static": args.static_checkpoint,
                           **variants}.get(name)
@@ -167,10 +175,7 @@ def evaluate(args) -> int:
                 method.equilibrium = _Given(optimum)
             result = method.simulate(frames)
             positions[name] = result.positions
-            fid = motion_fidelity(result.positions, physics.positions, rigid)
-            rows[name] = {k: fid[k] for k in ("mean_distance_mm", "max_distance_mm", "swing_mm", "physics_swing_mm",
-                                              "swing_amplitude_ratio", "swing_correlation")}
-            rows[name]["ms_per_frame"] = result.time_ms
+            rows[name] = _fidelity_row(result, physics.positions, rigid)
         per_frame = frame_metrics_of(positions, frames)
         for name, (metrics, _) in per_frame.items():
             row = rows.setdefault(name, {"ms_per_frame": physics.time_ms})
