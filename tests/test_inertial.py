@@ -9,7 +9,8 @@ import torch
 
 from hairwarp.metrics import motion_fidelity
 from hairwarp.models.checkpoint import load_checkpoint, save_checkpoint
-from hairwarp.models.inertial import InertialConfig, InertialStep, vertex_features
+from hairwarp.models.inertial import (InertialConfig, InertialStep, chain_operator, hanging_chain_tension,
+                                      vertex_features)
 from hairwarp.ops import BodyMesh, follow_the_leader, hair_body_signed_distance
 from meshes import icosphere
 
@@ -66,12 +67,13 @@ def test_coefficients_read_arc_length_for_any_vertex_count():
     torch.testing.assert_close(feats[0, :, 2], torch.full((5,), 0.08, dtype=torch.float64))
 
 
-def test_rollout_gradient_matches_finite_differences():
+@pytest.mark.parametrize("coupling", ["vertex", "chain"])
+def test_rollout_gradient_matches_finite_differences(coupling):
     rest = _hanging(2, 5)
     t = torch.arange(4, dtype=torch.float64)
     rigid = rest[None] + torch.stack([0.02 * t**2, 0.01 * t, 0 * t], dim=-1)[:, None, None, :]
     torch.manual_seed(0)
-    step = InertialStep(InertialConfig(hidden_dim=4)).double()
+    step = InertialStep(InertialConfig(hidden_dim=4, coupling=coupling)).double()
     with torch.no_grad():
         step.net[-1].weight.normal_(0, 0.3)
     target = rigid + 0.01
@@ -85,7 +87,7 @@ def test_rollout_gradient_matches_finite_differences():
     step.net[-1].bias.data.copy_(bias)
     (step.rollout(rigid.clone(), rigid) - target).square().sum().backward()
     analytic = step.net[-1].bias.grad.clone()
-    for i in range(2):
+    for i in range(len(bias)):
         e = torch.zeros_like(bias)
         e[i] = 1e-6
         with torch.no_grad():
@@ -104,12 +106,17 @@ def test_bad_inputs_name_the_argument():
         step.rollout(rigid.clone(), bad)
     with pytest.raises(ValueError, match="gate_init"):
         InertialConfig(gate_init=1.0)
+    with pytest.raises(ValueError, match="coupling"):
+        InertialConfig(coupling="rope")
+    with pytest.raises(ValueError, match="tension_init"):
+        InertialConfig(tension_init=0.0)
     with pytest.raises(ValueError, match="rigid"):
         step.rollout(rigid[:, :, :2].contiguous(), rigid[:, :, :2].contiguous())
 
 
-def test_checkpoint_round_trip(tmp_path):
-    step = InertialStep(InertialConfig(hidden_dim=8, gate_init=0.9))
+@pytest.mark.parametrize("coupling", ["vertex", "chain"])
+def test_checkpoint_round_trip(tmp_path, coupling):
+    step = InertialStep(InertialConfig(hidden_dim=8, gate_init=0.9, coupling=coupling))
     with torch.no_grad():
         step.net[0].weight.mul_(1.5)
     save_checkpoint(tmp_path / "step.pt", step)
@@ -235,6 +242,48 @@ def test_the_method_runs_a_motion_and_refuses_another_frame_rate(toy_run, tmp_pa
                                                       num_vertices=12)))
     with pytest.raises(ValueError, match="not an inertial step"):
         make("inertial", MethodOptions(checkpoint=str(other))).simulate(scene.frames())
+
+
+def test_the_chain_operator_is_the_inverse_of_the_tension_laplacian():
+    """(I + D + L_w)^-1 against a float64 matrix written entry by entry; w = 0 is the per-vertex gate."""
+    torch.manual_seed(1)
+    gate_logit, tension = torch.randn(2, 5, dtype=torch.float64), torch.rand(2, 5, dtype=torch.float64) * 30
+    a = chain_operator(gate_logit, tension)
+    for m in range(2):
+        k = torch.zeros(5, 5, dtype=torch.float64)
+        for i in range(5):
+            k[i, i] += 1.0 + math.exp(-float(gate_logit[m, i])) + float(tension[m, i])  # the segment above
+            if i + 1 < 5:  # the segment below (vertex i + 1's above) couples i and i + 1
+                w = float(tension[m, i + 1])
+                k[i, i] += w
+                k[i, i + 1] -= w
+                k[i + 1, i] -= w
+        torch.testing.assert_close(a[m] @ k, torch.eye(5, dtype=torch.float64), atol=1e-10, rtol=0)
+    torch.testing.assert_close(chain_operator(gate_logit, torch.zeros_like(tension)),
+                               torch.diag_embed(torch.sigmoid(gate_logit)), atol=1e-12, rtol=0)
+    # a hanging strand's tension: h^2 g (L - s) / l^2 over each segment
+    w = hanging_chain_tension(_hanging(1, 6), 60.0)
+    below = torch.tensor([0.08, 0.06, 0.04, 0.02], dtype=torch.float64)
+    torch.testing.assert_close(w[0], 9.81 * below / (3600 * 0.02**2))
+
+
+def test_a_chain_swings_through_its_equilibrium_after_the_head_stops():
+    """The head moves 10 cm along x in a sixth of a second and stops: the chain's tip first trails,
+    then swings past the rigid placement (its equilibrium) and back; the untrained step's pull
+    stays stable, with the rest lengths kept."""
+    rest = _hanging(1, 40)
+    rest[..., 1] *= 0.25  # 5 mm segments: a 0.2 m strand
+    t = torch.arange(60, dtype=torch.float64)
+    head = torch.clamp(t * 0.01, max=0.1)
+    rigid = rest[None] + torch.stack([head, 0 * t, 0 * t], dim=-1)[:, None, None, :]
+    step = InertialStep(InertialConfig(coupling="chain")).double()
+    with torch.no_grad():
+        out = step.rollout(rigid.clone(), rigid)
+    lag = (out[:, 0, -1, 0] - rigid[:, 0, -1, 0]).numpy()
+    assert lag[:10].min() < -0.01  # trails while the head moves
+    assert lag[10:].max() > 0.01  # swings past after it stops
+    assert np.abs(lag).max() < 0.1  # and stays bounded
+    torch.testing.assert_close(_segment_lengths(out), _segment_lengths(rigid), atol=1e-9, rtol=0)
 
 
 def test_the_step_at_rest_keeps_a_still_hairstyle_still():

@@ -48,6 +48,16 @@ EVALUATION = (
 METHODS = ("rigid", "static", "dynamic", "inertial")
 
 
+def _number(text: str):
+    """A --model value: an int or float where it reads as one, else the string."""
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return text
+
+
 def train(args) -> int:
     from hairwarp.models.checkpoint import save_checkpoint
     from hairwarp.training.inertial import ClipSpec, InertialTrainer, InertialTrainingConfig, read_log
@@ -61,7 +71,7 @@ def train(args) -> int:
     else:
         clips = [ClipSpec(style, "head_moves", 100 * i + j, 0.0, 1.5)
                  for i, style in enumerate(args.styles.split(",")) for j in range(args.clips_per_style)]
-        model = dict(item.split("=", 1) for item in args.model.split(",")) if args.model else {}
+        model = {k: _number(v) for k, v in (item.split("=", 1) for item in args.model.split(","))} if args.model else {}
         config = InertialTrainingConfig(clips=clips, held_out=[ClipSpec(*c) for c in HELD_OUT_CURVE],
                                         strand_stride=args.strand_stride, steps=args.steps,
                                         equilibrium=args.equilibrium,
@@ -228,7 +238,7 @@ def main(argv=None) -> int:
     t.add_argument("--eval-every", type=int, default=50)
     t.add_argument("--resume", default=None, help="a run folder or checkpoint.pt to continue")
     t.add_argument("--run-name", default="run", help="OUT/<name>/ holds the run, OUT/<name>_inertial.pt the step")
-    t.add_argument("--model", default="", help="InertialConfig fields, e.g. damping=absolute")
+    t.add_argument("--model", default="", help="InertialConfig fields, e.g. damping=absolute,coupling=chain")
     t.add_argument("--equilibrium", default="static", choices=("static", "optimum"),
                    help="E(t) of the clips: the static network, or each frame's static optimum")
     e = sub.add_parser("evaluate", help="held-out motions against the physics")

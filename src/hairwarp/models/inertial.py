@@ -24,6 +24,17 @@ held-out motion (docs/network_diagnosis.md, "The hair's own state"), so the drag
 G and beta are read from each vertex's rest arc length (the distance from the root s, the strand's
 length L, s / L) by a small MLP, so that one step serves any hairstyle, strand count and vertex count.
 
+`coupling="chain"` couples the vertices along the strand, as a hanging strand's tension does. A
+per-vertex G gives every vertex an oscillator of its own about its equilibrium; a strand under
+its weight instead swings as a chain whose slowest mode moves the whole strand (the physics'
+overshoot after the head stops, which the per-vertex step does not make: docs/network_diagnosis.md,
+fourteenth session). With d = y - E over the free vertices, the linear implicit-Euler step of a
+chain is (I + D + L_w) d' = d: D = diag((1 - G) / G) the per-vertex pull, L_w the Laplacian of the
+strand's segments weighted by a tension w >= 0 (the segment to the fixed vertex 1 ties the first
+free vertex to the scalp), so p = E + (I + D + L_w)^-1 d. With w = 0 this is the per-vertex step;
+w is a hanging strand's (h^2 g (L - s) / l^2, `hanging_chain_tension`) times a learned factor.
+The operator is one (N-2) x (N-2) inverse per strand, made once per sequence (`coefficients`).
+
 Trained on physics trajectories (`hairwarp.training.inertial`): rollouts from the first frame, on
 the step's own predictions, back-propagated through the whole clip.
 """
@@ -45,6 +56,8 @@ from hairwarp.ops.strand_projection import follow_the_leader
 NUM_VERTEX_FEATURES = 3
 # What beta damps (`InertialConfig.damping`).
 DAMPINGS = ("relative", "absolute")
+# How the pull toward the equilibrium couples the vertices (`InertialConfig.coupling`).
+COUPLINGS = ("vertex", "chain")
 
 
 @dataclass(frozen=True)
@@ -60,6 +73,10 @@ class InertialConfig(_DictConfig):
             resampled to it by the caller (`hairwarp.scene.motion.resample_motion`).
         damping: what beta damps: "absolute", the velocity itself (a drag), or "relative", the
             velocity relative to the head's (the module docstring; measured worse).
+        coupling: "vertex", each vertex pulled toward its equilibrium on its own, or "chain",
+            the pull coupled along the strand by a learned tension (the module docstring).
+        tension_init: the chain's tension at initialisation, as a multiple of a hanging strand's
+            (`hanging_chain_tension`); the MLP learns the factor per vertex.
     """
 
     hidden_dim: int = 32
@@ -67,6 +84,8 @@ class InertialConfig(_DictConfig):
     retention_init: float = 0.9
     fps: float = 60.0
     damping: str = "absolute"
+    coupling: str = "vertex"
+    tension_init: float = 1.0
 
     def __post_init__(self):
         if not isinstance(self.hidden_dim, int) or isinstance(self.hidden_dim, bool) or self.hidden_dim <= 0:
@@ -79,6 +98,10 @@ class InertialConfig(_DictConfig):
             raise ValueError(f"InertialConfig.fps: expected a positive number, got {self.fps!r}")
         if self.damping not in DAMPINGS:
             raise ValueError(f"InertialConfig.damping: expected one of {list(DAMPINGS)}, got {self.damping!r}")
+        if self.coupling not in COUPLINGS:
+            raise ValueError(f"InertialConfig.coupling: expected one of {list(COUPLINGS)}, got {self.coupling!r}")
+        if not isinstance(self.tension_init, (int, float)) or not 0.0 < self.tension_init < math.inf:
+            raise ValueError(f"InertialConfig.tension_init: expected a positive number, got {self.tension_init!r}")
 
 
 def vertex_features(rigid: torch.Tensor) -> torch.Tensor:
@@ -97,6 +120,44 @@ def vertex_features(rigid: torch.Tensor) -> torch.Tensor:
     return torch.stack([s / length, s, length], dim=-1)
 
 
+def hanging_chain_tension(rigid: torch.Tensor, fps: float) -> torch.Tensor:
+    """The chain's tension weight w of a strand hanging under its weight: (M, N-2), the segment
+    above each free vertex.
+
+    A segment carries the weight of the vertices below it, T = m g (L - s) / l for rest length l,
+    arc length s at its top end and strand length L; over a vertex's mass and times h^2 it is
+    w = h^2 g (L - s) / l^2 (a 0.5 m strand of 5 mm segments at 60 frames/s: 54 at the root).
+
+    Args:
+        rigid: (..., M, N, 3) the rigid placement (its segment lengths are the rest lengths) [m].
+        fps: frames per second (h = 1 / fps).
+    """
+    strands = rigid.reshape(-1, *rigid.shape[-3:])[0]
+    seg = (strands[:, 1:] - strands[:, :-1]).norm(dim=-1).clamp_min(1e-9)  # (M, N-1)
+    s = torch.cat([torch.zeros_like(seg[:, :1]), seg.cumsum(dim=1)], dim=1)  # (M, N)
+    below = s[:, -1:] - s[:, :-1]  # (M, N-1) the length below each segment's top end
+    w = 9.81 * below / (fps ** 2 * seg ** 2)
+    return w[:, NUM_FIXED_VERTICES - 1:]
+
+
+def chain_operator(gate_logit: torch.Tensor, tension: torch.Tensor) -> torch.Tensor:
+    """(I + D + L_w)^-1 of every strand (module docstring), made in float64.
+
+    Args:
+        gate_logit: (M, n) the logit of G of the n free vertices: D = (1 - G) / G = exp(-logit).
+        tension: (M, n) w >= 0 of the segment above each free vertex (the first one's ties it to
+            the fixed vertex 1, whose offset is 0).
+
+    Returns:
+        (M, n, n) the symmetric positive definite operator's inverse (float64).
+    """
+    d = torch.exp(-gate_logit.double())
+    w = tension.double()
+    below = torch.cat([w[:, 1:], torch.zeros_like(w[:, :1])], dim=1)  # the segment below each vertex
+    matrix = torch.diag_embed(1.0 + d + w + below) - torch.diag_embed(w[:, 1:], 1) - torch.diag_embed(w[:, 1:], -1)
+    return torch.cholesky_inverse(torch.linalg.cholesky(matrix))
+
+
 class InertialStep(nn.Module):
     """The learned inertial step (module docstring): (equilibrium, rigid, x(t-1), x(t-2)) -> x(t).
 
@@ -113,27 +174,42 @@ class InertialStep(nn.Module):
             raise ValueError(f"config: expected an InertialConfig, got {type(config).__name__}")
         self.config = config
         h = config.hidden_dim
+        outputs = 3 if config.coupling == "chain" else 2  # G, beta (, the chain's tension w)
         self.net = nn.Sequential(nn.Linear(NUM_VERTEX_FEATURES, h), nn.SiLU(), nn.Linear(h, h), nn.SiLU(),
-                                 nn.Linear(h, 2))
-        # The last layer starts at zero: every vertex starts at (gate_init, retention_init).
+                                 nn.Linear(h, outputs))
+        # The last layer starts at zero: every vertex starts at (gate_init, retention_init) and, on
+        # a chain, every segment at tension_init.
         nn.init.zeros_(self.net[-1].weight)
+        start = [math.log(config.gate_init / (1 - config.gate_init)),
+                 math.log(config.retention_init / (1 - config.retention_init)),
+                 math.log(config.tension_init)][:outputs]
         with torch.no_grad():
-            self.net[-1].bias.copy_(torch.tensor([math.log(config.gate_init / (1 - config.gate_init)),
-                                                  math.log(config.retention_init / (1 - config.retention_init))]))
+            self.net[-1].bias.copy_(torch.tensor(start))
 
     def coefficients(self, rigid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(G, beta) of every vertex, each (M, N, 1), in (0, 1); 0 for the fixed vertices 0, 1.
+        """The step's coefficients, read from the rest arc lengths: (pull, beta).
 
         Args:
             rigid: (..., M, N, 3) the rigid placement (its segment lengths are the rest lengths) [m].
+
+        Returns:
+            pull: "vertex" coupling, G of every vertex (M, N, 1) in (0, 1); "chain", the operator
+                (I + D + L_w)^-1 over the free vertices (M, N-2, N-2) (module docstring).
+            beta: (M, N, 1) in (0, 1). Both 0 at the fixed vertices 0, 1.
         """
         dtype = next(self.parameters()).dtype
         features = vertex_features(rigid).to(dtype)
-        out = torch.sigmoid(self.net(features))
+        raw = self.net(features)
+        out = torch.sigmoid(raw[..., :2])
         fixed = torch.ones_like(out[..., :1])
         fixed[:, :NUM_FIXED_VERTICES] = 0.0
         out = out * fixed
-        return out[..., :1].to(rigid.dtype), out[..., 1:].to(rigid.dtype)
+        gate, retention = out[..., :1].to(rigid.dtype), out[..., 1:].to(rigid.dtype)
+        if self.config.coupling != "chain":
+            return gate, retention
+        # w: the hanging chain's tension times a learned factor (tension_init at the start).
+        tension = hanging_chain_tension(rigid, self.config.fps) * torch.exp(raw[:, NUM_FIXED_VERTICES:, 2])
+        return chain_operator(raw[:, NUM_FIXED_VERTICES:, 0], tension).to(rigid.dtype), retention
 
     def step(self, equilibrium: torch.Tensor, rigid: torch.Tensor, prev: torch.Tensor, prev2: torch.Tensor,
              head_velocity: torch.Tensor, coefficients: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
@@ -145,14 +221,21 @@ class InertialStep(nn.Module):
             prev, prev2: (B, M, N, 3) x(t-1), x(t-2) [m].
             head_velocity: (B, M, N, 3) u(t) [m per frame]: P_rigid(t-1) - P_rigid(t-2) for
                 `damping="relative"`, zeros for "absolute".
-            coefficients: `coefficients(rigid)`, to reuse over a sequence.
+            coefficients: `coefficients(rigid)`, to reuse over a sequence (the chain's inverse is
+                made there).
 
         Returns:
             (B, M, N, 3) x(t) [m], differentiable w.r.t. the inputs and the MLP.
         """
-        gate, retention = self.coefficients(rigid) if coefficients is None else coefficients
+        pull, retention = self.coefficients(rigid) if coefficients is None else coefficients
         predicted = prev + head_velocity + retention * (prev - prev2 - head_velocity)
-        target = equilibrium + gate * (predicted - equilibrium)
+        if pull.shape[-1] == 1:
+            target = equilibrium + pull * (predicted - equilibrium)
+        else:
+            # The chain: every free vertex's offset from the equilibrium relaxed along its strand.
+            offset = (predicted - equilibrium)[:, :, NUM_FIXED_VERTICES:]
+            free = equilibrium[:, :, NUM_FIXED_VERTICES:] + pull @ offset
+            target = torch.cat([equilibrium[:, :, :NUM_FIXED_VERTICES], free], dim=2)
         return follow_the_leader(rigid, target, check=False)
 
     def rollout(self, equilibrium: torch.Tensor, rigid: torch.Tensor, initial: tuple | None = None) -> torch.Tensor:
@@ -194,4 +277,5 @@ class InertialStep(nn.Module):
         return torch.stack(out)
 
 
-__all__ = ["DAMPINGS", "InertialConfig", "InertialStep", "NUM_VERTEX_FEATURES", "vertex_features"]
+__all__ = ["COUPLINGS", "DAMPINGS", "InertialConfig", "InertialStep", "NUM_VERTEX_FEATURES", "chain_operator",
+           "hanging_chain_tension", "vertex_features"]
