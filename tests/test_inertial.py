@@ -286,6 +286,33 @@ def test_a_chain_swings_through_its_equilibrium_after_the_head_stops():
     torch.testing.assert_close(_segment_lengths(out), _segment_lengths(rigid), atol=1e-9, rtol=0)
 
 
+@pytest.mark.parametrize("coupling", ["vertex", "chain"])
+def test_the_straight_through_gradient_takes_the_projection_as_the_identity(coupling):
+    """Training's straight-through step: the same positions, and d x / d E the step's own pull on
+    the free vertices, as if follow-the-leader were the identity (one frame, so y = E)."""
+    rest = _hanging(2, 6)
+    rigid = rest[None] + torch.tensor([0.01, 0.0, 0.0], dtype=torch.float64)  # the head moved 1 cm
+    prev = rest[None].clone()
+    step = InertialStep(InertialConfig(coupling=coupling)).double()
+    weights = torch.randn(rigid.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    outputs = {}
+    for straight in (False, True):
+        step.straight_through = straight
+        equilibrium = rigid.clone().requires_grad_(True)
+        x = step.step(equilibrium, rigid, prev, prev, torch.zeros_like(rigid))
+        (x * weights).sum().backward()
+        outputs[straight] = (x.detach(), equilibrium.grad)
+    torch.testing.assert_close(outputs[True][0], outputs[False][0], atol=0, rtol=0)
+    pull, _ = step.coefficients(rigid)
+    w = weights[0, :, 2:]
+    if coupling == "vertex":  # x = E + G (y - E): d x / d E = 1 - G
+        expected = (1 - pull[:, 2:]) * w
+    else:  # x = E + A (y - E): d x / d E = I - A (A symmetric)
+        expected = w - pull @ w
+    torch.testing.assert_close(outputs[True][1][0, :, 2:], expected, atol=1e-12, rtol=0)
+    assert not torch.allclose(outputs[False][1], outputs[True][1])  # the projection's own Jacobian differs
+
+
 def test_the_step_at_rest_keeps_a_still_hairstyle_still():
     rest = _hanging(2, 8, torch.float32)
     rigid = rest.expand(4, -1, -1, -1).clone()

@@ -75,7 +75,8 @@ def train(args) -> int:
         config = InertialTrainingConfig(clips=clips, held_out=[ClipSpec(*c) for c in HELD_OUT_CURVE],
                                         strand_stride=args.strand_stride, steps=args.steps,
                                         equilibrium=args.equilibrium,
-                                        learning_rate=args.lr, eval_every=args.eval_every, model=model)
+                                        learning_rate=args.lr, eval_every=args.eval_every, model=model,
+                                        grad_clip=args.grad_clip, straight_through=args.straight_through)
         trainer = InertialTrainer(config, out=run, device=args.device, seed=args.seed, clip_cache=cache)
     start = time.perf_counter()
     trainer.train()
@@ -174,7 +175,8 @@ def evaluate(args) -> int:
             optimum = make("physics").drape(frames)
             positions["optimum"] = optimum.positions
             rows["optimum"] = _fidelity_row(optimum, physics.positions, rigid)
-        for name in (*METHODS, *variants, *(("inertial_optimum",) if args.oracle else ())):
+        methods = ("rigid", *(m for m in args.methods.split(",") if m and m != "rigid"))
+        for name in (*methods, *variants, *(("inertial_optimum",) if args.oracle else ())):
             checkpoint = {"inertial": args.checkpoint, "inertial_optimum": args.checkpoint, "static": args.static_checkpoint,
                           **variants}.get(name)
             step_row = name in variants or name == "inertial_optimum"
@@ -236,6 +238,9 @@ def main(argv=None) -> int:
     t.add_argument("--steps", type=int, default=300)
     t.add_argument("--lr", type=float, default=3e-3)
     t.add_argument("--eval-every", type=int, default=50)
+    t.add_argument("--grad-clip", type=float, default=0.0, help="clip the gradient's norm to this (0: off)")
+    t.add_argument("--straight-through", action="store_true",
+                   help="back-propagate through follow-the-leader as through the identity (the chain step)")
     t.add_argument("--resume", default=None, help="a run folder or checkpoint.pt to continue")
     t.add_argument("--run-name", default="run", help="OUT/<name>/ holds the run, OUT/<name>_inertial.pt the step")
     t.add_argument("--model", default="", help="InertialConfig fields, e.g. damping=absolute,coupling=chain")
@@ -248,6 +253,7 @@ def main(argv=None) -> int:
     e.add_argument("--strand-stride", type=int, default=1)
     e.add_argument("--scenes", default=None, help="comma-separated labels (default: all)")
     e.add_argument("--variants", default="", help="more inertial steps as rows: name=checkpoint,...")
+    e.add_argument("--methods", default=",".join(METHODS), help="the methods' rows (rigid is always one)")
     e.add_argument("--oracle", action="store_true",
                    help="also the rows optimum (each frame's static optimum, the physics' drape) and "
                         "inertial_optimum (the step with those as its equilibrium)")
