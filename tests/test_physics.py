@@ -205,6 +205,10 @@ def test_bad_config():
         PhysicsConfig(max_iterations=0)
     with pytest.raises(ValueError, match="hair_hair_list_skin"):
         PhysicsConfig(hair_hair_list_skin=0.0)
+    with pytest.raises(ValueError, match="settle_time"):
+        PhysicsConfig(settle_time=-1.0)
+    with pytest.raises(ValueError, match="settle_tolerance"):
+        PhysicsConfig(settle_tolerance=0.0)
     with pytest.raises(ValueError, match="frame_indices"):
         simulate_physics(comparison_scene("whiplash", strand_stride=64, num_vertices=8).scene, [])
     with pytest.raises(ValueError, match="consecutive"):
@@ -287,6 +291,27 @@ def test_a_static_drape_does_not_stop_where_a_fresh_solve_still_descends():
     assert first.iterations > 2 * PhysicsConfig().static_chunk  # restarted at least once
     again = solver.solve(solver.positions().detach().clone(), 2000)
     assert again.energy >= first.energy - 10 * STALL_RELATIVE_DECREASE * abs(first.energy), (first, again)
+
+
+def test_settling_starts_a_held_pose_at_rest():
+    """A static drape stopped far from rest (20 iterations): with the pose held, the hair falls
+    through the first frames; settled first (`settle_time`), it starts where it stays."""
+    import hairwarp as hw
+
+    torch.set_num_threads(1)
+    scene = hw.build_scene("long_curly", pose="rest", strand_stride=64, num_vertices=24)
+    held = scene.motion.replace(poses=scene.motion.poses[:1].repeat(4, 1), trans=scene.motion.trans[:1].repeat(4, 1))
+    scene = type(scene)(body=scene.body, scalp=scene.scalp, hairstyle=scene.hairstyle, motion=held)
+    moves, results = {}, {}
+    for settle in (0.0, 1.0):
+        config = PhysicsConfig(static_max_iterations=20, settle_time=settle, settle_tolerance=2e-4)
+        result = simulate_physics(scene, config=config)
+        x = result.positions[:, 0]
+        moves[settle] = float((x[-1] - x[0]).norm(dim=-1).max())
+        results[settle] = result
+    assert results[0.0].settle_steps == 0 and 0 < results[1.0].settle_steps <= 60
+    assert moves[0.0] > 2e-3, moves  # unsettled: the tips fall millimetres in three frames
+    assert moves[1.0] < 0.25 * moves[0.0], moves
 
 
 def test_a_pair_list_too_small_grows_and_the_step_is_solved_again():

@@ -102,6 +102,15 @@ class PhysicsConfig:
             torso_bend 92 against 58: fewer iterations on torso_bend, each ~2x the cost), as
             contact, not the strands' stiffness, sets the pace there (docs/physics.md, section 2,
             "Thirteenth session" and "Fourteenth session").
+        settle_time: before the motion starts (`simulate_physics` from its own static drape),
+            implicit-Euler steps with the first frame's pose held, for at most this long [s], until
+            a step moves no vertex farther than `settle_tolerance`. 0: the motion starts at the
+            static drape. The static drape of long curly hair at full size is not at rest: on one
+            H100 it stopped at the 2 000-iteration cap at 3.00 J (8 000 iterations: 2.77 J), and
+            the first 0.33 s of a sway walk then dropped the tips from 27 to 198 mm below the rigid
+            placement (from 94 to 175 mm after 8 000 iterations; docs/physics.md, "Fifteenth
+            session"). Off by default until measured at full size.
+        settle_tolerance: the settling steps end when a step moves no vertex farther than this [m].
     """
 
     tolerance: float = 1.0e-4
@@ -120,12 +129,18 @@ class PhysicsConfig:
     hair_hair_list: bool | None = None
     hair_hair_list_skin: float = 3.0e-3
     strand_preconditioner: bool = False
+    settle_time: float = 0.0
+    settle_tolerance: float = 1.0e-4
 
     def __post_init__(self):
         for name in ("tolerance", "static_tolerance", "max_step", "hair_hair_list_skin"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name}: expected a finite positive length [m], got {value}")
+        if not (math.isfinite(self.settle_time) and self.settle_time >= 0):
+            raise ValueError(f"settle_time: expected a finite time >= 0 [s], got {self.settle_time}")
+        if not (math.isfinite(self.settle_tolerance) and self.settle_tolerance > 0):
+            raise ValueError(f"settle_tolerance: expected a finite positive length [m], got {self.settle_tolerance}")
         if not (math.isfinite(self.stiffness_scaling) and self.stiffness_scaling >= 0):
             raise ValueError(f"stiffness_scaling: expected a finite exponent >= 0, got {self.stiffness_scaling}")
         for name in ("max_iterations", "static_max_iterations", "static_chunk", "history", "chunk"):
@@ -595,7 +610,10 @@ class PhysicsResult:
         time_s: wall time of the solves [s] (device synchronised), posing and the body's build
             excluded (`setup_s`).
         setup_s: posing the frames and building the body [s].
-        frame_ms: wall time of each frame's solve [ms] (frame 0 the static drape's).
+        frame_ms: wall time of each frame's solve [ms] (frame 0 the static drape's, settling
+            included).
+        settle_steps: the implicit-Euler steps taken with the first pose held
+            (`PhysicsConfig.settle_time`).
     """
 
     positions: torch.Tensor
@@ -603,6 +621,7 @@ class PhysicsResult:
     time_s: float
     setup_s: float
     frame_ms: list[float] = field(default_factory=list)
+    settle_steps: int = 0
 
     @property
     def iterations(self) -> list[int]:
@@ -622,8 +641,9 @@ def simulate_physics(scene, frame_indices=None, *, device="cpu", energy_config: 
                      split_self_intersections: bool = True, progress: bool = False) -> PhysicsResult:
     """Implicit-Euler simulation of a scene's hair over consecutive frames.
 
-    Frame 0 (the first index) is the static drape of that frame unless `initial` is given; the
-    hair rests there before the motion starts (x_{-1} = x_{-2} = x_0). Frames are posed in
+    Frame 0 (the first index) is the static drape of that frame unless `initial` is given
+    (settled with the pose held for up to `PhysicsConfig.settle_time`); the hair rests there
+    before the motion starts (x_{-1} = x_{-2} = x_0). Frames are posed in
     chunks of 32 as they are needed (memory flat in the motion's length); the body is built
     once, at the first frame (its self-intersections cut there), and moved in place.
 
@@ -686,11 +706,22 @@ def simulate_physics(scene, frame_indices=None, *, device="cpu", energy_config: 
         check_tensor("initial", initial, shape=("...", rigid0.shape[1], rigid0.shape[2], 3), allow_empty=False)
         x0 = (initial if initial.dim() == 4 else initial.unsqueeze(0)).to(device=device, dtype=torch.float32)
         reports.append(StepReport(0, "initial", 0.0, float("nan")))
+    solver = PhysicsSolver(rest, rigid0, normals0, body, energy_config, config, dynamic=True)
+    solver.set_state(x0)
+    settle_steps = 0
+    if initial is None and config.settle_time > 0:
+        # The first pose held until the hair rests (`PhysicsConfig.settle_time`).
+        for _ in range(max(1, int(round(config.settle_time / energy_config.time_step)))):
+            before = solver.prev.clone()
+            solver.step()
+            settle_steps += 1
+            if float((solver.prev - before).norm(dim=-1).max()) <= config.settle_tolerance:
+                break
+        x0 = solver.prev.clone()
+        solver.set_state(x0)
     synchronize(device)
     frame_ms.append((time.perf_counter() - start) * 1e3)
     states.append(x0.detach().clone())
-    solver = PhysicsSolver(rest, rigid0, normals0, body, energy_config, config, dynamic=True)
-    solver.set_state(x0)
     for position in tqdm(range(1, len(indices)), desc="physics", disable=not progress, leave=False):
         t0 = time.perf_counter()
         setup_t0 = t0
@@ -704,4 +735,4 @@ def simulate_physics(scene, frame_indices=None, *, device="cpu", energy_config: 
     synchronize(device)
     elapsed = time.perf_counter() - start
     return PhysicsResult(positions=torch.stack(states), reports=reports, time_s=elapsed, setup_s=setup,
-                         frame_ms=frame_ms)
+                         frame_ms=frame_ms, settle_steps=settle_steps)
