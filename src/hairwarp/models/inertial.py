@@ -48,7 +48,7 @@ import torch
 from torch import nn
 
 from hairwarp._validate import check_tensor
-from hairwarp.config import NUM_FIXED_VERTICES
+from hairwarp.config import NUM_FIXED_VERTICES, EnergyConfig
 from hairwarp.models.config import _DictConfig
 from hairwarp.ops.strand_projection import follow_the_leader
 
@@ -113,11 +113,16 @@ def vertex_features(rigid: torch.Tensor) -> torch.Tensor:
     Returns:
         (M, N, 3) features (of the first frame when `rigid` has leading dimensions).
     """
-    strands = rigid.reshape(-1, *rigid.shape[-3:])[0]
-    seg = (strands[:, 1:] - strands[:, :-1]).norm(dim=-1)
-    s = torch.cat([torch.zeros_like(seg[:, :1]), seg.cumsum(dim=1)], dim=1)  # (M, N)
+    _, s = _rest_arc_lengths(rigid)
     length = s[:, -1:].clamp_min(1e-9).expand_as(s)
     return torch.stack([s / length, s, length], dim=-1)
+
+
+def _rest_arc_lengths(rigid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(segment lengths (M, N-1), arc length from the root (M, N)) [m] of the first frame's strands."""
+    strands = rigid.reshape(-1, *rigid.shape[-3:])[0]
+    seg = (strands[:, 1:] - strands[:, :-1]).norm(dim=-1)
+    return seg, torch.cat([torch.zeros_like(seg[:, :1]), seg.cumsum(dim=1)], dim=1)
 
 
 def hanging_chain_tension(rigid: torch.Tensor, fps: float) -> torch.Tensor:
@@ -132,11 +137,10 @@ def hanging_chain_tension(rigid: torch.Tensor, fps: float) -> torch.Tensor:
         rigid: (..., M, N, 3) the rigid placement (its segment lengths are the rest lengths) [m].
         fps: frames per second (h = 1 / fps).
     """
-    strands = rigid.reshape(-1, *rigid.shape[-3:])[0]
-    seg = (strands[:, 1:] - strands[:, :-1]).norm(dim=-1).clamp_min(1e-9)  # (M, N-1)
-    s = torch.cat([torch.zeros_like(seg[:, :1]), seg.cumsum(dim=1)], dim=1)  # (M, N)
+    seg, s = _rest_arc_lengths(rigid)
     below = s[:, -1:] - s[:, :-1]  # (M, N-1) the length below each segment's top end
-    w = 9.81 * below / (fps ** 2 * seg ** 2)
+    g = math.hypot(*EnergyConfig().gravity)  # the energy's gravity (Eq. 11) [m/s^2]
+    w = g * below / (fps ** 2 * seg.clamp_min(1e-9) ** 2)
     return w[:, NUM_FIXED_VERTICES - 1:]
 
 

@@ -91,7 +91,8 @@ class InertialTrainingConfig:
             grows as 1 / |p_i - x_(i-1)|: on the chain step's rollouts at 256 strands the
             clipped run above wandered (held-out whiplash 26 -> 44 -> 29 mm over 1 500 steps on
             one H200) while the straight-through gradient's norm stayed at 1e-3 and the loss fell
-            from the first step (2-core CPU, one clip).
+            from the first step (2-core CPU, one clip). It is biased: with two clips the loss was
+            lowest near step 70 and rose after (docs/network_diagnosis.md, "Fifteenth session").
         model: `InertialConfig` fields.
     """
 
