@@ -286,31 +286,24 @@ def test_a_chain_swings_through_its_equilibrium_after_the_head_stops():
     torch.testing.assert_close(_segment_lengths(out), _segment_lengths(rigid), atol=1e-9, rtol=0)
 
 
-@pytest.mark.parametrize("coupling", ["vertex", "chain"])
-def test_the_straight_through_gradient_takes_the_projection_as_the_identity(coupling):
-    """Training's straight-through step: the same positions, and d x / d E the step's own pull on
-    the free vertices, as if follow-the-leader were the identity (one frame, so y = E)."""
+def test_a_capped_projection_gain_keeps_the_rollout_and_bounds_its_gradient():
+    """Training's `projection_max_gain`: the same positions; uncapped in effect (a cap no gain
+    reaches) the exact gradient; capped low, another one (its bound: tests/test_strand_projection.py)."""
     rest = _hanging(2, 6)
-    rigid = rest[None] + torch.tensor([0.01, 0.0, 0.0], dtype=torch.float64)  # the head moved 1 cm
-    prev = rest[None].clone()
-    step = InertialStep(InertialConfig(coupling=coupling)).double()
-    weights = torch.randn(rigid.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
-    outputs = {}
-    for straight in (False, True):
-        step.straight_through = straight
+    t = torch.arange(5, dtype=torch.float64)
+    rigid = rest[None] + torch.stack([0.03 * t**2, 0.01 * t, 0 * t], dim=-1)[:, None, None, :]
+    step = InertialStep(InertialConfig(coupling="chain")).double()
+    grads, outs = {}, {}
+    for cap in (None, 1e9, 0.05):
+        step.projection_max_gain = cap
         equilibrium = rigid.clone().requires_grad_(True)
-        x = step.step(equilibrium, rigid, prev, prev, torch.zeros_like(rigid))
-        (x * weights).sum().backward()
-        outputs[straight] = (x.detach(), equilibrium.grad)
-    torch.testing.assert_close(outputs[True][0], outputs[False][0], atol=0, rtol=0)
-    pull, _ = step.coefficients(rigid)
-    w = weights[0, :, 2:]
-    if coupling == "vertex":  # x = E + G (y - E): d x / d E = 1 - G
-        expected = (1 - pull[:, 2:]) * w
-    else:  # x = E + A (y - E): d x / d E = I - A (A symmetric)
-        expected = w - pull @ w
-    torch.testing.assert_close(outputs[True][1][0, :, 2:], expected, atol=1e-12, rtol=0)
-    assert not torch.allclose(outputs[False][1], outputs[True][1])  # the projection's own Jacobian differs
+        x = step.rollout(equilibrium, rigid)
+        x.square().sum().backward()
+        grads[cap], outs[cap] = equilibrium.grad, x.detach()
+    torch.testing.assert_close(outs[1e9], outs[None], atol=0, rtol=0)
+    torch.testing.assert_close(outs[0.05], outs[None], atol=0, rtol=0)
+    torch.testing.assert_close(grads[1e9], grads[None], atol=1e-12, rtol=1e-9)
+    assert not torch.allclose(grads[0.05], grads[None])  # the cap binds: another gradient
 
 
 def test_the_step_at_rest_keeps_a_still_hairstyle_still():

@@ -73,6 +73,33 @@ def test_a_rigid_target_is_left_where_it_is():
     assert torch.allclose(follow_the_leader(rigid, rigid), rigid, atol=1e-14, rtol=0)
 
 
+def test_a_capped_gain_is_the_exact_adjoint_below_the_cap_and_bounded_above_it():
+    """`max_gain`: the same forward; a cap no vertex reaches gives the Warp adjoint; a target
+    near its leader (gain ~100) gives a gradient bounded by the cap."""
+    torch.manual_seed(3)
+    rigid = torch.zeros(2, 3, 9, 3, dtype=torch.float64)
+    rigid[..., 1] = -0.01 * torch.arange(9, dtype=torch.float64)
+    target = rigid + 0.003 * torch.randn_like(rigid)
+    weights = torch.randn_like(rigid)
+
+    def grad(**kw):
+        t = target.clone().requires_grad_(True)
+        x = follow_the_leader(rigid, t, **kw)
+        (x * weights).sum().backward()
+        return x.detach(), t.grad
+
+    exact_x, exact = grad()
+    x, capped = grad(max_gain=1e9)
+    torch.testing.assert_close(x, exact_x, atol=0, rtol=0)
+    torch.testing.assert_close(capped, exact, atol=1e-12, rtol=1e-10)
+    # vertex 5's target 1e-4 m from where vertex 4 lands: its exact gain is ~100
+    target[:, :, 5] = follow_the_leader(rigid, target)[:, :, 4] + torch.tensor([1e-4, 0.0, 0.0], dtype=torch.float64)
+    _, exact = grad()
+    _, capped = grad(max_gain=2.0)
+    assert float(exact[:, :, 5].norm(dim=-1).max()) > 20 * float(weights.abs().max())
+    assert float(capped[:, :, 5].norm(dim=-1).max()) < 2.0 * float(weights[:, :, 5:].norm(dim=-1).sum(-1).max()) + 1e-9
+
+
 def test_target_on_its_leader_keeps_the_rigid_direction_with_a_finite_gradient():
     rigid, target = make_pair(3, batch=1, strands=1, vertices=5)
     target[0, 0, 2] = target[0, 0, 1]  # q_2 on top of x_1: no direction to follow

@@ -76,7 +76,7 @@ def train(args) -> int:
                                         strand_stride=args.strand_stride, steps=args.steps,
                                         equilibrium=args.equilibrium,
                                         learning_rate=args.lr, eval_every=args.eval_every, model=model,
-                                        grad_clip=args.grad_clip, straight_through=args.straight_through)
+                                        grad_clip=args.grad_clip, projection_max_gain=args.projection_max_gain)
         trainer = InertialTrainer(config, out=run, device=args.device, seed=args.seed, clip_cache=cache)
     start = time.perf_counter()
     trainer.train()
@@ -239,8 +239,8 @@ def main(argv=None) -> int:
     t.add_argument("--lr", type=float, default=3e-3)
     t.add_argument("--eval-every", type=int, default=50)
     t.add_argument("--grad-clip", type=float, default=0.0, help="clip the gradient's norm to this (0: off)")
-    t.add_argument("--straight-through", action="store_true",
-                   help="back-propagate through follow-the-leader as through the identity (the chain step)")
+    t.add_argument("--projection-max-gain", type=float, default=0.0,
+                   help="cap follow-the-leader's adjoint gain at this in training (0: exact; the chain step: 3)")
     t.add_argument("--resume", default=None, help="a run folder or checkpoint.pt to continue")
     t.add_argument("--run-name", default="run", help="OUT/<name>/ holds the run, OUT/<name>_inertial.pt the step")
     t.add_argument("--model", default="", help="InertialConfig fields, e.g. damping=absolute,coupling=chain")

@@ -177,8 +177,9 @@ class InertialStep(nn.Module):
         if not isinstance(config, InertialConfig):
             raise ValueError(f"config: expected an InertialConfig, got {type(config).__name__}")
         self.config = config
-        # The projection's gradient taken as the identity's (training only; `step`).
-        self.straight_through = False
+        # Training only: the projection's adjoint with each vertex's gain capped at this
+        # (`follow_the_leader(max_gain=...)`); None, the exact gradient.
+        self.projection_max_gain = None
         h = config.hidden_dim
         outputs = 3 if config.coupling == "chain" else 2  # G, beta (, the chain's tension w)
         self.net = nn.Sequential(nn.Linear(NUM_VERTEX_FEATURES, h), nn.SiLU(), nn.Linear(h, h), nn.SiLU(),
@@ -242,13 +243,7 @@ class InertialStep(nn.Module):
             offset = (predicted - equilibrium)[:, :, NUM_FIXED_VERTICES:]
             free = equilibrium[:, :, NUM_FIXED_VERTICES:] + pull @ offset
             target = torch.cat([equilibrium[:, :, :NUM_FIXED_VERTICES], free], dim=2)
-        x = follow_the_leader(rigid, target, check=False)
-        if self.straight_through:
-            # Training's gradient through the step as if the projection were the identity: its
-            # Jacobian grows as 1 / |p_i - x_(i-1)|, and targets that land near the last projected
-            # vertex made the rollouts' gradients erratic (`InertialTrainingConfig.straight_through`).
-            x = target + (x - target).detach()
-        return x
+        return follow_the_leader(rigid, target, check=False, max_gain=self.projection_max_gain)
 
     def rollout(self, equilibrium: torch.Tensor, rigid: torch.Tensor, initial: tuple | None = None) -> torch.Tensor:
         """A whole sequence, frame by frame, each step on the step's own previous states.

@@ -74,8 +74,40 @@ class _FollowTheLeader(torch.autograd.Function):
         return None, grad_target, None
 
 
+class _FollowTheLeaderBoundedGain(torch.autograd.Function):
+    """The projection, its adjoint with each vertex's gain l_i / |target_i - x_(i-1)| capped."""
+
+    @staticmethod
+    def forward(ctx, rigid, target, max_gain):
+        with torch.no_grad():
+            x = _FollowTheLeader.apply(rigid, target, None)
+        ctx.save_for_backward(rigid, target, x)
+        ctx.max_gain = max_gain
+        return x
+
+    @staticmethod
+    def backward(ctx, grad):
+        rigid, target, x = ctx.saved_tensors
+        rest = (rigid[..., 1:, :] - rigid[..., :-1, :]).norm(dim=-1, keepdim=True)
+        g = grad.clone()
+        out = torch.zeros_like(target)
+        # Reverse sweep: x_i = x_(i-1) + l_i u_i, u_i = unit(v_i), v_i = target_i - x_(i-1), so
+        # d x_i / d target_i = J_i = (l_i / |v_i|) (I - u_i u_i^T) and d x_i / d x_(i-1) = I - J_i.
+        for i in range(target.shape[-2] - 1, NUM_FIXED_VERTICES - 1, -1):
+            v = target[..., i, :] - x[..., i - 1, :]
+            norm = v.norm(dim=-1, keepdim=True).clamp_min(FOLLOW_THE_LEADER_EPS)
+            u = v / norm
+            gain = (rest[..., i - 1, :] / norm).clamp(max=ctx.max_gain)
+            gi = g[..., i, :]
+            through = gain * (gi - (gi * u).sum(-1, keepdim=True) * u)
+            out[..., i, :] = through
+            g[..., i - 1, :] += gi - through
+        out[..., :NUM_FIXED_VERTICES, :] = g[..., :NUM_FIXED_VERTICES, :]  # the target's own
+        return None, out, None
+
+
 def follow_the_leader(rigid: torch.Tensor, target: torch.Tensor, *, check: bool = True,
-                      tiled: bool | None = None) -> torch.Tensor:
+                      tiled: bool | None = None, max_gain: float | None = None) -> torch.Tensor:
     """Project target strands onto the rest segment lengths of the rigid placement.
 
     x_k = target_k for the fixed vertices k < 2; then x_i = x_{i-1} + l_i * unit(target_i -
@@ -90,6 +122,12 @@ def follow_the_leader(rigid: torch.Tensor, target: torch.Tensor, *, check: bool 
             tensor's values waits for a GPU).
         tiled: run the tile kernels (a block per strand, the strand in shared memory) or the
             one-thread kernels; default: the tile kernels on CUDA where the strand fits.
+        max_gain: None, the exact gradient; a number, the adjoint with each vertex's gain
+            l_i / |target_i - x_(i-1)| capped at it (a torch sweep over the vertices; the forward
+            is the same). The exact gain grows without bound as a target nears its projected
+            leader: rollouts of the chain inertial step, whose targets come within a few per cent
+            of a segment of it, had gradients that jumped by 100x from step to step
+            (docs/network_diagnosis.md, "Fifteenth session").
 
     Returns:
         (..., M, N, 3) projected positions [m], differentiable w.r.t. `target`.
@@ -104,6 +142,8 @@ def follow_the_leader(rigid: torch.Tensor, target: torch.Tensor, *, check: bool 
             raise ValueError(f"target: expected shape {tuple(rigid.shape)} like rigid, got {tuple(target.shape)}")
         if rigid.dim() < 3 or rigid.shape[-2] <= NUM_FIXED_VERTICES:
             raise ValueError(f"rigid: expected (..., M, N, 3) with N > {NUM_FIXED_VERTICES}, got {tuple(rigid.shape)}")
+    if max_gain is not None:
+        return _FollowTheLeaderBoundedGain.apply(rigid.detach(), target, float(max_gain))
     return _FollowTheLeader.apply(rigid.detach(), target, tiled)
 
 

@@ -86,13 +86,13 @@ class InertialTrainingConfig:
             long straight hair, 2-core CPU), where the per-vertex step's were 0.03-0.05: a few
             targets land within a few per cent of a segment of the last projected vertex, and
             follow-the-leader's gradient grows as the inverse of that distance.
-        straight_through: back-propagate through each step's follow-the-leader as through the
-            identity (`InertialStep.straight_through`; the forward stays exact). Its gradient
-            grows as 1 / |p_i - x_(i-1)|: on the chain step's rollouts at 256 strands the
-            clipped run above wandered (held-out whiplash 26 -> 44 -> 29 mm over 1 500 steps on
-            one H200) while the straight-through gradient's norm stayed at 1e-3 and the loss fell
-            from the first step (2-core CPU, one clip). It is biased: with two clips the loss was
-            lowest near step 70 and rose after (docs/network_diagnosis.md, "Fifteenth session").
+        projection_max_gain: 0, the exact gradient; else follow-the-leader's adjoint with each
+            vertex's gain l_i / |p_i - x_(i-1)| capped at this (`follow_the_leader(max_gain=...)`;
+            the forward stays exact). The chain step at 256 strands on the 2-core CPU (two clips):
+            capped at 3 the gradient's norm stayed at 1e-4 to 5e-4 and the loss fell from 3.02e-3
+            to 2.67e-3 by step 50 and stayed there to step 100. The identity's gradient
+            (straight-through, tried) reached the same loss by step 70 and then rose to 2.82e-3 by
+            step 300 (docs/network_diagnosis.md, "Fifteenth session").
         model: `InertialConfig` fields.
     """
 
@@ -107,7 +107,7 @@ class InertialTrainingConfig:
     position_weight: float = 0.3
     eval_every: int = 50
     grad_clip: float = 0.0
-    straight_through: bool = False
+    projection_max_gain: float = 0.0
     model: dict = field(default_factory=dict)
 
     def __post_init__(self):
@@ -119,7 +119,7 @@ class InertialTrainingConfig:
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
                 raise ValueError(f"{name}: expected a positive int, got {value!r}")
-        for name in ("learning_rate", "swing_weight", "position_weight", "grad_clip"):
+        for name in ("learning_rate", "swing_weight", "position_weight", "grad_clip", "projection_max_gain"):
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or not value >= 0:
                 raise ValueError(f"{name}: expected a non-negative number, got {value!r}")
@@ -288,7 +288,7 @@ class InertialTrainer:
 
             bar = tqdm(total=end, initial=self.step_count, desc="train inertial", dynamic_ncols=True)
         self.model.train()
-        self.model.straight_through = cfg.straight_through
+        self.model.projection_max_gain = cfg.projection_max_gain or None
         while self.step_count < end:
             self.optimizer.zero_grad()
             loss = sum(self.loss(b) for b in self._batches) / len(self._batches)
@@ -299,9 +299,7 @@ class InertialTrainer:
             self.step_count += 1
             record = {"step": self.step_count, "loss": float(loss.detach())}
             if self.step_count % cfg.eval_every == 0 or self.step_count == end:
-                self.model.straight_through = False
                 record["held_out"] = self.evaluate()
-                self.model.straight_through = cfg.straight_through
                 self.save()
             self._log(record)
             if bar is not None:
@@ -309,7 +307,7 @@ class InertialTrainer:
                 bar.set_postfix(loss=f"{float(loss.detach()):.3e}")
         if bar is not None:
             bar.close()
-        self.model.straight_through = False
+        self.model.projection_max_gain = None
         return self.model
 
     def save(self, path=None) -> None:
