@@ -48,19 +48,10 @@ EVALUATION = (
 METHODS = ("rigid", "static", "dynamic", "inertial")
 
 
-def _number(text: str):
-    """A --model value: an int or float where it reads as one, else the string."""
-    for kind in (int, float):
-        try:
-            return kind(text)
-        except ValueError:
-            pass
-    return text
-
-
 def train(args) -> int:
     from hairwarp.models.checkpoint import save_checkpoint
     from hairwarp.training.inertial import ClipSpec, InertialTrainer, InertialTrainingConfig, read_log
+    from train_shipped import _number_or_text
 
     run = os.path.join(args.out, args.run_name)
     cache = os.path.join(args.out, "clips")
@@ -71,7 +62,8 @@ def train(args) -> int:
     else:
         clips = [ClipSpec(style, "head_moves", 100 * i + j, 0.0, 1.5)
                  for i, style in enumerate(args.styles.split(",")) for j in range(args.clips_per_style)]
-        model = {k: _number(v) for k, v in (item.split("=", 1) for item in args.model.split(","))} if args.model else {}
+        model = ({k: _number_or_text(v) for k, v in (item.split("=", 1) for item in args.model.split(","))}
+                 if args.model else {})
         config = InertialTrainingConfig(clips=clips, held_out=[ClipSpec(*c) for c in HELD_OUT_CURVE],
                                         strand_stride=args.strand_stride, steps=args.steps,
                                         equilibrium=args.equilibrium,
