@@ -52,6 +52,18 @@ def test_a_moving_head_keeps_rest_lengths_and_fixed_vertices():
     assert float((out[-1, :, -1, 0] - rigid[-1, :, -1, 0]).max()) < -1e-3
 
 
+def test_a_chain_of_one_free_vertex_runs():
+    """N = 3: the chain's operator is 1 x 1, still applied as the chain's."""
+    rest = _hanging(2, 3)
+    rigid = rest[None] + torch.tensor([0.0, 0.0, 0.0], dtype=torch.float64)
+    rigid = torch.cat([rigid, rigid + torch.tensor([0.01, 0.0, 0.0], dtype=torch.float64)])
+    step = InertialStep(InertialConfig(coupling="chain")).double()
+    with torch.no_grad():
+        out = step.rollout(rigid.clone(), rigid)
+    assert out.shape == rigid.shape
+    torch.testing.assert_close(_segment_lengths(out), _segment_lengths(rigid), atol=1e-12, rtol=0)
+
+
 def test_coefficients_read_arc_length_for_any_vertex_count():
     step = InertialStep()
     for n in (4, 7, 100):

@@ -236,7 +236,7 @@ class InertialStep(nn.Module):
         """
         pull, retention = self.coefficients(rigid) if coefficients is None else coefficients
         predicted = prev + head_velocity + retention * (prev - prev2 - head_velocity)
-        if pull.shape[-1] == 1:
+        if self.config.coupling != "chain":
             target = equilibrium + pull * (predicted - equilibrium)
         else:
             # The chain: every free vertex's offset from the equilibrium relaxed along its strand.
