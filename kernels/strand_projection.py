@@ -84,14 +84,19 @@ def follow_the_leader_kernel(
 
 
 @wp.func
-def follow_the_leader_adjoint_step(g: Any, rest_edge: Any, target: Any, leader: Any, eps: Any):
-    """dL/dq_i from G_i (`g`), the rigid edge r_i - r_{i-1}, q_i and the projected leader x_{i-1}."""
+def follow_the_leader_adjoint_step(g: Any, rest_edge: Any, target: Any, leader: Any, eps: Any, max_gain: Any):
+    """dL/dq_i from G_i (`g`), the rigid edge r_i - r_{i-1}, q_i and the projected leader x_{i-1}.
+
+    d x_i / d q_i = gain (I - u u^T) with gain = l_i / |q_i - x_{i-1}|, capped at `max_gain`:
+    the exact gain grows without bound as a target nears its leader (training's option; the
+    exact adjoint passes a cap no gain reaches).
+    """
     d = target - leader
     n = wp.length(d)
     if n > eps:
         u = d / n
-        du = g * wp.length(rest_edge)
-        return (du - u * wp.dot(u, du)) / n
+        gain = wp.min(wp.length(rest_edge) / n, max_gain)
+        return (g - u * wp.dot(u, g)) * gain
     return g * type(eps)(0.0)
 
 
@@ -103,6 +108,7 @@ def follow_the_leader_adjoint_kernel(
     grad_out: wp.array(dtype=Any),
     num_vertices: int,
     eps: Any,
+    max_gain: Any,
     grad_target: wp.array(dtype=Any),
 ):
     """dL/dq of one strand from dL/dx (`grad_out`) and the forward's output `projected`.
@@ -132,13 +138,13 @@ def follow_the_leader_adjoint_kernel(
         p3 = projected[base + i - 3]
         p4 = projected[base + i - 4]
         G0 = g0 + carry
-        d0 = follow_the_leader_adjoint_step(G0, r0 - r1, q0, p1, eps)
+        d0 = follow_the_leader_adjoint_step(G0, r0 - r1, q0, p1, eps, max_gain)
         G1 = g1 + G0 - d0
-        d1 = follow_the_leader_adjoint_step(G1, r1 - r2, q1, p2, eps)
+        d1 = follow_the_leader_adjoint_step(G1, r1 - r2, q1, p2, eps, max_gain)
         G2 = g2 + G1 - d1
-        d2 = follow_the_leader_adjoint_step(G2, r2 - r3, q2, p3, eps)
+        d2 = follow_the_leader_adjoint_step(G2, r2 - r3, q2, p3, eps, max_gain)
         G3 = g3 + G2 - d2
-        d3 = follow_the_leader_adjoint_step(G3, r3 - r4, q3, p4, eps)
+        d3 = follow_the_leader_adjoint_step(G3, r3 - r4, q3, p4, eps, max_gain)
         carry = G3 - d3
         grad_target[base + i] = d0
         grad_target[base + i - 1] = d1
@@ -148,7 +154,7 @@ def follow_the_leader_adjoint_kernel(
     while i >= FIRST_PROJECTED_VERTEX:
         g = grad_out[base + i] + carry
         gd = follow_the_leader_adjoint_step(g, rigid[base + i] - rigid[base + i - 1], target[base + i],
-                                            projected[base + i - 1], eps)
+                                            projected[base + i - 1], eps, max_gain)
         grad_target[base + i] = gd
         carry = g - gd
         i = i - 1
@@ -197,7 +203,7 @@ def follow_the_leader_tiled_kernels(num_vertices: int, vec_type):
 
     def adjoint(rigid: wp.array(dtype=vec_type), target: wp.array(dtype=vec_type),
                 projected: wp.array(dtype=vec_type), grad_out: wp.array(dtype=vec_type), eps: scalar,
-                grad_target: wp.array(dtype=vec_type)):
+                max_gain: scalar, grad_target: wp.array(dtype=vec_type)):
         strand, _lane = wp.tid()
         base = strand * n
         r = wp.tile_load(rigid, shape=n, offset=base, storage="shared")
@@ -209,7 +215,7 @@ def follow_the_leader_tiled_kernels(num_vertices: int, vec_type):
         for j in range(n - FIRST_PROJECTED_VERTEX):
             i = n - 1 - j
             total = g[i] + carry
-            d = follow_the_leader_adjoint_step(total, r[i] - r[i - 1], q[i], p[i - 1], eps)
+            d = follow_the_leader_adjoint_step(total, r[i] - r[i - 1], q[i], p[i - 1], eps, max_gain)
             dq[i] = d
             carry = total - d
         for k in range(FIRST_PROJECTED_VERTEX):

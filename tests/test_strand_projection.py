@@ -56,16 +56,17 @@ def test_cuda_tile_kernels_match_the_one_thread_kernels():
     rigid, target = make_pair(4, batch=2, strands=64, vertices=100, dtype=torch.float32)
     rigid, target = rigid.cuda(), target.cuda().requires_grad_(True)
     weights = torch.randn_like(target)
-    results = []
-    for tiled in (False, True):
-        x = follow_the_leader(rigid, target, tiled=tiled)
-        (g,) = torch.autograd.grad((x * weights).sum(), target)
-        results.append((x, g))
-    assert torch.allclose(results[0][0], results[1][0], atol=1e-6)
-    # float32 rounding in another order along a 100-vertex carry: measured 1.8e-5 of the largest
-    # gradient on an H100.
-    scale = float(results[0][1].abs().max())
-    assert torch.allclose(results[0][1], results[1][1], rtol=0, atol=1e-4 * scale)
+    for max_gain in (None, 3.0):  # the exact adjoint, and training's capped one
+        results = []
+        for tiled in (False, True):
+            x = follow_the_leader(rigid, target, tiled=tiled, max_gain=max_gain)
+            (g,) = torch.autograd.grad((x * weights).sum(), target)
+            results.append((x, g))
+        assert torch.allclose(results[0][0], results[1][0], atol=1e-6)
+        # float32 rounding in another order along a 100-vertex carry: measured 1.8e-5 of the
+        # largest gradient on an H100.
+        scale = float(results[0][1].abs().max())
+        assert torch.allclose(results[0][1], results[1][1], rtol=0, atol=1e-4 * scale)
 
 
 def test_a_rigid_target_is_left_where_it_is():
@@ -73,9 +74,30 @@ def test_a_rigid_target_is_left_where_it_is():
     assert torch.allclose(follow_the_leader(rigid, rigid), rigid, atol=1e-14, rtol=0)
 
 
-def test_a_capped_gain_is_the_exact_adjoint_below_the_cap_and_bounded_above_it():
-    """`max_gain`: the same forward; a cap no vertex reaches gives the Warp adjoint; a target
-    near its leader (gain ~100) gives a gradient bounded by the cap."""
+def capped_gain_adjoint_reference(rigid, target, grad, max_gain):
+    """dL/dq of the projection with each gain l_i / |q_i - x_(i-1)| capped, float64, a torch
+    reverse sweep written from x_i = x_(i-1) + l_i unit(q_i - x_(i-1)): d x_i / d q_i = J_i =
+    min(l_i / |v_i|, cap) (I - u_i u_i^T), d x_i / d x_(i-1) = I - J_i."""
+    x = follow_the_leader(rigid, target)
+    rest = (rigid[..., 1:, :] - rigid[..., :-1, :]).norm(dim=-1, keepdim=True)
+    g = grad.clone()
+    out = torch.zeros_like(target)
+    for i in range(target.shape[-2] - 1, 1, -1):
+        v = target[..., i, :] - x[..., i - 1, :]
+        u = v / v.norm(dim=-1, keepdim=True)
+        gain = (rest[..., i - 1, :] / v.norm(dim=-1, keepdim=True)).clamp(max=max_gain)
+        gi = g[..., i, :]
+        out[..., i, :] = gain * (gi - (gi * u).sum(-1, keepdim=True) * u)
+        g[..., i - 1, :] += gi - out[..., i, :]
+    out[..., :2, :] = g[..., :2, :]
+    return out
+
+
+@pytest.mark.parametrize("tiled", [False, True])
+def test_a_capped_gain_matches_the_reference_sweep_and_bounds_the_gradient(tiled):
+    """`max_gain`: the same forward; the adjoint equals a float64 sweep with the gains capped;
+    a cap no vertex reaches is the exact adjoint; a target near its leader (gain ~100) gets a
+    gradient bounded by the cap."""
     torch.manual_seed(3)
     rigid = torch.zeros(2, 3, 9, 3, dtype=torch.float64)
     rigid[..., 1] = -0.01 * torch.arange(9, dtype=torch.float64)
@@ -84,7 +106,7 @@ def test_a_capped_gain_is_the_exact_adjoint_below_the_cap_and_bounded_above_it()
 
     def grad(**kw):
         t = target.clone().requires_grad_(True)
-        x = follow_the_leader(rigid, t, **kw)
+        x = follow_the_leader(rigid, t, tiled=tiled, **kw)
         (x * weights).sum().backward()
         return x.detach(), t.grad
 
@@ -96,8 +118,11 @@ def test_a_capped_gain_is_the_exact_adjoint_below_the_cap_and_bounded_above_it()
     target[:, :, 5] = follow_the_leader(rigid, target)[:, :, 4] + torch.tensor([1e-4, 0.0, 0.0], dtype=torch.float64)
     _, exact = grad()
     _, capped = grad(max_gain=2.0)
+    torch.testing.assert_close(capped, capped_gain_adjoint_reference(rigid, target, weights, 2.0), atol=1e-12, rtol=1e-10)
     assert float(exact[:, :, 5].norm(dim=-1).max()) > 20 * float(weights.abs().max())
     assert float(capped[:, :, 5].norm(dim=-1).max()) < 2.0 * float(weights[:, :, 5:].norm(dim=-1).sum(-1).max()) + 1e-9
+    with pytest.raises(ValueError, match="max_gain"):
+        follow_the_leader(rigid, target, max_gain=0.0)
 
 
 def test_target_on_its_leader_keeps_the_rigid_direction_with_a_finite_gradient():

@@ -20,6 +20,8 @@ from hairwarp.kernels import strand_projection as kernels
 
 # Below this leader-to-target distance [m] the rigid segment direction is kept (no gradient).
 FOLLOW_THE_LEADER_EPS = 1e-9
+# The adjoint's gain cap when none is asked for: above any l_i / |q_i - x_(i-1)| a float32 holds.
+UNCAPPED_GAIN = 1e30
 
 
 def _tiled(target: torch.Tensor, tiled: bool | None) -> bool:
@@ -32,15 +34,19 @@ def _tiled(target: torch.Tensor, tiled: bool | None) -> bool:
     return target.is_cuda and fits
 
 
-def _launch(direction: str, target: torch.Tensor, arrays, outputs, tiled: bool | None = None) -> None:
+def _launch(direction: str, target: torch.Tensor, arrays, outputs, tiled: bool | None = None,
+            max_gain: float | None = None) -> None:
     """The projection's `direction` ("forward" or "adjoint") over the strands of `target`
-    (..., M, N, 3): `kernel`(*arrays, [N,] eps, *outputs), one thread or one block per strand.
+    (..., M, N, 3): `kernel`(*arrays, [N,] eps, [max_gain,] *outputs), one thread or one block
+    per strand; the adjoint's gain capped at `max_gain` (None: uncapped).
     """
     n = target.shape[-2]
     strands = target.numel() // (3 * n)
     if strands == 0:
         return
-    eps = _warp.scalar(FOLLOW_THE_LEADER_EPS, target.dtype)
+    scalars = [_warp.scalar(FOLLOW_THE_LEADER_EPS, target.dtype)]
+    if direction == "adjoint":
+        scalars.append(_warp.scalar(UNCAPPED_GAIN if max_gain is None else max_gain, target.dtype))
     inputs = [_warp.as_warp(a, vec3=True) for a in arrays]
     outputs = [_warp.as_warp(o, vec3=True) for o in outputs]
     device = _warp.warp_device(target.device)
@@ -48,21 +54,22 @@ def _launch(direction: str, target: torch.Tensor, arrays, outputs, tiled: bool |
         if _tiled(target, tiled):
             vec = wp.vec3d if target.dtype == torch.float64 else wp.vec3f
             forward, adjoint = kernels.follow_the_leader_tiled_kernels(n, vec)
-            _warp.launch(forward if direction == "forward" else adjoint, dim=strands, inputs=inputs + [eps],
+            _warp.launch(forward if direction == "forward" else adjoint, dim=strands, inputs=inputs + scalars,
                          outputs=outputs, device=device, block_dim=kernels.TILED_BLOCK_DIM)
         else:
             kernel = kernels.follow_the_leader_kernel if direction == "forward" else kernels.follow_the_leader_adjoint_kernel
-            _warp.launch(kernel, dim=strands, inputs=inputs + [n, eps], outputs=outputs, device=device)
+            _warp.launch(kernel, dim=strands, inputs=inputs + [n] + scalars, outputs=outputs, device=device)
 
 
 class _FollowTheLeader(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, rigid, target, tiled):
+    def forward(ctx, rigid, target, tiled, max_gain):
         rigid, target = rigid.contiguous(), target.contiguous()
         out = torch.empty_like(target)
         _launch("forward", target, (rigid, target), (out,), tiled)
         ctx.save_for_backward(rigid, target, out)
         ctx.tiled = tiled
+        ctx.max_gain = max_gain
         return out
 
     @staticmethod
@@ -70,40 +77,8 @@ class _FollowTheLeader(torch.autograd.Function):
     def backward(ctx, grad_out):
         rigid, target, out = ctx.saved_tensors
         grad_target = torch.empty_like(target)
-        _launch("adjoint", target, (rigid, target, out, grad_out.contiguous()), (grad_target,), ctx.tiled)
-        return None, grad_target, None
-
-
-class _FollowTheLeaderBoundedGain(torch.autograd.Function):
-    """The projection, its adjoint with each vertex's gain l_i / |target_i - x_(i-1)| capped."""
-
-    @staticmethod
-    def forward(ctx, rigid, target, max_gain):
-        with torch.no_grad():
-            x = _FollowTheLeader.apply(rigid, target, None)
-        ctx.save_for_backward(rigid, target, x)
-        ctx.max_gain = max_gain
-        return x
-
-    @staticmethod
-    def backward(ctx, grad):
-        rigid, target, x = ctx.saved_tensors
-        rest = (rigid[..., 1:, :] - rigid[..., :-1, :]).norm(dim=-1, keepdim=True)
-        g = grad.clone()
-        out = torch.zeros_like(target)
-        # Reverse sweep: x_i = x_(i-1) + l_i u_i, u_i = unit(v_i), v_i = target_i - x_(i-1), so
-        # d x_i / d target_i = J_i = (l_i / |v_i|) (I - u_i u_i^T) and d x_i / d x_(i-1) = I - J_i.
-        for i in range(target.shape[-2] - 1, NUM_FIXED_VERTICES - 1, -1):
-            v = target[..., i, :] - x[..., i - 1, :]
-            norm = v.norm(dim=-1, keepdim=True).clamp_min(FOLLOW_THE_LEADER_EPS)
-            u = v / norm
-            gain = (rest[..., i - 1, :] / norm).clamp(max=ctx.max_gain)
-            gi = g[..., i, :]
-            through = gain * (gi - (gi * u).sum(-1, keepdim=True) * u)
-            out[..., i, :] = through
-            g[..., i - 1, :] += gi - through
-        out[..., :NUM_FIXED_VERTICES, :] = g[..., :NUM_FIXED_VERTICES, :]  # the target's own
-        return None, out, None
+        _launch("adjoint", target, (rigid, target, out, grad_out.contiguous()), (grad_target,), ctx.tiled, ctx.max_gain)
+        return None, grad_target, None, None
 
 
 def follow_the_leader(rigid: torch.Tensor, target: torch.Tensor, *, check: bool = True,
@@ -123,10 +98,10 @@ def follow_the_leader(rigid: torch.Tensor, target: torch.Tensor, *, check: bool 
         tiled: run the tile kernels (a block per strand, the strand in shared memory) or the
             one-thread kernels; default: the tile kernels on CUDA where the strand fits.
         max_gain: None, the exact gradient; a number, the adjoint with each vertex's gain
-            l_i / |target_i - x_(i-1)| capped at it (a torch sweep over the vertices; the forward
-            is the same). The exact gain grows without bound as a target nears its projected
-            leader: rollouts of the chain inertial step, whose targets come within a few per cent
-            of a segment of it, had gradients that jumped by 100x from step to step
+            l_i / |target_i - x_(i-1)| capped at it (the same kernels; the forward is the same).
+            The exact gain grows without bound as a target nears its projected leader: rollouts
+            of the chain inertial step, whose targets come within a few per cent of a segment
+            of it, had gradients that jumped by 100x from step to step
             (docs/network_diagnosis.md, "Fifteenth session").
 
     Returns:
@@ -142,9 +117,9 @@ def follow_the_leader(rigid: torch.Tensor, target: torch.Tensor, *, check: bool 
             raise ValueError(f"target: expected shape {tuple(rigid.shape)} like rigid, got {tuple(target.shape)}")
         if rigid.dim() < 3 or rigid.shape[-2] <= NUM_FIXED_VERTICES:
             raise ValueError(f"rigid: expected (..., M, N, 3) with N > {NUM_FIXED_VERTICES}, got {tuple(rigid.shape)}")
-    if max_gain is not None:
-        return _FollowTheLeaderBoundedGain.apply(rigid.detach(), target, float(max_gain))
-    return _FollowTheLeader.apply(rigid.detach(), target, tiled)
+    if max_gain is not None and not max_gain > 0:
+        raise ValueError(f"max_gain: expected None or a positive number, got {max_gain}")
+    return _FollowTheLeader.apply(rigid.detach(), target, tiled, None if max_gain is None else float(max_gain))
 
 
 __all__ = ["FOLLOW_THE_LEADER_EPS", "follow_the_leader"]
