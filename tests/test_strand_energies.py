@@ -48,6 +48,7 @@ CONFIG = EnergyConfig(
     root_alignment_eps=1e-8,
     inertia_weight=1e-3,
     time_step=1.0 / 60.0,
+    reference_strand_count=0,  # the paper's means over the M strands given, as the references write them
 )
 
 
@@ -247,6 +248,44 @@ def test_torch_reference_agrees_in_values_and_gradients(device, rng):
     (total_ref * weights).sum().backward()
     assert float(x_torch.grad.abs().max()) > 0.0
     assert_close(x_warp.grad, x_torch.grad, 1e-9, "gradient vs torch autograd")
+
+
+@pytest.mark.parametrize("layout", LAYOUTS)
+def test_reference_strand_count_divides_the_means_by_it(layout, device, rng):
+    """`reference_strand_count` R: Eq. 7, 9, 10, 15, 16 divide by R instead of M (the numpy
+    means times M / R), the sums (bending, gravity) unchanged; the torch reference agrees in
+    values and gradients; and a groom of the same strands twice over has twice the energy, each
+    strand the share it has in a groom of R (the paper's means give the doubled groom the same
+    energy: each strand half its share)."""
+    x_np = make_strands(rng, 2, 3, 8)
+    inputs = make_inputs(rng, x_np, shared=True)
+    t = to_torch(inputs, torch.float64, device)
+    config = CONFIG.replace(reference_strand_count=12)
+    x = torch.tensor(x_np, device=device, requires_grad=True)
+    total, per_term = fused(x, t, config, layout=layout)
+    means = ("stretch", "auxiliary", "smoothness", "root_alignment", "inertia")
+    for term, value in per_term.items():
+        expected = reference_term(term, x_np, inputs, CONFIG) * (3 / 12 if term in means else 1.0)
+        assert_close(value, expected, RTOL_FLOAT64, term)
+    x_ref = torch.tensor(x_np, device=device, requires_grad=True)
+    total_ref, _ = torch_ref.strand_energies(x_ref, t["rest_lengths"], config, rigid=t["rigid"],
+                                             scalp_normals=t["scalp_normals"], prev=t["prev"], prev2=t["prev2"])
+    assert_close(total, total_ref, RTOL_FLOAT64, "total vs torch reference")
+    total.sum().backward()
+    total_ref.sum().backward()
+    assert_close(x.grad, x_ref.grad, 1e-9, "gradient vs torch reference")
+
+    doubled = {k: torch.cat([v, v], dim=-2 if k == "scalp_normals" else (-2 if k == "rest_lengths" else -3))
+               for k, v in t.items()}
+    x2 = torch.cat([x.detach(), x.detach()], dim=-3)
+    for cfg, factor in ((config, 2.0), (CONFIG, None)):
+        one, parts_one = fused(x.detach(), t, cfg, layout=layout)
+        two, parts_two = fused(x2, doubled, cfg, layout=layout)
+        for term in parts_one:
+            ratio = factor if factor is not None else (1.0 if term in means else 2.0)
+            assert_close(parts_two[term], ratio * parts_one[term], RTOL_FLOAT64, f"{term} of the doubled groom")
+    with pytest.raises(ValueError, match="reference_strand_count"):
+        EnergyConfig(reference_strand_count=-1)
 
 
 @pytest.mark.parametrize("term", STRAND_TERMS)

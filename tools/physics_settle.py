@@ -5,7 +5,8 @@
 For each held-out scene of `tools/train_inertial.py evaluate` (and the comparison scenes), the
 physics simulation of its first frames with the first pose held for up to each settle time:
 the settling steps taken, the wall time, the mean tip offset from the rigid placement per frame
-(its vertical part: a groom still falling when the motion starts sinks here), how far the tips
+(its vertical part: a groom still falling when the motion starts sinks here), the static energy
+(Eq. 5) of the state the motion starts from, how far the tips
 drift over the frames, and the mean vertex distance of each setting to the unsettled one.
 Writes OUT/physics_settle.json.
 """
@@ -35,6 +36,8 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     from train_inertial import EVALUATION, _evaluation_scene
 
+    from hairwarp.config import EnergyConfig
+    from hairwarp.energy import total_energy
     from hairwarp.metrics import mean_tip_offset
     from hairwarp.runtime import synchronize
     from hairwarp.solvers.physics import PhysicsConfig, simulate_physics
@@ -51,6 +54,8 @@ def main(argv=None) -> int:
         scene = _evaluation_scene(label, style, pose, start, duration, args.strand_stride, args.out)
         indices = list(range(min(args.frames, scene.num_frames)))
         rigid = scene.frames(indices, device=device, build_body=False).rigid.positions
+        first = scene.frames([0], device=device)
+        energy_config = EnergyConfig(time_step=1.0 / float(scene.motion.fps))
         runs, unsettled = {}, None
         for settle in times:
             synchronize(device)
@@ -63,6 +68,8 @@ def main(argv=None) -> int:
             row = {"settle_steps": result.settle_steps, "seconds": seconds,
                    "tip_offset_y_mm": [round(float(v), 1) for v in tips[:, 1]],
                    "tip_drift_mm": float((tips - tips[0]).norm(dim=-1).max())}
+            with torch.no_grad():  # the static energy (Eq. 5) of the state the motion starts from
+                row["start_energy"] = float(total_energy(x[:1], first.inputs, energy_config).total.sum())
             if unsettled is None:
                 unsettled = x
             else:

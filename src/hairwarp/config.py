@@ -47,9 +47,10 @@ class EnergyConfig:
     tip centimetres inside) and from 2.7-7.0 % to 0 % at 0.03 % ("medium_poses"); with the
     quartic "monotone" barrier the first stalls at 48.4 % / 35.5 % (60 iterations): its
     force at depth stretches the strands instead of moving them. Mind the normalisations of
-    the paper, which we keep: Eq. 7, 9, 10, 15, 16 are means over vertices or segments (so
-    their weights are large: k_s = 1e8 over 1e5 segments is a per-segment stiffness of ~1e3 J/m^2), while
-    Eq. 8, 11 and the contact terms are sums.
+    the paper: Eq. 7, 9, 10, 15, 16 are means over vertices or segments (so their weights are
+    large: k_s = 1e8 over 1e5 segments is a per-segment stiffness of ~1e3 J/m^2), while Eq. 8, 11
+    and the contact terms are sums; the means divide by `reference_strand_count` strands, not
+    by the number simulated, so that a reduced groom is the same hair.
 
     Attributes:
         stretch_weight: k_s of Eq. 7 [J/m^2]; multiplies the mean squared segment-length error.
@@ -66,9 +67,10 @@ class EnergyConfig:
             scalp normal.
         root_alignment_eps: epsilon_norm of Eq. 15 [m].
         inertia_weight: lambda_inertia of Eq. 16 (dimensionless). Eq. 16 is a mean over the
-            M N_mov moving vertices while gravity (Eq. 11) is a sum: lambda_inertia = M N_mov
-            (~1e5 for 1024 x 100) makes the pair physical (the implicit-Euler incremental
-            potential); a weight of 1 would make the dynamics all but quasi-static.
+            moving vertices while gravity (Eq. 11) is a sum: lambda_inertia = R N_mov (R the
+            `reference_strand_count`; ~1e5 for 1024 x 100) makes the pair physical (the
+            implicit-Euler incremental potential); a weight of 1 would make the dynamics all
+            but quasi-static.
         time_step: Delta t of Eq. 16 [s] (1/60 in the paper).
         hair_body_weight: lambda_hb of Eq. 12 for hair-body contact [J], per vertex.
         hair_body_xi: hard barrier xi for hair-body contact [m] (1 mm in the paper).
@@ -83,6 +85,17 @@ class EnergyConfig:
             literally); see `hairwarp.ops.barrier`.
         hair_hair_capacity_per_segment: pair-buffer capacity of the hair-hair broad phase, in
             candidate pairs per segment; overflow is reported, never dropped silently.
+        reference_strand_count: R, the strand count the means of Eq. 7, 9, 10, 15 and 16 divide
+            by (default 1 024, the size the weights were chosen at): every strand gets the energy
+            it has in a groom of R strands, whatever the M strands simulated (the total grows
+            with M, as a sum does; hair-hair contact, a sum over pairs, still sees the sparser
+            hair). 0: the M strands handed in, as the paper writes Eq. 7-16. Then a groom's
+            physics depends on how many of its strands are simulated: gravity (Eq. 11) is a
+            sum, so at 256 strands each strand's stiffness and inertia weigh 4x what they weigh
+            at 1 024 against its weight. Measured (docs/physics.md, "Sixteenth session"): the
+            torso bend's physics at 64 / 256 strands has its tips 48 / 34 mm from the full
+            groom's with R = 0, 6.7 / 5.3 mm with R = 1 024 (tip swing 12 / 18 and 44 / 44 mm,
+            full groom 44 mm).
     """
 
     stretch_weight: float = 1.0e8
@@ -107,6 +120,7 @@ class EnergyConfig:
     barrier_join_fraction: float = 0.01
     barrier_variant: str = "quadratic"
     hair_hair_capacity_per_segment: int = 16
+    reference_strand_count: int = 1024
 
     def replace(self, **changes) -> "EnergyConfig":
         """A copy with some fields changed (validated)."""
@@ -129,6 +143,15 @@ class EnergyConfig:
             raise ValueError(f"root_alignment_segments: expected >= 0, got {self.root_alignment_segments}")
         if len(self.gravity) != 3:
             raise ValueError(f"gravity: expected 3 numbers, got {self.gravity}")
+        if isinstance(self.reference_strand_count, bool) or not isinstance(self.reference_strand_count, int) \
+                or self.reference_strand_count < 0:
+            raise ValueError(f"reference_strand_count: expected an int >= 0, got {self.reference_strand_count!r}")
+
+    def strand_normalization(self, num_strands: int) -> int:
+        """The M that the means of Eq. 7, 9, 10, 15 and 16 divide by for a groom of `num_strands`
+        strands: `reference_strand_count`, or `num_strands` where that is 0 (the paper's means).
+        """
+        return self.reference_strand_count or num_strands
 
     def weights(self) -> dict[str, float]:
         """The weight of each term by name (zero turns the term off)."""

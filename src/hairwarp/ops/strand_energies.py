@@ -313,8 +313,12 @@ def _evaluate(
     time_step: float = _DEFAULTS.time_step,
     layout: str = "auto",
     names: dict[str, str] | None = None,
+    reference_strand_count: int = 0,
 ):
     """Validate, pick the active terms, launch; returns (total, per-term dict) in x's batch shape.
+
+    The means over strands divide by `reference_strand_count` where it is not 0
+    (`EnergyConfig.reference_strand_count`).
 
     Scalar parameters are reported in errors by their `EnergyConfig` field names unless `names`
     maps a field name to the caller's argument name (the per-term functions say "weight").
@@ -380,7 +384,7 @@ def _evaluate(
         if weights[name] != 0.0:
             active.append(name)
 
-    m, n = num_strands, num_vertices
+    m, n = reference_strand_count or num_strands, num_vertices
     # Eq. 15 sums the first k' moving segments i = 1..k'; a strand of N vertices has N - 2.
     k_align = min(root_segments, n - 2)
     w = {name: (weights[name] if name in active else 0.0) for name in STRAND_TERMS}
@@ -492,6 +496,7 @@ def strand_energies(
         root_eps=config.root_alignment_eps,
         time_step=config.time_step,
         layout=layout,
+        reference_strand_count=config.reference_strand_count,
     )
 
 

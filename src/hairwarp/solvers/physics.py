@@ -105,11 +105,13 @@ class PhysicsConfig:
         settle_time: before the motion starts (`simulate_physics` from its own static drape),
             implicit-Euler steps with the first frame's pose held, for at most this long [s], until
             a step moves no vertex farther than `settle_tolerance`. 0: the motion starts at the
-            static drape. The static drape of long curly hair at full size is not at rest: on one
-            H100 it stopped at the 2 000-iteration cap at 3.00 J (8 000 iterations: 2.77 J), and
-            the first 0.33 s of a sway walk then dropped the tips from 27 to 198 mm below the rigid
-            placement (from 94 to 175 mm after 8 000 iterations; docs/physics.md, "Fifteenth
-            session"). Off by default until measured at full size.
+            static drape. That drape is not at rest at full size: L-BFGS from the rigid placement
+            stops (2 000 iterations) above where the hair hangs, and the first frames of every
+            motion then showed the hair falling. One H100, 1 024 x 100, the mean tip height below
+            the rigid placement unsettled / settled for 1 s: whiplash 10 / 36 mm, bob nod 4 / 21
+            mm, long curly hair 30 / 158 mm (then sinking to 196 mm within 0.3 s unsettled);
+            settling costs 3-7 s a motion there, 37 s at 256 strands on a 2-core CPU
+            (docs/physics.md, "Sixteenth session").
         settle_tolerance: the settling steps end when a step moves no vertex farther than this [m].
     """
 
@@ -129,7 +131,7 @@ class PhysicsConfig:
     hair_hair_list: bool | None = None
     hair_hair_list_skin: float = 3.0e-3
     strand_preconditioner: bool = False
-    settle_time: float = 0.0
+    settle_time: float = 1.0
     settle_tolerance: float = 1.0e-4
 
     def __post_init__(self):
@@ -164,9 +166,9 @@ def vertex_stiffness(config: EnergyConfig, rest_lengths: torch.Tensor, *, inexte
     2 s_stretch per segment end unless the steps are `inextensible`. The scales are the energy's
     (`hairwarp.ops.strand_energies`).
     """
-    m, n = rest_lengths.shape[0], rest_lengths.shape[1] + 1
+    m, n = config.strand_normalization(rest_lengths.shape[0]), rest_lengths.shape[1] + 1
     rest = rest_lengths.detach().to(torch.float64)
-    diagonal = torch.zeros(m, n, dtype=torch.float64, device=rest.device)
+    diagonal = torch.zeros(rest.shape[0], n, dtype=torch.float64, device=rest.device)
     diagonal += config.inertia_weight * config.vertex_mass / (m * (n - 2) * config.time_step ** 2)
     diagonal += 2.0 * config.auxiliary_weight / (3 * m * n)
     smooth = 2.0 * config.smoothness_weight / (m * (n - 2))

@@ -153,6 +153,11 @@ def strand_energies(
     """
     config = config or EnergyConfig()
     w = config.weights()
+    # The means over strands divide by R = `reference_strand_count` instead of M: their weights
+    # times M / R.
+    share = x.shape[-3] / config.strand_normalization(x.shape[-3])
+    for name in ("stretch", "auxiliary", "smoothness", "root_alignment", "inertia"):
+        w[name] *= share
     mass = vertex_mass if vertex_mass is not None else config.vertex_mass
     names = STRAND_TERMS if terms is None else tuple(terms)
     available = {

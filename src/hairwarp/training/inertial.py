@@ -35,6 +35,7 @@ import torch
 
 from hairwarp.models.checkpoint import load_checkpoint, save_checkpoint
 from hairwarp.models.inertial import InertialConfig, InertialStep
+from hairwarp.solvers.physics import PhysicsConfig
 
 CHECKPOINT_NAME = "checkpoint.pt"
 LOG_NAME = "log.jsonl"
@@ -240,7 +241,10 @@ class InertialTrainer:
 
     def _clip(self, spec: ClipSpec) -> dict:
         cfg = self.config
-        name = f"{spec.key}_s{cfg.strand_stride}_n{cfg.num_vertices}_{cfg.equilibrium}.pt"
+        # The physics' settling changes the clips (`PhysicsConfig.settle_time`): a cache of either
+        # kind is read only by runs of the same kind.
+        settle = PhysicsConfig().settle_time
+        name = f"{spec.key}_s{cfg.strand_stride}_n{cfg.num_vertices}_{cfg.equilibrium}_settle{settle:g}.pt"
         path = None if self.clip_cache is None else os.path.join(self.clip_cache, name)
         if path is not None and os.path.isfile(path):
             data = torch.load(path, weights_only=True)
