@@ -110,7 +110,7 @@ class PhysicsConfig:
             motion then showed the hair falling. One H100, 1 024 x 100, the mean tip height below
             the rigid placement unsettled / settled for 1 s: whiplash 10 / 36 mm, bob nod 4 / 21
             mm, long curly hair 30 / 158 mm (then sinking to 196 mm within 0.3 s unsettled);
-            settling costs 3-7 s a motion there, 37 s at 256 strands on a 2-core CPU
+            settling costs 4-8 s a motion there, 37 s at 256 strands on a 2-core CPU
             (docs/physics.md, "Sixteenth session").
         settle_tolerance: the settling steps end when a step moves no vertex farther than this [m].
     """

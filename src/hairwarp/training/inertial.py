@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from hairwarp.config import EnergyConfig
 from hairwarp.models.checkpoint import load_checkpoint, save_checkpoint
 from hairwarp.models.inertial import InertialConfig, InertialStep
 from hairwarp.solvers.physics import PhysicsConfig
@@ -241,10 +242,11 @@ class InertialTrainer:
 
     def _clip(self, spec: ClipSpec) -> dict:
         cfg = self.config
-        # The physics' settling changes the clips (`PhysicsConfig.settle_time`): a cache of either
-        # kind is read only by runs of the same kind.
-        settle = PhysicsConfig().settle_time
-        name = f"{spec.key}_s{cfg.strand_stride}_n{cfg.num_vertices}_{cfg.equilibrium}_settle{settle:g}.pt"
+        # The physics' settling (`PhysicsConfig.settle_time`) and the strands its means divide by
+        # (`EnergyConfig.reference_strand_count`) change the clips: a cache is read only by runs
+        # of the same physics.
+        physics = f"settle{PhysicsConfig().settle_time:g}_R{EnergyConfig().reference_strand_count}"
+        name = f"{spec.key}_s{cfg.strand_stride}_n{cfg.num_vertices}_{cfg.equilibrium}_{physics}.pt"
         path = None if self.clip_cache is None else os.path.join(self.clip_cache, name)
         if path is not None and os.path.isfile(path):
             data = torch.load(path, weights_only=True)
