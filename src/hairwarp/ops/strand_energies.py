@@ -446,7 +446,9 @@ def strand_energies(
         x: hair positions [m], `(B, M, N, 3)` or `(M, N, 3)`, float32 or float64, N >= 3.
         rest_lengths: rest segment lengths l0 of Eq. 7 [m], `(M, N-1)` or `(B, M, N-1)`
             (see `compute_rest_lengths`), or None to skip stretch.
-        config: weights and constants (`EnergyConfig()` when None).
+        config: weights and constants (`EnergyConfig()` when None); the means of Eq. 7, 9, 10,
+            15 and 16 divide by its `reference_strand_count` (the per-term functions below, which
+            take bare weights, divide by the M strands given, as the paper writes them).
         rigid: rigidly posed hair P_rigid of Eq. 9 [m], `(M, N, 3)` or `(B, M, N, 3)`.
         scalp_normals: unit scalp normals n_s at the roots (Eq. 15), `(M, 3)` or `(B, M, 3)`.
         prev: positions at t-1 [m] (Eq. 16), like `rigid`; constant (no gradient).
