@@ -324,6 +324,30 @@ def test_settling_starts_a_held_pose_at_rest():
     assert moves[1.0] < 0.25 * moves[0.0], moves
 
 
+def test_the_physics_drape_rests_where_the_held_pose_settles():
+    """Long curly hair at rest with every strand's energy as in the full groom: L-BFGS from the
+    rigid placement stalls above where the hair hangs; the physics' drape is settled with the
+    pose held (`drape_at_rest`), lower in energy and tips, and never above the first solve's."""
+    import hairwarp as hw
+    from hairwarp.energy import total_energy
+    from hairwarp.methods.optimizers import PhysicsMethod
+
+    torch.set_num_threads(1)
+    scene = hw.build_scene("long_curly", pose="rest", strand_stride=64, num_vertices=24, num_frames=1)
+    frames = scene.frames()
+    drapes, energies = {}, {}
+    for settle in (0.0, 1.0):
+        result = PhysicsMethod(config=PhysicsConfig(static_max_iterations=400, settle_time=settle)).drape(frames)
+        drapes[settle] = result
+        energies[settle] = float(total_energy(result.positions, frames.inputs, EnergyConfig()).total.sum())
+    assert drapes[0.0].info["settle_steps"] == 0 and drapes[1.0].info["settle_steps"] > 0
+    assert drapes[1.0].info["settled"] == [True]
+    assert energies[1.0] < energies[0.0] * (1 - 1e-3), energies
+    tip_drop = {k: float((frames.rigid.positions[..., -1, 1] - d.positions[..., -1, 1]).mean()) for k, d in drapes.items()}
+    assert tip_drop[1.0] > tip_drop[0.0] + 1e-3, tip_drop  # the settled tips hang lower [m]
+    assert drapes[1.0].info["loss"] == pytest.approx(energies[1.0], rel=1e-4)
+
+
 def test_a_pair_list_too_small_grows_and_the_step_is_solved_again():
     """The device pair list's buffer (rows = the solver's `capacity`) found more pairs than it
     holds: the step is solved again with a buffer of twice the count, landing where a step with

@@ -102,17 +102,19 @@ class PhysicsConfig:
             torso_bend 92 against 58: fewer iterations on torso_bend, each ~2x the cost), as
             contact, not the strands' stiffness, sets the pace there (docs/physics.md, section 2,
             "Thirteenth session" and "Fourteenth session").
-        settle_time: before the motion starts (`simulate_physics` from its own static drape),
-            implicit-Euler steps with the first frame's pose held, for at most this long [s], until
-            a step moves no vertex farther than `settle_tolerance`. 0: the motion starts at the
-            static drape. That drape is not at rest at full size: L-BFGS from the rigid placement
+        settle_time: every static drape of the physics (`drape_at_rest`: the `physics` and
+            `reference` drapes, E*, and a motion's first frame) is followed by implicit-Euler
+            steps with the pose held, for at most this long [s], until a step moves no vertex
+            farther than `settle_tolerance`, then polished by a static solve. 0: the first static
+            solve's drape. That drape is not at rest at full size: L-BFGS from the rigid placement
             stops (2 000 iterations) above where the hair hangs, and the first frames of every
             motion then showed the hair falling. One H100, 1 024 x 100, the mean tip height below
             the rigid placement unsettled / settled for 1 s: whiplash 10 / 36 mm, bob nod 4 / 21
             mm, long curly hair 30 / 158 mm (then sinking to 196 mm within 0.3 s unsettled);
             settling costs 4-8 s a motion there, 37 s at 256 strands on a 2-core CPU
             (docs/physics.md, "Sixteenth session").
-        settle_tolerance: the settling steps end when a step moves no vertex farther than this [m].
+        settle_tolerance: the settling steps end when a step moves no vertex farther than this [m]
+            (each step solved to it or the config's `tolerance`, whichever is looser).
     """
 
     tolerance: float = 1.0e-4
@@ -461,9 +463,9 @@ class PhysicsSolver:
         graph()
 
     # -- one solve ---------------------------------------------------------------------------
-    def solve(self, start: torch.Tensor, max_iterations: int) -> StepReport:
+    def solve(self, start: torch.Tensor, max_iterations: int, tolerance: float | None = None) -> StepReport:
         """Minimise from `start` (B, M, N, 3) (its fixed vertices replaced by the rigid placement's);
-        the result is `self.positions()`.
+        the result is `self.positions()`. `tolerance` [m] replaces the config's for this solve.
 
         A static drape (no inertia) is restarted with a fresh L-BFGS memory from where it stopped
         for as long as a restart still lowers the energy (by more than `STALL_RELATIVE_DECREASE`
@@ -474,18 +476,18 @@ class PhysicsSolver:
         reached 0.19643 J and 12.3 mm, where a second of the implicit-Euler simulation with the
         pose held settled (0.1965 J, 11.8 mm) (docs/physics.md, "The static drape's stall").
         """
-        report = self._solve_once(start, max_iterations)
+        report = self._solve_once(start, max_iterations, tolerance)
         total = report.iterations
         while not self.dynamic and report.stop_reason == "tolerance" and total < max_iterations:
             before = report.energy
-            report = self._solve_once(self.positions().detach().clone(), max_iterations - total)
+            report = self._solve_once(self.positions().detach().clone(), max_iterations - total, tolerance)
             total += report.iterations
             if not report.energy < before - STALL_RELATIVE_DECREASE * abs(before):
                 break
         return StepReport(iterations=total, stop_reason=report.stop_reason, residual=report.residual,
                           energy=report.energy, rebuilds=report.rebuilds)
 
-    def _solve_once(self, start: torch.Tensor, max_iterations: int) -> StepReport:
+    def _solve_once(self, start: torch.Tensor, max_iterations: int, tolerance: float | None) -> StepReport:
         """One L-BFGS run from `start` with a fresh memory (`solve`)."""
         self.start.copy_(start)
         self.start[:, :, :NUM_FIXED_VERTICES] = self.rigid[:, :, :NUM_FIXED_VERTICES]
@@ -496,7 +498,8 @@ class PhysicsSolver:
             self._run("begin", self._begin)
             done, reason, rebuilds = 0, "max_iterations", 0
             chunk = self.chunk
-            tolerance = self.config.tolerance if self.dynamic else self.config.static_tolerance
+            if tolerance is None:
+                tolerance = self.config.tolerance if self.dynamic else self.config.static_tolerance
             residual = math.inf
             overflow = False
             while True:
@@ -591,11 +594,13 @@ class PhysicsSolver:
             x = x + (fade if fade.dim() == 3 else fade[None])[..., None] * surprise
         return x
 
-    def step(self) -> StepReport:
-        """One implicit-Euler step from the inertial prediction; the state moves on."""
+    def step(self, tolerance: float | None = None) -> StepReport:
+        """One implicit-Euler step from the inertial prediction (to `tolerance` [m], default the
+        config's); the state moves on.
+        """
         if not self.dynamic:
             raise RuntimeError("step: this solver drapes statically (dynamic=False)")
-        report = self.solve(self.prediction(), self.config.max_iterations)
+        report = self.solve(self.prediction(), self.config.max_iterations, tolerance)
         x = self.positions()
         self.prev2.copy_(self.prev)
         self.prev.copy_(x)
@@ -632,6 +637,73 @@ class PhysicsResult:
     @property
     def stop_reasons(self) -> list[str]:
         return [r.stop_reason for r in self.reports]
+
+
+@dataclass
+class RestingDrape:
+    """A static drape brought to rest (`drape_at_rest`).
+
+    Attributes:
+        positions: (B, M, N, 3) the drape [m].
+        report: its solves together: iterations of the static solves and the settling steps,
+            the last static solve's stop reason and residual, the drape's energy [J] (summed).
+        settle_steps: implicit-Euler steps taken with the pose held.
+        settled: (B,) bool, per frame: the settled drape was kept (lower energy than the first
+            static solve's).
+    """
+
+    positions: torch.Tensor
+    report: StepReport
+    settle_steps: int
+    settled: torch.Tensor
+
+
+def drape_at_rest(static: PhysicsSolver, dynamic: PhysicsSolver | None, start: torch.Tensor,
+                  config: PhysicsConfig) -> RestingDrape:
+    """The static optimum of each frame (Eq. 5), at rest: where the hair hangs when its pose is held.
+
+    L-BFGS from a rigid placement stalls above where the hair hangs (at full size it stopped 0.7-12 %
+    above the settled energy, the tips 3-129 mm higher; docs/physics.md, "Sixteenth session"). So
+    the first static solve is followed by implicit-Euler steps with the pose held, for at most
+    `config.settle_time` [s] (each step solved to `settle_tolerance`, the scale rest is judged at),
+    until a step moves no vertex farther than `settle_tolerance`; a static solve from there
+    polishes the settled state to `static_tolerance`. Per frame the lower-energy drape of the two
+    is kept: settling dissipates energy but is not bound to lower it.
+
+    Args:
+        static: a `PhysicsSolver` with dynamic=False on the frames.
+        dynamic: a `PhysicsSolver` with dynamic=True on the same frames, its pose held (its
+            state is left at the settled drape); None: no settling.
+        start: (B, M, N, 3) where the first static solve starts [m].
+        config: `PhysicsConfig` (`static_max_iterations`, `settle_time`, `settle_tolerance`).
+    """
+    from hairwarp.energy import total_energy
+
+    first = static.solve(start, config.static_max_iterations)
+    x = static.positions()
+    batch = x.shape[0]
+    if dynamic is None or config.settle_time <= 0:
+        return RestingDrape(x, first, 0, torch.zeros(batch, dtype=torch.bool))
+    dynamic.set_state(x)
+    steps, iterations = 0, first.iterations
+    step_tolerance = max(config.tolerance, config.settle_tolerance)
+    for _ in range(max(1, int(round(config.settle_time / static.energy_config.time_step)))):
+        before = dynamic.prev.clone()
+        iterations += dynamic.step(tolerance=step_tolerance).iterations
+        steps += 1
+        if float((dynamic.prev - before).norm(dim=-1).max()) <= config.settle_tolerance:
+            break
+    polish = static.solve(dynamic.prev, config.static_max_iterations)
+    y = static.positions()
+    with torch.no_grad():
+        energy_first = total_energy(x, static.inputs, static.energy_config).total.reshape(-1)
+        energy_settled = total_energy(y, static.inputs, static.energy_config).total.reshape(-1)
+    settled = energy_settled <= energy_first
+    positions = torch.where(settled[:, None, None, None], y, x)
+    report = StepReport(iterations=iterations + polish.iterations, stop_reason=polish.stop_reason,
+                        residual=polish.residual, energy=float(torch.minimum(energy_first, energy_settled).sum()),
+                        rebuilds=first.rebuilds + polish.rebuilds)
+    return RestingDrape(positions, report, steps, settled.cpu())
 
 
 # Frames posed at once (the body and rigid placement of a motion's frames, without body meshes).
@@ -697,30 +769,21 @@ def simulate_physics(scene, frame_indices=None, *, device="cpu", energy_config: 
     setup = time.perf_counter() - setup_start
     reports, states, frame_ms = [], [], []
     start = time.perf_counter()
+    solver = PhysicsSolver(rest, rigid0, normals0, body, energy_config, config, dynamic=True)
+    settle_steps = 0
     if initial is None:
         static = PhysicsSolver(rest, rigid0, normals0, body, energy_config, config, dynamic=False)
-        reports.append(static.solve(rigid0, config.static_max_iterations))
-        x0 = static.positions()
+        drape = drape_at_rest(static, solver, rigid0, config)
         del static
+        x0, settle_steps = drape.positions, drape.settle_steps
+        reports.append(drape.report)
     else:
         from hairwarp._validate import check_tensor
 
         check_tensor("initial", initial, shape=("...", rigid0.shape[1], rigid0.shape[2], 3), allow_empty=False)
         x0 = (initial if initial.dim() == 4 else initial.unsqueeze(0)).to(device=device, dtype=torch.float32)
         reports.append(StepReport(0, "initial", 0.0, float("nan")))
-    solver = PhysicsSolver(rest, rigid0, normals0, body, energy_config, config, dynamic=True)
     solver.set_state(x0)
-    settle_steps = 0
-    if initial is None and config.settle_time > 0:
-        # The first pose held until the hair rests (`PhysicsConfig.settle_time`).
-        for _ in range(max(1, int(round(config.settle_time / energy_config.time_step)))):
-            before = solver.prev.clone()
-            solver.step()
-            settle_steps += 1
-            if float((solver.prev - before).norm(dim=-1).max()) <= config.settle_tolerance:
-                break
-        x0 = solver.prev.clone()
-        solver.set_state(x0)
     synchronize(device)
     frame_ms.append((time.perf_counter() - start) * 1e3)
     states.append(x0.detach().clone())
