@@ -3,9 +3,9 @@
 The rows of the physics issue's first table that the harness's scenes do not cover: long straight
 hair grown on the body at rest (a clean placement: nothing inside), a bob at head_turn t = 0.5 s,
 long curly hair grown on the head alone at nod t = 0.5 s; each at full size (1 024 strands x 100
-vertices), each method through `hairwarp.drape(..., reference="reference")`: penetration and
-length change, and against the tight physics drape at rest (`reference`, solved once per scene) E / E*, the mean / p95 distance to it and the
-tips' height against it (`hairwarp.metrics.static_fidelity`).
+vertices), each method through `hairwarp.drape`: penetration and length change, and against the
+tight physics drape at rest (`reference`, solved once per scene) E / E*, the mean / p95 distance
+to it and the tips' height against it (`hairwarp.metrics.drape_fidelity`).
 
     python tools/static_rows.py --device cuda --out OUT
     python tools/static_rows.py --device cuda --checkpoint static.pt --out OUT   # + that static network
