@@ -572,6 +572,29 @@ def test_a_teacher_pool_solves_each_batch_once_to_its_optimum(monkeypatch, stati
         static_config.replace(teacher_iterations=4, teacher_pool=-1)
 
 
+def test_settled_pool_teachers_rest_no_higher_than_the_static_solve(static_config, sampler):
+    """`teacher_settle_time`: each pool teacher is held in its pose and polished
+    (`drape_at_rest`); per sample its energy is never above the static solve's teacher, and lower
+    in sum where that solve was stopped short (40 iterations)."""
+    from hairwarp.training.config import energy_config
+
+    energies = {}
+    for settle in (0.0, 0.5):
+        cfg = static_config.replace(phase_steps=(0, 0, 0, 2), teacher_iterations=40, teacher_pool=1,
+                                    teacher_start="rigid", teacher_settle_time=settle)
+        trainer = StaticTrainer(cfg, sampler=sampler)
+        batch = trainer.training_batch(0)
+        physics = energy_config(cfg.energy, barrier_join_fraction=cfg.bp_end)
+        with torch.no_grad():
+            energies[settle] = total_energy(batch.teacher, batch.inputs, physics).total.reshape(-1)
+    assert bool((energies[0.5] <= energies[0.0] * (1 + 1e-6)).all()), energies
+    assert float(energies[0.5].sum()) < float(energies[0.0].sum()) * (1 - 1e-3), energies
+    with pytest.raises(ValueError, match="teacher_settle_time"):
+        static_config.replace(teacher_settle_time=1.0)  # no pool
+    with pytest.raises(ValueError, match="teacher_settle_time"):
+        static_config.replace(teacher_iterations=4, teacher_pool=1, teacher_settle_time=-1.0)
+
+
 def test_the_teacher_of_both_starts_is_per_sample_the_lower_one(static_config, sampler, monkeypatch):
     """teacher_start "lower": the physics teacher solved from the network's drape and from the
     rigid placement, per sample the one of lower energy; "rigid" and "network" are those two;

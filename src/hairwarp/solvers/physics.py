@@ -672,8 +672,9 @@ def drape_at_rest(static: PhysicsSolver, dynamic: PhysicsSolver | None, start: t
 
     Args:
         static: a `PhysicsSolver` with dynamic=False on the frames.
-        dynamic: a `PhysicsSolver` with dynamic=True on the same frames, its pose held (its
-            state is left at the settled drape); None: no settling.
+        dynamic: a `PhysicsSolver` with dynamic=True on the same frames (its buffers: the same
+            rigid placement, scalp normals and body; its state is left at the settled drape);
+            None: no settling.
         start: (B, M, N, 3) where the first static solve starts [m].
         config: `PhysicsConfig` (`static_max_iterations`, `settle_time`, `settle_tolerance`).
     """
@@ -684,6 +685,9 @@ def drape_at_rest(static: PhysicsSolver, dynamic: PhysicsSolver | None, start: t
     batch = x.shape[0]
     if dynamic is None or config.settle_time <= 0:
         return RestingDrape(x, first, 0, torch.zeros(batch, dtype=torch.bool))
+    # the pose held: no head move for the warm start to add
+    dynamic.rigid_prev.copy_(dynamic.rigid)
+    dynamic.rigid_prev2.copy_(dynamic.rigid)
     dynamic.set_state(x)
     steps, iterations = 0, first.iterations
     step_tolerance = max(config.tolerance, config.settle_tolerance)

@@ -398,6 +398,11 @@ class StaticTrainingConfig(_TrainingConfig):
             starts' teachers were within 1 % in energy and "lower" took either half the time, so
             similar samples got targets from two resting states; this rule is stable from sample
             to sample (not yet trained).
+        teacher_settle_time: with `teacher_pool`, each pool teacher is then held in its pose for
+            up to this long [s] of implicit-Euler steps and polished (`hairwarp.solvers.physics.
+            drape_at_rest`, the physics' drape at rest, as E* now is); 0: the static solve's
+            drape, which at full size stalled 3-129 mm above where the hair hangs
+            (docs/physics.md, "Sixteenth session").
         energy: overrides of `hairwarp.config.EnergyConfig` fields (b_p is set per step).
         data: what the sampler draws.
     """
@@ -429,6 +434,7 @@ class StaticTrainingConfig(_TrainingConfig):
     teacher_pool: int = 0
     teacher_kind: str = "physics"
     teacher_start: str = "network"
+    teacher_settle_time: float = 0.0
     energy: dict = field(default_factory=dict)
     data: DataConfig = field(default_factory=DataConfig)
 
@@ -443,6 +449,10 @@ class StaticTrainingConfig(_TrainingConfig):
         if self.teacher_kind != "physics" and self.teacher_start != "network":
             _fail(owner, "teacher_start", '"network" unless teacher_kind is "physics" (a map teacher starts '
                   "from the network's map)", self.teacher_start)
+        _number(owner, "teacher_settle_time", self.teacher_settle_time)
+        if self.teacher_settle_time > 0 and (self.teacher_pool == 0 or self.teacher_kind != "physics"):
+            _fail(owner, "teacher_settle_time", '0 unless teacher_pool > 0 and teacher_kind is "physics" (only '
+                  "a pool's converged physics teachers are settled)", self.teacher_settle_time)
         if self.teacher_pool > 0 and self.teacher_iterations == 0:
             _fail(owner, "teacher_pool", "0 unless teacher_iterations > 0 (the pool's teachers are solved "
                   "in teacher_iterations iterations)", self.teacher_pool)

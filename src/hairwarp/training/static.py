@@ -271,7 +271,7 @@ class _DrapeTeacher:
         for start in starts:
             solver.solve(start.detach(), config.teacher_iterations)
             if len(starts) == 1:
-                return solver.positions()
+                return self._settled(solver, solver.positions())
             x = solver.positions().detach().clone()
             with torch.no_grad():
                 energy = total_energy(x, solver.inputs, energy_config(config.energy,
@@ -291,7 +291,25 @@ class _DrapeTeacher:
                         batch.inputs.rest_lengths.sum(dim=-1).mean(dim=-1).expand(lower.shape[0]).tolist()})
                 best = torch.where(lower[:, None, None, None], x, best)
                 best_energy = torch.where(lower, energy, best_energy)
-        return best
+        return self._settled(solver, best)
+
+    def _settled(self, solver, drape: torch.Tensor) -> torch.Tensor:
+        """`drape` brought to rest with its pose held (`StaticTrainingConfig.teacher_settle_time`;
+        `hairwarp.solvers.physics.drape_at_rest` from it), or as it is.
+        """
+        from dataclasses import replace
+
+        from hairwarp.solvers.physics import PhysicsSolver, drape_at_rest
+
+        settle = self.trainer.config.teacher_settle_time
+        if settle <= 0:
+            return drape
+        config = replace(solver.config, settle_time=settle)
+        # per-sample rest lengths: no per-vertex stiffness scaling (one per strand and vertex)
+        dynamic_config = replace(config, stiffness_scaling=0.0) if solver.inputs.rest_lengths.dim() == 3 else config
+        dynamic = PhysicsSolver(solver.inputs.rest_lengths, solver.rigid, solver.normals, solver.body,
+                                solver.energy_config, dynamic_config, dynamic=True)
+        return drape_at_rest(solver, dynamic, drape.detach(), config).positions
 
 
 class _MapTeacher:
