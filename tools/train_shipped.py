@@ -210,7 +210,8 @@ def train_static(args) -> None:
                                     data=data, curve_every=0, teacher_iterations=args.teacher_iterations,
                                     teacher_weight=args.teacher_weight, teacher_pool=args.teacher_pool,
                                     teacher_kind=args.teacher_kind, teacher_start=args.teacher_start,
-                                    teacher_settle_time=args.teacher_settle_time)
+                                    teacher_settle_time=args.teacher_settle_time,
+                                    teacher_settle_time_step=args.teacher_settle_time_step)
 
     from hairwarp.evaluation.scenes import comparison_scene
 
@@ -356,6 +357,9 @@ def main(argv=None) -> None:
     parser.add_argument("--teacher-settle-time", type=float, default=StaticTrainingConfig.teacher_settle_time,
                         help="static, with --teacher-pool: hold each pool teacher's pose this long [s] of "
                              "implicit-Euler steps and polish it (the physics' drape at rest; 0: off)")
+    parser.add_argument("--teacher-settle-time-step", type=float,
+                        default=StaticTrainingConfig.teacher_settle_time_step,
+                        help="static: the settling steps' time step [s]")
     parser.add_argument("--teacher-weight", type=float, default=StaticTrainingConfig.teacher_weight,
                         help="static: weight of the distillation term [1/m^2]")
     parser.add_argument("--curve-every", type=int, default=250,

@@ -673,8 +673,8 @@ def drape_at_rest(static: PhysicsSolver, dynamic: PhysicsSolver | None, start: t
     Args:
         static: a `PhysicsSolver` with dynamic=False on the frames.
         dynamic: a `PhysicsSolver` with dynamic=True on the same frames (its buffers: the same
-            rigid placement, scalp normals and body; its state is left at the settled drape);
-            None: no settling.
+            rigid placement, scalp normals and body; its `time_step` the settling steps'; its
+            state is left at the settled drape); None: no settling.
         start: (B, M, N, 3) where the first static solve starts [m].
         config: `PhysicsConfig` (`static_max_iterations`, `settle_time`, `settle_tolerance`).
     """
@@ -691,7 +691,7 @@ def drape_at_rest(static: PhysicsSolver, dynamic: PhysicsSolver | None, start: t
     dynamic.set_state(x)
     steps, iterations = 0, first.iterations
     step_tolerance = max(config.tolerance, config.settle_tolerance)
-    for _ in range(max(1, int(round(config.settle_time / static.energy_config.time_step)))):
+    for _ in range(max(1, int(round(config.settle_time / dynamic.energy_config.time_step)))):
         before = dynamic.prev.clone()
         iterations += dynamic.step(tolerance=step_tolerance).iterations
         steps += 1

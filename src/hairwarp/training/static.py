@@ -307,8 +307,9 @@ class _DrapeTeacher:
         config = replace(solver.config, settle_time=settle)
         # per-sample rest lengths: no per-vertex stiffness scaling (one per strand and vertex)
         dynamic_config = replace(config, stiffness_scaling=0.0) if solver.inputs.rest_lengths.dim() == 3 else config
+        energy = solver.energy_config.replace(time_step=self.trainer.config.teacher_settle_time_step)
         dynamic = PhysicsSolver(solver.inputs.rest_lengths, solver.rigid, solver.normals, solver.body,
-                                solver.energy_config, dynamic_config, dynamic=True)
+                                energy, dynamic_config, dynamic=True)
         return drape_at_rest(solver, dynamic, drape.detach(), config).positions
 
 
