@@ -20,6 +20,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 def main(argv=None) -> None:
     import train_shipped as ts
+    from check_teachers import _tip_drop
 
     from hairwarp.energy import total_energy
     from hairwarp.methods.networks import shipped_checkpoint
@@ -64,7 +65,7 @@ def main(argv=None) -> None:
         row = {"seconds": time.perf_counter() - t0, "settle_steps": drape.settle_steps,
                "iterations": drape.report.iterations,
                "energy_J": total_energy(drape.positions, batch.inputs, physics).total.tolist(),
-               "tip_drop_mm": ((batch.rigid[..., -1, 1] - drape.positions[..., -1, 1]).mean(-1) * 1e3).tolist()}
+               "tip_drop_mm": _tip_drop(batch.rigid, drape.positions)}
         out[f"time_step={dt:g}"] = row
         print(f"time_step={dt:g}", json.dumps(row), flush=True)
     os.makedirs(args.out, exist_ok=True)
