@@ -595,6 +595,35 @@ def test_settled_pool_teachers_rest_no_higher_than_the_static_solve(static_confi
         static_config.replace(teacher_iterations=4, teacher_pool=1, teacher_settle_time=-1.0)
 
 
+def test_a_run_takes_another_runs_pool_teachers_without_solving_them(tmp_path, monkeypatch, static_config, sampler, data):
+    """`teachers_from`: a variant of a pool run (another teacher weight) takes the teachers that
+    run saved instead of solving them again; a pool batch that is not the one a teacher was
+    solved for (another seed), or other teacher settings, is refused by name."""
+    from hairwarp.training import static as static_training
+
+    cfg = static_config.replace(phase_steps=(0, 0, 0, 4), teacher_iterations=30, teacher_pool=2)
+    first = StaticTrainer(cfg, out=tmp_path / "a", sampler=sampler)
+    solved = [first.training_batch(step).teacher for step in range(2)]
+    first.save()
+    calls = []
+    original = static_training._DrapeTeacher.__call__
+    monkeypatch.setattr(static_training._DrapeTeacher, "__call__",
+                        lambda self, batch, clip: calls.append(1) or original(self, batch, clip))
+    variant = StaticTrainer(cfg.replace(teacher_weight=300.0), sampler=sampler, teachers_from=tmp_path / "a")
+    for step in range(4):
+        torch.testing.assert_close(variant.training_batch(step).teacher, solved[step % 2], rtol=0, atol=0)
+    assert calls == []
+    other_seed = StaticTrainer(cfg, sampler=TrainingSampler(data, seed=1), seed=1, teachers_from=tmp_path / "a")
+    with pytest.raises(ValueError, match="teachers_from: pool batch 0"):
+        other_seed.training_batch(0)
+    with pytest.raises(ValueError, match="teacher_iterations"):
+        StaticTrainer(cfg.replace(teacher_iterations=31), sampler=sampler, teachers_from=tmp_path / "a")
+    with pytest.raises(ValueError, match="no teachers.pt"):
+        StaticTrainer(cfg, sampler=sampler, teachers_from=tmp_path)
+    with pytest.raises(ValueError, match="teacher_pool > 0"):
+        StaticTrainer(static_config, sampler=sampler, teachers_from=tmp_path / "a")
+
+
 def test_the_teacher_of_both_starts_is_per_sample_the_lower_one(static_config, sampler, monkeypatch):
     """teacher_start "lower": the physics teacher solved from the network's drape and from the
     rigid placement, per sample the one of lower energy; "rigid" and "network" are those two;

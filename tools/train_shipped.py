@@ -244,10 +244,12 @@ def train_static(args) -> None:
     else:
         steps = tuple(int(round(total * share)) for share in PHASE_SHARES)
     print(f"probe: {s_step * 1e3:.0f} ms/step at batch {args.batch}; training {steps} steps", flush=True)
+    if args.teachers_from and os.path.realpath(args.teachers_from).startswith(os.path.realpath(run)):
+        raise SystemExit("--teachers-from: give another run's folder (this run's OUT/static_run is cleared at its start)")
     shutil.rmtree(run, ignore_errors=True)
     trainer = StaticTrainer(config(steps).replace(curve_every=args.curve_every, curve_scenes=args.curve_scenes.split(",")),
                             out=run, device=device, seed=args.seed, sampler=sampler, scene_factory=comparison_scene,
-                            init=args.init or None)
+                            init=args.init or None, teachers_from=args.teachers_from)
     _loop(trainer, args.minutes * 60 - 20, start, device)
     _finish(trainer, args, args.kind, {"phase_steps": steps, "probe_ms_per_step": s_step * 1e3,
                                       "batch": args.batch, "strand_stride": STRAND_STRIDE,
@@ -360,6 +362,9 @@ def main(argv=None) -> None:
     parser.add_argument("--teacher-settle-time-step", type=float,
                         default=StaticTrainingConfig.teacher_settle_time_step,
                         help="static: the settling steps' time step [s]")
+    parser.add_argument("--teachers-from", default=None,
+                        help="static: take the pool's teachers another run solved (its OUT/static_run), same data, "
+                             "seed, batch, pool and teacher settings: a variant of the run without solving them again")
     parser.add_argument("--teacher-weight", type=float, default=StaticTrainingConfig.teacher_weight,
                         help="static: weight of the distillation term [1/m^2]")
     parser.add_argument("--curve-every", type=int, default=250,

@@ -51,6 +51,9 @@ from hairwarp.training.data import HairBatch, TrainingSampler
 
 # The pool's converged teachers, beside a run's checkpoint (`StaticTrainingConfig.teacher_pool`).
 TEACHERS_NAME = "teachers.pt"
+# What a pool teacher depends on besides its batch and its start (`StaticTrainer(teachers_from=)`).
+TEACHER_FIELDS = ("teacher_iterations", "teacher_pool", "teacher_kind", "teacher_start", "teacher_settle_time",
+                  "teacher_settle_time_step", "batch_size", "energy")
 
 
 def barrier_schedule(
@@ -430,6 +433,11 @@ class StaticTrainer(Trainer):
         scene_factory: builds the learning curve's held-out scenes
             (`hairwarp.evaluation.scenes.comparison_scene`, which the layers keep out of this
             package's imports); None scores the training batch only (`config.curve_every`).
+        teachers_from: another pool run's folder (or its `TEACHERS_NAME` file): its saved pool
+            teachers are this run's, not solved again (a settled pool of 32 took ~5 min of an
+            H100): a variant of that run (another teacher weight, learning rate or length) on
+            the same data, seed, batch size, pool and teacher settings (`TEACHER_FIELDS`),
+            started from the same network.
 
     Raises:
         ValueError: on a bad config, a checkpoint of another model kind or sizes.
@@ -448,6 +456,7 @@ class StaticTrainer(Trainer):
         sampler: TrainingSampler | None = None,
         scene_factory=None,
         init=None,
+        teachers_from=None,
     ):
         if resume is not None and init is not None:
             raise ValueError("resume, init: give one or the other")
@@ -503,8 +512,16 @@ class StaticTrainer(Trainer):
         self._captured = None  # the step's CUDA graph (`captured_loss`), made at the first step
         self._teacher = None  # the distillation's solver (`training_batch`), made at the first step
         self._pool_teachers: dict[tuple, torch.Tensor] = {}  # (phase, pool index) -> converged drapes
+        # (phase, pool index) -> the pool batch's rigid placement summed, where its teacher was solved
+        self._pool_rigid_sums: dict[tuple, float] = {}
+        if teachers_from is not None and resume is not None:
+            raise ValueError("teachers_from, resume: give one or the other (a resumed run keeps its own teachers)")
+        if teachers_from is not None and config.teacher_pool == 0:
+            raise ValueError("teachers_from: only a run with teacher_pool > 0 takes a pool's teachers")
         if resume is not None and config.teacher_pool > 0:
-            self._load_pool_teachers(resume)
+            self._load_pool_teachers(os.path.dirname(resolve_checkpoint(resume)))
+        elif teachers_from is not None:
+            self._load_pool_teachers(teachers_from, required=True)
         if config.curve_every > 0:
             from hairwarp.training.monitor import LearningCurve
 
@@ -545,10 +562,17 @@ class StaticTrainer(Trainer):
             s = self.schedule(step)
             key = (s["phase"], step % cfg.teacher_pool) if cfg.teacher_pool > 0 else None
             teacher = self._pool_teachers.get(key) if key is not None else None
+            rigid_sum = float(batch.rigid.double().sum()) if key is not None else None
             if teacher is None:
                 teacher = self._teacher(batch, s["clip"])
                 if key is not None:  # kept: a copy, the solver's buffers serve the next batch
                     teacher = self._pool_teachers[key] = teacher.clone()
+                    self._pool_rigid_sums[key] = rigid_sum
+            elif key in self._pool_rigid_sums and (
+                    teacher.shape != batch.rigid.shape
+                    or not math.isclose(rigid_sum, self._pool_rigid_sums[key], rel_tol=1e-5, abs_tol=1e-3)):
+                raise ValueError(f"teachers_from: pool batch {key[1]} of phase {key[0]} is not the batch its saved "
+                                 "teacher was solved for (another seed, data config, batch size or pool)")
             batch.teacher = teacher
         return batch
 
@@ -559,19 +583,41 @@ class StaticTrainer(Trainer):
         written = super().save(path)
         if written is not None and self._pool_teachers:
             target = os.path.join(os.path.dirname(written), TEACHERS_NAME)
-            teachers = {f"{phase}:{index}": t.detach().cpu() for (phase, index), t in self._pool_teachers.items()}
-            torch.save(teachers, target + ".tmp")
+            record = {"teachers": {f"{p}:{i}": t.detach().cpu() for (p, i), t in self._pool_teachers.items()},
+                      "rigid_sums": {f"{p}:{i}": v for (p, i), v in self._pool_rigid_sums.items()},
+                      "teacher_config": self._teacher_config()}
+            torch.save(record, target + ".tmp")
             os.replace(target + ".tmp", target)
         return written
 
-    def _load_pool_teachers(self, resume) -> None:
-        """The pool's teachers saved beside the checkpoint `resume` (none saved: solved again as drawn)."""
-        path = os.path.join(os.path.dirname(resolve_checkpoint(resume)), TEACHERS_NAME)
+    def _teacher_config(self) -> dict:
+        """The config fields a pool teacher depends on (besides the network it starts from)."""
+        return {name: getattr(self.config, name) for name in TEACHER_FIELDS}
+
+    def _load_pool_teachers(self, folder, required: bool = False) -> None:
+        """The pool's teachers saved in `folder` (`TEACHERS_NAME`, or that file itself): a resumed
+        run's own, or another run's (`teachers_from`: same data, seed, batch size, pool and teacher
+        settings, so that each pool batch is the one its teacher was solved for; checked per batch
+        by its rigid placement when it is drawn). None saved: solved again as drawn (`required`:
+        an error).
+        """
+        path = folder if os.path.isfile(folder) else os.path.join(folder, TEACHERS_NAME)
         if not os.path.isfile(path):
+            if required:
+                raise ValueError(f"teachers_from: no {TEACHERS_NAME} at {folder!r}")
             return
-        for key, teacher in torch.load(path, map_location="cpu", weights_only=True).items():
+        record = torch.load(path, map_location="cpu", weights_only=True)
+        if "teachers" not in record:  # written before the record held its config and batch sums
+            record = {"teachers": record, "rigid_sums": {}, "teacher_config": None}
+        stored = record["teacher_config"]
+        if required and stored is not None and stored != self._teacher_config():
+            changed = sorted(k for k in TEACHER_FIELDS if stored.get(k) != getattr(self.config, k))
+            raise ValueError(f"teachers_from: the teachers were solved with other settings ({', '.join(changed)})")
+        for key, teacher in record["teachers"].items():
             phase, index = (int(v) for v in key.split(":"))
             self._pool_teachers[(phase, index)] = teacher.to(device=self.device, dtype=self.dtype)
+            if key in record["rigid_sums"]:
+                self._pool_rigid_sums[(phase, index)] = float(record["rigid_sums"][key])
 
     def captured_loss(self, batch: HairBatch, step: int):
         """The step's loss through `_CapturedStaticStep` (gradients left in `.grad`): (loss, terms,
