@@ -514,6 +514,7 @@ class StaticTrainer(Trainer):
         self._pool_teachers: dict[tuple, torch.Tensor] = {}  # (phase, pool index) -> converged drapes
         # (phase, pool index) -> the pool batch's rigid placement summed, where its teacher was solved
         self._pool_rigid_sums: dict[tuple, float] = {}
+        self._pool_checked: set[tuple] = set()  # the keys whose teacher matched its batch here
         if teachers_from is not None and resume is not None:
             raise ValueError("teachers_from, resume: give one or the other (a resumed run keeps its own teachers)")
         if teachers_from is not None and config.teacher_pool == 0:
@@ -562,17 +563,19 @@ class StaticTrainer(Trainer):
             s = self.schedule(step)
             key = (s["phase"], step % cfg.teacher_pool) if cfg.teacher_pool > 0 else None
             teacher = self._pool_teachers.get(key) if key is not None else None
-            rigid_sum = float(batch.rigid.double().sum()) if key is not None else None
             if teacher is None:
                 teacher = self._teacher(batch, s["clip"])
                 if key is not None:  # kept: a copy, the solver's buffers serve the next batch
                     teacher = self._pool_teachers[key] = teacher.clone()
-                    self._pool_rigid_sums[key] = rigid_sum
-            elif key in self._pool_rigid_sums and (
-                    teacher.shape != batch.rigid.shape
-                    or not math.isclose(rigid_sum, self._pool_rigid_sums[key], rel_tol=1e-5, abs_tol=1e-3)):
-                raise ValueError(f"teachers_from: pool batch {key[1]} of phase {key[0]} is not the batch its saved "
-                                 "teacher was solved for (another seed, data config, batch size or pool)")
+                    self._pool_rigid_sums[key] = float(batch.rigid.double().sum())
+                    self._pool_checked.add(key)
+            elif key not in self._pool_checked and key in self._pool_rigid_sums:
+                # a saved teacher, checked once against the batch it was solved for
+                if teacher.shape != batch.rigid.shape or not math.isclose(
+                        float(batch.rigid.double().sum()), self._pool_rigid_sums[key], rel_tol=1e-5, abs_tol=1e-3):
+                    raise ValueError(f"teachers_from: pool batch {key[1]} of phase {key[0]} is not the batch its "
+                                     "saved teacher was solved for (another seed, data config, batch size or pool)")
+                self._pool_checked.add(key)
             batch.teacher = teacher
         return batch
 
