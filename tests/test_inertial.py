@@ -157,6 +157,26 @@ def test_keep_out_of_body_leaves_no_vertex_inside_and_keeps_rest_lengths():
     assert KEEP_OUT_MARGIN > 0
 
 
+def test_network_methods_keep_out_on_request():
+    """`MethodOptions.keep_out`: the shipped static network leaves long straight hair grown on the
+    body at rest partly inside it (64 strands); through the body pass no vertex is, the rest
+    lengths and roots are kept, and without the option the drape is the network's own. A
+    motion's frames (the paper's dynamic network) get the same pass."""
+    import hairwarp as hw
+
+    scene = hw.build_scene(hairstyle="long_straight", pose="rest", grow="body", strand_stride=16)
+    plain = hw.drape(scene, method="static")
+    kept = hw.drape(scene, method="static", keep_out=True)
+    assert plain.metrics["penetration_percent"] > 0.1
+    assert kept.metrics["penetration_percent"] == 0.0
+    assert kept.metrics["length_change_percent"] < 1e-3 and kept.info["keep_out_ms"] > 0
+    torch.testing.assert_close(kept.positions[:, :2], plain.positions[:, :2])
+    torch.testing.assert_close(hw.drape(scene, method="static", keep_out=False).positions, plain.positions)
+    motion = hw.default_scene("long_straight", "nod", duration=0.1, strand_stride=16, num_vertices=40)
+    moved = hw.simulate(motion, method="dynamic", keep_out=True)
+    assert max(moved.metrics["per_frame"]["penetration_percent"]) == 0.0
+
+
 def test_random_head_moves_are_seeded_and_bounded():
     from hairwarp.scene.motion import random_head_moves
 

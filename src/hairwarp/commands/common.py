@@ -132,6 +132,9 @@ def add_method_arguments(p: argparse.ArgumentParser, *, max_iterations: int, def
                         f"auto: {AUTO_REFINE})")
     g.add_argument("--checkpoint", default=None,
                    help="network methods: a checkpoint written by `hairwarp train` (default: the shipped one)")
+    g.add_argument("--keep-out", action="store_true",
+                   help="network methods: push the output's vertices out of the body, rest lengths kept (the "
+                        "inertial step's body pass)")
     g.add_argument("--max-iterations", type=int, default=max_iterations,
                    help=f"adam/lbfgs/reference: iteration cap (default: {max_iterations})")
     g.add_argument("--patience", type=int, default=50,
@@ -158,7 +161,7 @@ def method_from_args(args):
                             max_iterations=positive_int("--max-iterations", args.max_iterations, minimum=0),
                             patience=positive_int("--patience", args.patience),
                             reference_max_iterations=max(1, args.max_iterations), checkpoint=args.checkpoint,
-                            refine=refine, progress=not args.no_progress)
+                            refine=refine, keep_out=args.keep_out, progress=not args.no_progress)
     if args.checkpoint is not None and not os.path.isfile(args.checkpoint):
         raise ValueError(f"--checkpoint: no such file {args.checkpoint!r}")
     return make(name, options), config

@@ -54,6 +54,13 @@ class MethodOptions:
             one shipped with the package).
         refine: composed methods ("<network>+refine", "auto"): L-BFGS iterations of the same
             energy run from the network's output (0: the network alone).
+        keep_out: network methods ("static", "dynamic", "quaffure"): their output shown through
+            the inertial step's body pass (`hairwarp.methods.keep_out`): vertices inside the body or
+            within 1 mm of it pushed out, the rest lengths kept. Off by default until its cost is
+            measured on a GPU. 2-core CPU, 256 strands, a static network fine-tuned on settled
+            drapes: long straight hair grown on the body at rest 0.44 % inside, 4.57 x E* -> 0 %,
+            1.031 x E*; a bob at head_turn 0.35 % -> 0 %, 1.054 -> 1.010 (docs/network_diagnosis.md,
+            seventeenth session).
         progress: show progress bars.
     """
 
@@ -65,6 +72,7 @@ class MethodOptions:
     reference_starts: int = 1
     checkpoint: str | None = None
     refine: int = 0
+    keep_out: bool = False
     progress: bool = False
 
     def config(self) -> EnergyConfig:

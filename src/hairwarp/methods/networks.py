@@ -346,6 +346,20 @@ class NetworkMethod(Method):
         out.positions = back_to_scene_resolution(out.positions, frames)
         if ours is not frames:
             out.info["network_vertices"] = sim.num_vertices
+        return self._kept_out(out, frames)
+
+    def _kept_out(self, out: MethodResult, frames) -> MethodResult:
+        """`out` through the body pass (`MethodOptions.keep_out`), its time added to the drape's."""
+        if not self.options.keep_out:
+            return out
+        from hairwarp.methods.keep_out import keep_out_of_body_in_frames
+
+        device = frames.rigid.positions.device
+        with torch.no_grad():
+            positions, seconds = timed(lambda: keep_out_of_body_in_frames(out.positions.clone(), frames), device)
+        out.positions = positions
+        out.time_ms = (out.time_ms or 0.0) + seconds * 1e3 / positions.shape[0]
+        out.info["keep_out_ms"] = seconds * 1e3 / positions.shape[0]
         return out
 
     def _drape(self, sim, frames) -> MethodResult:
@@ -385,5 +399,6 @@ class NetworkMethod(Method):
         contact_seconds = time.perf_counter() - start
         positions, seconds = timed(lambda: sim.simulate(ours, contact=contact), device)
         info = {} if ours is frames else {"network_vertices": sim.num_vertices}
-        return MethodResult(positions=back_to_scene_resolution(positions, frames),
-                            time_ms=(seconds + contact_seconds) * 1e3 / positions.shape[0], info=info)
+        return self._kept_out(MethodResult(positions=back_to_scene_resolution(positions, frames),
+                                           time_ms=(seconds + contact_seconds) * 1e3 / positions.shape[0], info=info),
+                              frames)

@@ -1,0 +1,65 @@
+"""The body pass: hair pushed out of the body with its rest lengths kept.
+
+The inertial step shows every frame through it, and the network methods on request
+(`MethodOptions.keep_out`): a network's drape may leave vertices inside the body, which no
+rigid placement with none inside should ever get back.
+"""
+
+from __future__ import annotations
+
+import torch
+
+# The body pass: vertices nearer the body than this [m] are pushed to it, in at most this many
+# rounds (it stops at the first round that finds none).
+KEEP_OUT_MARGIN = 1.0e-3
+KEEP_OUT_PASSES = 8
+# Distances queried exactly up to this [m]; farther vertices are left alone.
+_KEEP_OUT_QUERY = 1.0e-2
+
+
+def keep_out_of_body(x: torch.Tensor, rigid: torch.Tensor, body, *, margin: float = KEEP_OUT_MARGIN,
+                     passes: int = KEEP_OUT_PASSES) -> torch.Tensor:
+    """Hair pushed out of the body with its rest lengths kept.
+
+    Each round pushes every moving vertex (index >= 2) that lies inside the body or nearer its
+    surface than `margin` along the signed distance's gradient to `margin`, then projects the
+    strands back onto the rigid placement's segment lengths (follow-the-leader), which can move
+    later vertices in again: hence a few rounds.
+
+    Args:
+        x: (B, M, N, 3) hair positions [m].
+        rigid: (B, M, N, 3) the rigid placement of the same frames (its rest lengths) [m].
+        body: the frames' `BodyMesh` (batch 1 or B).
+        margin: [m] >= 0.
+        passes: at most this many rounds (>= 1); the pass stops at a round that moves nothing.
+
+    Returns:
+        (B, M, N, 3) positions [m] (no autograd).
+    """
+    from hairwarp.config import NUM_FIXED_VERTICES
+    from hairwarp.ops import follow_the_leader, hair_body_signed_distance_and_normal
+
+    for _ in range(passes):
+        distance, direction = hair_body_signed_distance_and_normal(x, body, max_distance=_KEEP_OUT_QUERY)
+        push = (margin - distance).clamp_min(0.0)
+        push[..., :NUM_FIXED_VERTICES] = 0.0
+        if not bool((push > 0).any()):
+            break
+        x = follow_the_leader(rigid, x + push[..., None] * direction, check=False)
+    return x
+
+
+def keep_out_of_body_in_frames(x: torch.Tensor, frames) -> torch.Tensor:
+    """`keep_out_of_body` of (T, M, N, 3) positions [m] of `frames`, a chunk of frames (and
+    their bodies) at a time.
+    """
+    rigid = frames.rigid.positions
+    start = 0
+    for chunk in frames.chunks():
+        stop = start + chunk.num_frames
+        x[start:stop] = keep_out_of_body(x[start:stop], rigid[start:stop], chunk.body_mesh)
+        start = stop
+    return x
+
+
+__all__ = ["KEEP_OUT_MARGIN", "KEEP_OUT_PASSES", "keep_out_of_body", "keep_out_of_body_in_frames"]
