@@ -39,7 +39,7 @@ def main(argv=None) -> int:
     p.add_argument("--lbfgs-iterations", type=int, default=300)
     p.add_argument("--checkpoint", default=None, help="also run the static network of this checkpoint")
     p.add_argument("--keep-out", action="store_true",
-                   help="also the checkpoint's drape after the inertial step's body pass (`keep_out_of_body`)")
+                   help="also the checkpoint's drape through the body pass (`hairwarp.methods.keep_out`)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="static_rows_out")
     args = p.parse_args(argv)
@@ -68,7 +68,7 @@ def main(argv=None) -> int:
                                                                progress=False, **options)
             x, scored = r.positions[None], r.metrics
             if keep_out:
-                from hairwarp.methods.inertial import keep_out_of_body
+                from hairwarp.methods.keep_out import keep_out_of_body
 
                 x = keep_out_of_body(x, r.frames.rigid.positions, r.frames.body_mesh)
                 per_frame, _ = M.frame_metrics_of({"x": x}, r.frames)["x"]
