@@ -39,7 +39,7 @@ def main(argv=None) -> int:
     p.add_argument("--lbfgs-iterations", type=int, default=300)
     p.add_argument("--checkpoint", default=None, help="also run the static network of this checkpoint")
     p.add_argument("--keep-out", action="store_true",
-                   help="also the checkpoint's drape through the body pass (`hairwarp.methods.keep_out`)")
+                   help="also the checkpoint's drape through the body pass (`MethodOptions.keep_out`)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="static_rows_out")
     args = p.parse_args(argv)
@@ -62,22 +62,14 @@ def main(argv=None) -> int:
         # E* once per scene (the tight physics drape at rest), every method measured against it.
         optimum = hw.drape(scene, method="reference", device=args.device, progress=False)
         for method, options in methods + [("reference", {})]:
-            options = dict(options)
-            keep_out = options.pop("keep_out", False)
             r = optimum if method == "reference" else hw.drape(scene, method=method, device=args.device,
                                                                progress=False, **options)
-            x, scored = r.positions[None], r.metrics
-            if keep_out:
-                from hairwarp.methods.keep_out import keep_out_of_body
-
-                x = keep_out_of_body(x, r.frames.rigid.positions, r.frames.body_mesh)
-                per_frame, _ = M.frame_metrics_of({"x": x}, r.frames)["x"]
-                scored = {k: float(per_frame[k][0]) for k in ("penetration_percent", "length_change_percent")}
-            f = M.drape_fidelity(x, optimum.positions[None], r.frames.inputs, energy)
-            label = method + (" (checkpoint)" if "checkpoint" in options else "") + (" + keep out" if keep_out else "")
+            f = M.drape_fidelity(r.positions[None], optimum.positions[None], r.frames.inputs, energy)
+            label = (method + (" (checkpoint)" if "checkpoint" in options else "")
+                     + (" + keep out" if options.get("keep_out") else ""))
             row = {"scene": name, "method": label, "time_ms": r.time_ms, "strands": scene.hairstyle.num_strands,
-                   "penetration_percent": scored["penetration_percent"],
-                   "length_change_percent": scored["length_change_percent"], "fidelity": f}
+                   "penetration_percent": r.metrics["penetration_percent"],
+                   "length_change_percent": r.metrics["length_change_percent"], "fidelity": f}
             rows.append(row)
             ratio = f.get("energy_ratio")
             lines.append(f"| {name} | {label} | {'-' if r.time_ms is None else f'{r.time_ms:.1f}'} | "
