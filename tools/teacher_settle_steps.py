@@ -24,7 +24,7 @@ def main(argv=None) -> None:
 
     from hairwarp.energy import total_energy
     from hairwarp.methods.networks import shipped_checkpoint
-    from hairwarp.solvers.physics import PhysicsSolver, drape_at_rest
+    from hairwarp.solvers.physics import PhysicsSolver, drape_at_rest, settling_solver
     from hairwarp.training.config import StaticTrainingConfig, energy_config
     from hairwarp.training.data import TrainingSampler
     from hairwarp.training.static import StaticTrainer
@@ -59,7 +59,7 @@ def main(argv=None) -> None:
         energy = solver.energy_config.replace(time_step=dt)
         common = (solver.inputs.rest_lengths, solver.rigid, solver.normals, solver.body, energy)
         static = PhysicsSolver(*common, config, dynamic=False)
-        dynamic = PhysicsSolver(*common, replace(config, stiffness_scaling=0.0), dynamic=True)
+        dynamic = settling_solver(*common, config)
         t0 = time.perf_counter()
         drape = drape_at_rest(static, dynamic, x0, config)
         row = {"seconds": time.perf_counter() - t0, "settle_steps": drape.settle_steps,

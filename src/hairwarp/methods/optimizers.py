@@ -99,18 +99,14 @@ class PhysicsMethod(Method):
         static solve from `start`, default the rigid placement, then settled with the pose held).
         """
         from hairwarp.runtime import synchronize
-        from hairwarp.solvers.physics import PhysicsSolver, drape_at_rest
+        from hairwarp.solvers.physics import PhysicsSolver, drape_at_rest, settling_solver
 
         x0 = (frames.rigid.positions if start is None else start).detach()
         config = scene_energy_config(self.options, frames)
         inputs = frames.inputs
         args = (inputs.rest_lengths, frames.rigid.positions, inputs.scalp_normals, inputs.body, config)
         static = PhysicsSolver(*args, self.config, dynamic=False)
-        dynamic = None
-        if self.config.settle_time > 0:
-            # per-sample rest lengths (B, M, N-1) take no per-vertex stiffness scaling
-            settle_config = self.config if inputs.rest_lengths.dim() == 2 else replace(self.config, stiffness_scaling=0.0)
-            dynamic = PhysicsSolver(*args, settle_config, dynamic=True)
+        dynamic = settling_solver(*args, self.config) if self.config.settle_time > 0 else None
         synchronize(x0.device)
         t0 = time.perf_counter()
         drape = drape_at_rest(static, dynamic, x0, self.config)

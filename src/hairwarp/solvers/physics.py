@@ -658,6 +658,17 @@ class RestingDrape:
     settled: torch.Tensor
 
 
+def settling_solver(rest_lengths: torch.Tensor, rigid: torch.Tensor, scalp_normals: torch.Tensor | None, body,
+                    energy_config: EnergyConfig, config: PhysicsConfig) -> PhysicsSolver:
+    """The implicit-Euler solver that `drape_at_rest` settles a drape with (the same arguments
+    as `PhysicsSolver`; its `energy_config.time_step` the settling step). Per-sample rest lengths
+    (B, M, N-1) take no per-vertex stiffness scaling (one per strand and vertex).
+    """
+    if rest_lengths.dim() == 3:
+        config = replace(config, stiffness_scaling=0.0)
+    return PhysicsSolver(rest_lengths, rigid, scalp_normals, body, energy_config, config, dynamic=True)
+
+
 def drape_at_rest(static: PhysicsSolver, dynamic: PhysicsSolver | None, start: torch.Tensor,
                   config: PhysicsConfig) -> RestingDrape:
     """The static optimum of each frame (Eq. 5), at rest: where the hair hangs when its pose is held.

@@ -302,17 +302,14 @@ class _DrapeTeacher:
         """
         from dataclasses import replace
 
-        from hairwarp.solvers.physics import PhysicsSolver, drape_at_rest
+        from hairwarp.solvers.physics import drape_at_rest, settling_solver
 
         settle = self.trainer.config.teacher_settle_time
         if settle <= 0:
             return drape
         config = replace(solver.config, settle_time=settle)
-        # per-sample rest lengths: no per-vertex stiffness scaling (one per strand and vertex)
-        dynamic_config = replace(config, stiffness_scaling=0.0) if solver.inputs.rest_lengths.dim() == 3 else config
         energy = solver.energy_config.replace(time_step=self.trainer.config.teacher_settle_time_step)
-        dynamic = PhysicsSolver(solver.inputs.rest_lengths, solver.rigid, solver.normals, solver.body,
-                                energy, dynamic_config, dynamic=True)
+        dynamic = settling_solver(solver.inputs.rest_lengths, solver.rigid, solver.normals, solver.body, energy, config)
         return drape_at_rest(solver, dynamic, drape.detach(), config).positions
 
 
