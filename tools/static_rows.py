@@ -38,18 +38,17 @@ def main(argv=None) -> int:
     p.add_argument("--strand-stride", type=int, default=1)
     p.add_argument("--lbfgs-iterations", type=int, default=300)
     p.add_argument("--checkpoint", default=None, help="also run the static network of this checkpoint")
-    p.add_argument("--keep-out", action="store_true",
-                   help="also the checkpoint's drape through the body pass (`MethodOptions.keep_out`)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="static_rows_out")
     args = p.parse_args(argv)
     os.makedirs(args.out, exist_ok=True)
     torch.manual_seed(args.seed)
     methods = [(m, {"max_iterations": args.lbfgs_iterations} if m == "lbfgs" else {}) for m in METHODS]
+    # The networks' rows as they run by default (through the body pass, `MethodOptions.keep_out`)
+    # and as the network returns them.
+    methods += [("static", {"keep_out": False}), ("dynamic", {"keep_out": False})]
     if args.checkpoint:
-        methods.append(("static", {"checkpoint": args.checkpoint}))
-        if args.keep_out:
-            methods.append(("static", {"checkpoint": args.checkpoint, "keep_out": True}))
+        methods += [("static", {"checkpoint": args.checkpoint}), ("static", {"checkpoint": args.checkpoint, "keep_out": False})]
     rows = []
     lines = ["| scene | method | ms | inside % | length change % | E / E* | distance mean / p95 [mm] | tips vs E* [mm] |",
              "|---|---|---:|---:|---:|---:|---:|---:|"]
@@ -66,10 +65,11 @@ def main(argv=None) -> int:
                                                                progress=False, **options)
             f = M.drape_fidelity(r.positions[None], optimum.positions[None], r.frames.inputs, energy)
             label = (method + (" (checkpoint)" if "checkpoint" in options else "")
-                     + (" + keep out" if options.get("keep_out") else ""))
+                     + (" (raw)" if options.get("keep_out") is False else ""))
             row = {"scene": name, "method": label, "time_ms": r.time_ms, "strands": scene.hairstyle.num_strands,
                    "penetration_percent": r.metrics["penetration_percent"],
-                   "length_change_percent": r.metrics["length_change_percent"], "fidelity": f}
+                   "length_change_percent": r.metrics["length_change_percent"], "fidelity": f,
+                   "keep_out_ms": r.info.get("keep_out_ms")}
             rows.append(row)
             ratio = f.get("energy_ratio")
             lines.append(f"| {name} | {label} | {'-' if r.time_ms is None else f'{r.time_ms:.1f}'} | "

@@ -132,9 +132,9 @@ def add_method_arguments(p: argparse.ArgumentParser, *, max_iterations: int, def
                         f"auto: {AUTO_REFINE})")
     g.add_argument("--checkpoint", default=None,
                    help="network methods: a checkpoint written by `hairwarp train` (default: the shipped one)")
-    g.add_argument("--keep-out", action="store_true",
+    g.add_argument("--keep-out", action=argparse.BooleanOptionalAction, default=True,
                    help="network methods: push the output's vertices out of the body, rest lengths kept (the "
-                        "inertial step's body pass)")
+                        "inertial step's body pass; default: on)")
     g.add_argument("--max-iterations", type=int, default=max_iterations,
                    help=f"adam/lbfgs/reference: iteration cap (default: {max_iterations})")
     g.add_argument("--patience", type=int, default=50,

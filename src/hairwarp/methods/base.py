@@ -56,11 +56,12 @@ class MethodOptions:
             energy run from the network's output (0: the network alone).
         keep_out: network methods ("static", "dynamic", "quaffure"): their output shown through
             the inertial step's body pass (`hairwarp.methods.keep_out`): vertices inside the body or
-            within 1 mm of it pushed out, the rest lengths kept. Off by default until its cost is
-            measured on a GPU. 2-core CPU, 256 strands, a static network fine-tuned on settled
-            drapes: long straight hair grown on the body at rest 0.44 % inside, 4.57 x E* -> 0 %,
-            1.031 x E*; a bob at head_turn 0.35 % -> 0 %, 1.054 -> 1.010 (docs/network_diagnosis.md,
-            seventeenth session).
+            within 1 mm of it pushed out, the rest lengths kept. On by default since the eighteenth
+            session: a network's drape may cut the body where the rigid placement does not, a
+            default worse than doing nothing. 2-core CPU, 256 strands, the shipped static network
+            (fine-tuned on settled drapes): long straight hair grown on the body at rest 0.44 %
+            inside, 4.57 x E* -> 0 %, 1.031 x E*; a bob at head_turn 0.35 % -> 0 %, 1.054 -> 1.010
+            (docs/network_diagnosis.md, seventeenth session). False: the network's output as is.
         progress: show progress bars.
     """
 
@@ -72,7 +73,7 @@ class MethodOptions:
     reference_starts: int = 1
     checkpoint: str | None = None
     refine: int = 0
-    keep_out: bool = False
+    keep_out: bool = True
     progress: bool = False
 
     def config(self) -> EnergyConfig:

@@ -78,8 +78,9 @@ class InertialMethod(Method):
 
     def __init__(self, options: MethodOptions | None = None):
         super().__init__(options)
-        # The equilibrium: the shipped static network (the checkpoint option is the step's).
-        self.equilibrium = NetworkMethod("static", MethodOptions())
+        # The equilibrium: the shipped static network (the checkpoint option is the step's), as
+        # the network returns it: the step's own body pass follows the rollout.
+        self.equilibrium = NetworkMethod("static", MethodOptions(keep_out=False))
 
     def drape(self, frames, *, metrics: Callable | None = None) -> MethodResult:
         out = self.equilibrium.drape(frames)
