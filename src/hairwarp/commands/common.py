@@ -125,8 +125,9 @@ def add_method_arguments(p: argparse.ArgumentParser, *, max_iterations: int, def
                    help=f"one of {', '.join(available())}, or any of them followed by '+refine'; auto: a motion "
                         "runs the physics where it meets its speed goal (a CPU, up to 256 x 100 hair), else the "
                         f"shipped network (a drape: static, finished by {AUTO_REFINE} L-BFGS iterations; a motion: "
-                        "dynamic), every frame left with more vertices inside or a higher energy than the rigid "
-                        f"placement redone by L-BFGS (default: {default})")
+                        "the inertial step, or dynamic where the step cannot run), every frame left with more "
+                        "vertices inside or a higher energy than the rigid placement redone by L-BFGS (default: "
+                        f"{default})")
     g.add_argument("--refine", type=int, default=0, metavar="K",
                    help="finish a network method with K L-BFGS iterations of the same energy (default: 0; "
                         f"auto: {AUTO_REFINE})")

@@ -11,6 +11,7 @@ stability study instead and writes OUT/stability.json and OUT/stability.md.
 
 from __future__ import annotations
 
+import argparse
 import os
 import shlex
 import sys
@@ -47,6 +48,8 @@ def add_parser(subparsers) -> None:
                         "drawn as a curve over the iterations (default: 0: no such rows)")
     p.add_argument("--checkpoint", default=None,
                    help="network methods: a checkpoint written by `hairwarp train` (default: the shipped one)")
+    p.add_argument("--keep-out", action=argparse.BooleanOptionalAction, default=True,
+                   help="network methods: their output through the body pass, rest lengths kept (default: on)")
     p.add_argument("--record-every", type=int, default=10,
                    help="record penetration every this many optimizer iterations, for the chart (default: 10)")
     p.add_argument("--stability", action="store_true", help="run the stability study instead of the comparison")
@@ -99,6 +102,7 @@ def run(args) -> int:
         record_every=args.record_every,
         refine=args.refine,
         checkpoint=args.checkpoint,
+        keep_out=args.keep_out,
         reference_max_iterations=(REFERENCE_MAX_ITERATIONS if args.reference_max_iterations is None
                                   else args.reference_max_iterations),
         reference_starts=args.reference_starts,

@@ -4,11 +4,11 @@ Default body, a procedural hairstyle grown around the rest body (it falls over t
 and back), a one-second head turn, simulated by one method of the registry; writes the
 animation as USD (binary .usdc; --usda for text), preview pictures, a GIF, and prints the
 metrics table. The default, auto, runs the physics simulation where it meets its speed goal (on
-a CPU up to 256 x 100 hair: the demo's default size), else the shipped dynamic network, never
+a CPU up to 256 x 100 hair: the demo's default size), else the shipped inertial step, never
 leaving more vertices inside the body than the rigid placement. The method is shown beside the
 physics simulation of the same frames (side-by-side pictures and GIF, the tips' swing plotted
 over time) with the distance to it and the swing's amplitude ratio and correlation in the table;
-when auto ran the physics itself, the dynamic network is run and shown beside it instead. The
+when auto ran the physics itself, the inertial step is run and shown beside it instead. The
 demo's energy leaves hair-hair contact out unless --hair-hair is given.
 """
 
@@ -113,12 +113,14 @@ def run(args) -> int:
     physics = physics_metrics = physics_sd = None
     beside = None  # (label, result, metrics, signed distances) of the other method when auto ran the physics
     if chose_physics:
-        # Auto ran the physics itself: it is the yardstick; the dynamic network goes beside it.
+        # Auto ran the physics itself: it is the yardstick; the motion's network goes beside it (the
+        # inertial step; a checkpoint given on the command line is a network's: the dynamic one).
         physics, physics_metrics, physics_sd = result, metrics, sd
-        phase("method", "the dynamic network beside it")
-        network = make("dynamic", options)
+        name = "dynamic" if options.checkpoint else "inertial"
+        phase("method", f"the {name} network beside it")
+        network = make(name, options)
         net_result, net_metrics, net_sd, _ = run_and_score(network, frames, options.config(), simulate=True)
-        beside = ("dynamic", net_result, net_metrics, net_sd)
+        beside = (name, net_result, net_metrics, net_sd)
     elif physics_iterations:
         phase("method", f"the physics beside it: {physics_iterations} iterations a frame at most")
         physics_method = PhysicsMethod(options, PhysicsConfig(max_iterations=physics_iterations))

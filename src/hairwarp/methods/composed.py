@@ -9,15 +9,19 @@
   simulation (`physics`) where it meets its speed goal (`physics_is_interactive`: on a CPU up to
   256 x 100 vertices, 1.5 s a frame, measured 0.97 s on whiplash and 1.38 s on torso_bend on the
   2-core CPU; no GPU size meets its 30 ms yet): no network meets the fidelity goals on motions (docs/network_diagnosis.md),
-  the physics is what the others are measured against. Elsewhere a motion runs the dynamic
-  network with `AUTO_REFINE_MOTION` (none by default: every frame of a motion is one more drape
-  to refine, tens of seconds an iteration for a second of 1024 x 100 hair on a CPU; pass
-  `refine=K` to ask for them). It never leaves a frame with more vertices inside the body, or a
-  higher energy, than the rigid placement: such a frame is draped again by L-BFGS from the
-  rigid placement (together with the other such frames of its chunk, `SceneFrames.chunks`: a
-  motion's frames are checked and redone `FRAME_CHUNK` at a time), and should that still be
-  worse, the rigid placement is kept. Without a usable network (none shipped, a body without
-  SMPL pose parameters, another vertex count) it is L-BFGS alone (on a motion, a chunk at a time).
+  the physics is what the others are measured against. Elsewhere a motion runs the inertial
+  step (`hairwarp.methods.inertial`: the static network's drapes carried in time by the learned
+  step, nearer the physics than the paper's dynamic network on all six held-out motions,
+  docs/network_diagnosis.md, eighteenth session), or the paper's dynamic network where the step
+  cannot run (a motion at another frame rate), with `AUTO_REFINE_MOTION` refine iterations (none
+  by default: every frame of a motion is one more drape to refine, tens of seconds an iteration
+  for a second of 1024 x 100 hair on a CPU; pass `refine=K` to ask for them). It never leaves a
+  frame with more vertices inside the body, or a higher energy, than the rigid placement: such a
+  frame is draped again by L-BFGS from the rigid placement (together with the other such frames
+  of its chunk, `SceneFrames.chunks`: a motion's frames are checked and redone `FRAME_CHUNK` at a
+  time), and should that still be worse, the rigid placement is kept. Without a usable network
+  (none shipped, a body without SMPL pose parameters) it is L-BFGS alone (on a motion, a chunk at
+  a time).
 """
 
 from __future__ import annotations
@@ -32,7 +36,7 @@ from hairwarp.methods.optimizers import OptimizerMethod
 
 # L-BFGS iterations "auto" runs after the network (when `options.refine` is 0).
 AUTO_REFINE = 20
-# ... and after the dynamic network on a motion (frames worse than the rigid placement are
+# ... and after the network on a motion (frames worse than the rigid placement are
 # still redone, see `AutoMethod`).
 AUTO_REFINE_MOTION = 0
 # L-BFGS iterations of a frame that "auto" redoes from the rigid placement (at least).
@@ -104,13 +108,21 @@ class AutoMethod(Method):
     kind = "composed"
 
     def _network(self, name: str, frames) -> Method | None:
+        from hairwarp.methods.inertial import InertialMethod
         from hairwarp.methods.networks import NetworkMethod
 
+        if name == "inertial":  # the motion's network; the paper's dynamic one where the step cannot run
+            network = InertialMethod(self.options)
+            try:
+                network.step_for(frames)
+            except ValueError:
+                return self._network("dynamic", frames)
+            return network
         network = NetworkMethod(name, self.options)
         try:
             network.simulator(frames)
         except ValueError:
-            return None  # no checkpoint, a non-SMPL body, another vertex count: physics alone
+            return None  # no checkpoint, a non-SMPL body: physics alone
         return network
 
     def drape(self, frames, *, metrics: Callable | None = None) -> MethodResult:
@@ -125,20 +137,21 @@ class AutoMethod(Method):
             chosen = f"physics ({strands} x {vertices} hair meets its speed goal on this device)"
             return MethodResult(positions=result.positions, time_ms=result.time_ms, history=result.history,
                                 info=dict(result.info, chosen=chosen, fallback_frames=[]))
-        return self._run(frames, "dynamic", None)
+        return self._run(frames, "inertial", None)
 
     def _run(self, frames, network_name: str, metrics) -> MethodResult:
-        refine = self.options.refine or (AUTO_REFINE_MOTION if network_name == "dynamic" else AUTO_REFINE)
+        motion = network_name != "static"
+        refine = self.options.refine or (AUTO_REFINE_MOTION if motion else AUTO_REFINE)
         network = self._network(network_name, frames)
         if network is None:
             iterations = self.options.max_iterations or AUTO_LBFGS_ITERATIONS
             lbfgs = OptimizerMethod("lbfgs", refine_options(self.options, iterations))
-            result = lbfgs.simulate(frames) if network_name == "dynamic" else lbfgs.drape(frames, metrics=metrics)
+            result = lbfgs.simulate(frames) if motion else lbfgs.drape(frames, metrics=metrics)
             chosen = f"lbfgs ({iterations} iterations; no usable network)"
         else:
-            base = network.simulate(frames) if network_name == "dynamic" else network.drape(frames)
+            base = network.simulate(frames) if motion else network.drape(frames)
             result = _refine(base, frames, self.options, refine, metrics)
-            chosen = f"{network_name} + {refine} L-BFGS iterations" if refine else network_name
+            chosen = f"{network.name} + {refine} L-BFGS iterations" if refine else network.name
         return self._never_worse_than_rigid(result, frames, max(refine, AUTO_FALLBACK_ITERATIONS), chosen)
 
     def _never_worse_than_rigid(self, result: MethodResult, frames, iterations: int, chosen: str) -> MethodResult:

@@ -87,14 +87,25 @@ class InertialMethod(Method):
         out.info["equilibrium"] = "static"
         return out
 
-    def simulate(self, frames) -> MethodResult:
-        device = frames.rigid.positions.device
-        step = load_inertial_step(self.options.checkpoint, device)
+    def step_for(self, frames):
+        """The step for `frames`, after checking that it and the static network can run them.
+
+        Raises:
+            ValueError: no usable checkpoint, a motion at another frame rate than the step's, or
+                frames the static network refuses (a body without SMPL pose parameters).
+        """
+        self.equilibrium.simulator(frames)
+        step = load_inertial_step(self.options.checkpoint, frames.rigid.positions.device)
         fps = float(frames.scene.motion.fps)
         if abs(fps - step.config.fps) > FPS_TOLERANCE * step.config.fps:
             raise ValueError(f"scene: the inertial step is trained at {step.config.fps:g} frames/s and this motion "
                              f"runs at {fps:g}; resample it (hairwarp.scene.motion.resample_motion(motion, "
                              f"{step.config.fps:g}))")
+        return step
+
+    def simulate(self, frames) -> MethodResult:
+        device = frames.rigid.positions.device
+        step = self.step_for(frames)
         equilibrium = self.equilibrium.simulate(frames)
         rigid = frames.rigid.positions
 
