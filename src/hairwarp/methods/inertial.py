@@ -5,7 +5,7 @@ inertial step (`hairwarp.models.inertial`), so that the hair keeps a state of it
   starting at rest on the first frame's drape. The time per frame is the static network's plus
   the step's.
 - Then each frame is kept out of the body (`keep_out_of_body`: vertices inside or within
-  `KEEP_OUT_MARGIN` of the surface pushed out along the distance's gradient, the rest lengths
+  half of `KEEP_OUT_MARGIN` of the surface pushed out to it along the distance's gradient, the rest lengths
   restored by follow-the-leader), a chunk of frames at a time (`SceneFrames.chunks`). The step's
   state is not pushed: the pass is what is shown, the state swings on.
 - On independent poses (a drape): the step at rest is its equilibrium, so this is the static
