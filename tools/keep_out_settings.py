@@ -18,13 +18,14 @@ import time
 
 import torch
 
-SETTINGS = {"A": (8, 1.0, 0.0), "B": (4, 0.5, float("inf")), "C": (8, 0.5, 1.0)}
+SETTINGS = {"A": dict(passes=8, trigger=1.0, final_depth=0.0), "B": dict(passes=4, trigger=0.5, final_depth=float("inf")),
+            "C": dict(passes=8, trigger=0.5, final_depth=1.0)}
 
 
 def main(argv=None) -> int:
     from hairwarp.evaluation.scenes import comparison_scene
     from hairwarp.methods import MethodOptions
-    from hairwarp.methods import keep_out
+    from hairwarp.methods.keep_out import keep_out_of_body_in_frames
     from hairwarp.methods.inertial import load_inertial_step
     from hairwarp.methods.networks import NetworkMethod
     from hairwarp.metrics import frame_metrics_of
@@ -44,27 +45,20 @@ def main(argv=None) -> int:
     equilibrium = NetworkMethod("static", MethodOptions(keep_out=False)).simulate(frames)
     with torch.no_grad():
         rollout = load_inertial_step(None, device).rollout(equilibrium.positions.to(rigid.dtype), rigid)
-    defaults = (keep_out.KEEP_OUT_PASSES, keep_out._KEEP_OUT_TRIGGER, keep_out._KEEP_OUT_FINAL_DEPTH)
     rows = {}
-    try:
-        for name, (passes, trigger, final_depth) in SETTINGS.items():
-            keep_out.KEEP_OUT_PASSES, keep_out._KEEP_OUT_TRIGGER, keep_out._KEEP_OUT_FINAL_DEPTH = passes, trigger, final_depth
-            t0 = time.perf_counter()
-            x = keep_out.keep_out_of_body_in_frames(rollout.clone(), frames)
-            seconds = time.perf_counter() - t0
-            metrics = frame_metrics_of({"x": x}, frames)["x"][0]
-            inside, length = metrics["penetration_percent"], metrics["length_change_percent"]
-            rows[name] = {"rounds": passes, "trigger": trigger, "final_depth_margins": final_depth,
-                          "inside_percent_mean": sum(inside) / len(inside), "inside_percent_max": max(inside),
+    for name, settings in SETTINGS.items():
+        t0 = time.perf_counter()
+        x = keep_out_of_body_in_frames(rollout.clone(), frames, **settings)
+        seconds = time.perf_counter() - t0
+        metrics = frame_metrics_of({"x": x}, frames)["x"][0]
+        inside, length = metrics["penetration_percent"], metrics["length_change_percent"]
+        rows[name] = r = {**settings, "inside_percent_mean": sum(inside) / len(inside), "inside_percent_max": max(inside),
                           "length_change_percent_max": max(length), "ms_per_frame": seconds * 1e3 / x.shape[0]}
-            r = rows[name]
-            print(f"{name}: inside {r['inside_percent_mean']:.3f} / {r['inside_percent_max']:.3f} %, length change "
-                  f"{r['length_change_percent_max']:.3f} %, {r['ms_per_frame']:.0f} ms/frame", flush=True)
-    finally:
-        keep_out.KEEP_OUT_PASSES, keep_out._KEEP_OUT_TRIGGER, keep_out._KEEP_OUT_FINAL_DEPTH = defaults
+        print(f"{name}: inside {r['inside_percent_mean']:.3f} / {r['inside_percent_max']:.3f} %, length change "
+              f"{r['length_change_percent_max']:.3f} %, {r['ms_per_frame']:.0f} ms/frame", flush=True)
     size = {"strands": int(rigid.shape[1]), "vertices": int(rigid.shape[2]), "frames": int(rigid.shape[0])}
     with open(os.path.join(args.out, "keep_out_settings.json"), "w") as f:
-        json.dump({"scene": args.scene, "size": size, "device": str(device), "rows": rows}, f, indent=1)
+        json.dump({"scene": args.scene, "size": size, "device": str(device), "rows": rows}, f, indent=1, default=str)
     return 0
 
 

@@ -113,14 +113,13 @@ def run(args) -> int:
     physics = physics_metrics = physics_sd = None
     beside = None  # (label, result, metrics, signed distances) of the other method when auto ran the physics
     if chose_physics:
-        # Auto ran the physics itself: it is the yardstick; the motion's network goes beside it (the
-        # inertial step; a checkpoint given on the command line is a network's: the dynamic one).
+        # Auto ran the physics itself: it is the yardstick; the motion's network (the inertial step,
+        # as auto runs it elsewhere) goes beside it.
         physics, physics_metrics, physics_sd = result, metrics, sd
-        name = "dynamic" if options.checkpoint else "inertial"
-        phase("method", f"the {name} network beside it")
-        network = make(name, options)
+        phase("method", "the inertial step beside it")
+        network = make("inertial", options)
         net_result, net_metrics, net_sd, _ = run_and_score(network, frames, options.config(), simulate=True)
-        beside = (name, net_result, net_metrics, net_sd)
+        beside = ("inertial", net_result, net_metrics, net_sd)
     elif physics_iterations:
         phase("method", f"the physics beside it: {physics_iterations} iterations a frame at most")
         physics_method = PhysicsMethod(options, PhysicsConfig(max_iterations=physics_iterations))

@@ -4,9 +4,9 @@ inertial step (`hairwarp.models.inertial`), so that the hair keeps a state of it
 - On a motion: E(t) = the static network's drape of frame t; x(t) = the step from x(t-1), x(t-2),
   starting at rest on the first frame's drape. The time per frame is the static network's plus
   the step's.
-- Then each frame is kept out of the body (`keep_out_of_body`: vertices inside or within
-  half of `KEEP_OUT_MARGIN` of the surface pushed out to it along the distance's gradient, the rest lengths
-  restored by follow-the-leader), a chunk of frames at a time (`SceneFrames.chunks`). The step's
+- Then each frame is kept out of the body (`keep_out_of_body`: vertices inside or within half
+  of `KEEP_OUT_MARGIN` of the surface pushed out to it along the distance's gradient, the rest
+  lengths restored by follow-the-leader), a chunk of frames at a time (`SceneFrames.chunks`). The step's
   state is not pushed: the pass is what is shown, the state swings on.
 - On independent poses (a drape): the step at rest is its equilibrium, so this is the static
   network's drape.
@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable
+from dataclasses import replace
 
 import torch
 
@@ -83,7 +84,9 @@ class InertialMethod(Method):
         self.equilibrium = NetworkMethod("static", MethodOptions(keep_out=False))
 
     def drape(self, frames, *, metrics: Callable | None = None) -> MethodResult:
-        out = self.equilibrium.drape(frames)
+        # The step at rest is its equilibrium: the static network's drape, through the body pass
+        # as every frame of a motion is.
+        out = NetworkMethod("static", replace(self.equilibrium.options, keep_out=True)).drape(frames)
         out.info["equilibrium"] = "static"
         return out
 
