@@ -155,19 +155,43 @@ def test_keep_out_of_body_leaves_no_vertex_inside_and_keeps_rest_lengths():
     torch.testing.assert_close(_segment_lengths(out), _segment_lengths(rigid), atol=1e-5, rtol=0)
     torch.testing.assert_close(out[:, :, :2], rigid[:, :, :2])
     assert KEEP_OUT_MARGIN > 0
-    # One round is not enough here (the projection takes later vertices back in): what is left
-    # inside less than the margin deep is pushed out without the projection (a crease of the
-    # body), stretching only its own segments; deeper vertices stay where the round left them.
-    once = keep_out_of_body(x, rigid, body, passes=1)
+    # One round is not enough here (the projection takes later vertices back in): without the
+    # turns, what is left inside less than the margin deep is pushed out without the projection
+    # (a crease of the body), stretching only its own segments; deeper vertices stay.
+    once = keep_out_of_body(x, rigid, body, passes=1, turns=0)
     d = hair_body_signed_distance(once, body)[..., 2:]
     assert not bool(((d < 0) & (d > -KEEP_OUT_MARGIN)).any())
-    plain = keep_out_of_body(x, rigid, body, passes=1, final_depth=0.0)
+    plain = keep_out_of_body(x, rigid, body, passes=1, turns=0, final_depth=0.0)
     d_plain = hair_body_signed_distance(plain, body)[..., 2:]
     shallow = (d_plain < 0) & (d_plain > -KEEP_OUT_MARGIN)
     assert bool(shallow.any())  # the round alone leaves some
     moved = (once - plain).norm(dim=-1)[..., 2:]
     assert bool((moved[~shallow] == 0).all()) and float(moved[shallow].max()) <= 2 * KEEP_OUT_MARGIN + 1e-6
     torch.testing.assert_close(once[:, :, :2], rigid[:, :, :2])
+
+
+def test_keep_out_of_body_turns_strands_out_of_a_pinch_between_two_parts():
+    """Two overlapping spheres (an arm against a torso) and strands hanging through the lens they
+    share: pushed along the gradient a vertex leaves one sphere for the other, so pushes alone
+    leave some inside; turning the segments about their predecessors frees them all, the rest
+    lengths kept."""
+    from hairwarp.methods.keep_out import keep_out_of_body
+
+    v, f = icosphere(8, radius=0.1)
+    v, f = torch.tensor(v, dtype=torch.float32), torch.tensor(f, dtype=torch.int32)
+    body = BodyMesh(torch.cat([v + torch.tensor([-0.09, 0.0, 0.0]), v + torch.tensor([0.09, 0.0, 0.0])]),
+                    torch.cat([f, f + len(v)]))
+    m, n = 3, 16
+    x = torch.zeros(1, m, n, 3)
+    x[0, :, :, 2] = torch.tensor([-0.004, 0.0, 0.004])[:, None]
+    x[0, :, :, 1] = 0.15 - 0.02 * torch.arange(n)[None, :]
+    rigid = x.clone()
+    pushed = keep_out_of_body(x, rigid, body, turns=0, final_depth=0.0)
+    assert float(hair_body_signed_distance(pushed, body)[..., 2:].min()) < -0.005  # stuck in the lens
+    turned = keep_out_of_body(x, rigid, body, final_depth=0.0)
+    assert float(hair_body_signed_distance(turned, body)[..., 2:].min()) > 0
+    torch.testing.assert_close(_segment_lengths(turned), _segment_lengths(rigid), atol=1e-5, rtol=0)
+    torch.testing.assert_close(turned[:, :, :2], rigid[:, :, :2])
 
 
 def test_network_methods_keep_out_of_the_body_by_default():

@@ -18,8 +18,10 @@ import time
 
 import torch
 
-SETTINGS = {"A": dict(passes=8, trigger=1.0, final_depth=0.0), "B": dict(passes=4, trigger=0.5, final_depth=float("inf")),
-            "C": dict(passes=8, trigger=0.5, final_depth=1.0)}
+SETTINGS = {"A": dict(passes=8, trigger=1.0, turns=0, final_depth=0.0),
+            "B": dict(passes=4, trigger=0.5, turns=0, final_depth=float("inf")),
+            "C": dict(passes=8, trigger=0.5, turns=0, final_depth=1.0),
+            "C + turns (the default)": dict(passes=8, trigger=0.5, turns=12, final_depth=1.0)}
 
 
 def main(argv=None) -> int:
