@@ -7,6 +7,7 @@ it, every vertex still inside pushed out without the projection; C (the default)
 at half the margin, only vertices less than a margin deep pushed out at the end.
 
     python3 tools/keep_out_settings.py --scene whiplash --strand-stride 4      # ~2 min on 2 cores
+    python3 tools/keep_out_settings.py --scene demo --strand-stride 4          # the demo's scene
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ SETTINGS = {"A": dict(passes=8, trigger=1.0, turns=0, final_depth=0.0),
 
 
 def main(argv=None) -> int:
+    import hairwarp as hw
     from hairwarp.evaluation.scenes import comparison_scene
     from hairwarp.methods import MethodOptions
     from hairwarp.methods.keep_out import keep_out_of_body_in_frames
@@ -33,7 +35,9 @@ def main(argv=None) -> int:
     from hairwarp.metrics import frame_metrics_of
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--scene", default="whiplash", help="a comparison motion (default: whiplash)")
+    p.add_argument("--scene", default="whiplash",
+                   help="a comparison motion, or demo: the demo's (long straight hair grown around the body, a "
+                        "one-second head turn) (default: whiplash)")
     p.add_argument("--strand-stride", type=int, default=4)
     p.add_argument("--device", default="cpu")
     p.add_argument("--seed", type=int, default=0)
@@ -42,7 +46,12 @@ def main(argv=None) -> int:
     torch.manual_seed(args.seed)
     os.makedirs(args.out, exist_ok=True)
     device = torch.device(args.device)
-    frames = comparison_scene(args.scene, strand_stride=args.strand_stride).scene.frames(device=device)
+    if args.scene == "demo":
+        scene = hw.default_scene("long_straight", "head_turn", duration=1.0, strand_stride=args.strand_stride,
+                                 grow_around_body=True)
+    else:
+        scene = comparison_scene(args.scene, strand_stride=args.strand_stride).scene
+    frames = scene.frames(device=device)
     rigid = frames.rigid.positions
     equilibrium = NetworkMethod("static", MethodOptions(keep_out=False)).simulate(frames)
     with torch.no_grad():

@@ -99,7 +99,8 @@ def _turn_out_of_pinches(x: torch.Tensor, rigid: torch.Tensor, body, *, margin: 
     Where two body parts meet, the signed distance's gradient leads out of one part into the
     other, so pushing along it leaves a vertex inside; turning the segment finds the way out.
     The demo's scene on the 2-core CPU, the inertial step's 61 frames: 0.032 % of the vertices
-    inside after the pushes, 0.0045 % after 12 rounds of this (`tools/keep_out_pinch_probe.py`).
+    inside after the pushes, 0.0004 % with 12 rounds of this (`tools/keep_out_settings.py --scene
+    demo`).
     """
     from hairwarp.config import NUM_FIXED_VERTICES
     from hairwarp.ops import follow_the_leader, hair_body_signed_distance
