@@ -89,6 +89,15 @@ def _axes(like: torch.Tensor) -> torch.Tensor:
     return (axes / axes.norm(dim=-1, keepdim=True)).to(like)
 
 
+def _slots(frame: torch.Tensor) -> torch.Tensor:
+    """Each item's place among the items of its frame: (S,) long, from (S,) frame indices."""
+    slot = torch.zeros_like(frame)
+    for b in torch.unique(frame).tolist():
+        chosen = frame == b
+        slot[chosen] = torch.arange(int(chosen.sum()), device=frame.device)
+    return slot
+
+
 def _turn_out_of_pinches(x: torch.Tensor, rigid: torch.Tensor, body, *, margin: float, rounds: int) -> torch.Tensor:
     """(B, M, N, 3) positions [m] with each strand's first vertex inside the body turned about its
     predecessor, its segment's length kept, to the direction nearest its own that clears the body
@@ -115,10 +124,7 @@ def _turn_out_of_pinches(x: torch.Tensor, rigid: torch.Tensor, body, *, margin: 
     batch, n = x.shape[0], x.shape[2]
     # The stuck strands of every frame in one (B, S, ...) tensor, padded with the frame's first
     # strand (queried with them, never written back).
-    slot = torch.zeros_like(bs)
-    for b in torch.unique(bs).tolist():
-        chosen = bs == b
-        slot[chosen] = torch.arange(int(chosen.sum()), device=x.device)
+    slot = _slots(bs)
     width = int(slot.max()) + 1
     strands = x[:, :1].expand(batch, width, n, 3).clone()
     strands[bs, slot] = x[bs, ms]
@@ -145,10 +151,7 @@ def _turn_out_of_pinches(x: torch.Tensor, rigid: torch.Tensor, body, *, margin: 
         turns = turns / turns.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         candidates = before[:, None] + length[:, None] * turns  # (R, K, 3)
         # Every candidate queried in one call: (B, R', K, 3), padded with the frame's root.
-        cslot = torch.zeros_like(b)
-        for frame in torch.unique(b).tolist():
-            chosen = b == frame
-            cslot[chosen] = torch.arange(int(chosen.sum()), device=x.device)
+        cslot = _slots(b)
         grid = x[:, :1, :1].expand(batch, int(cslot.max()) + 1, candidates.shape[1], 3).clone()
         grid[b, cslot] = candidates
         clearance = hair_body_signed_distance(grid, body)[b, cslot]
