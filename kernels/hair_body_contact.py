@@ -56,6 +56,7 @@ from typing import Any
 
 import warp as wp
 
+from hairwarp.config import NUM_FIXED_VERTICES
 from hairwarp.kernels.barrier import barrier_energy, barrier_gradient
 from hairwarp.kernels.distances import point_triangle_closest_barycentric, point_triangle_distance_gradient_at
 
@@ -64,6 +65,8 @@ wp.set_module_options({"enable_backward": False})
 
 # max_dist of an unbounded query [m]: finite so that (max_dist + eps)^2 stays finite in float32.
 FAR = wp.constant(1.0e18)
+# The body pass moves the vertices from this index on (`hair_body_keep_out_push_kernel`).
+FIRST_MOVING_VERTEX = wp.constant(NUM_FIXED_VERTICES)
 
 
 @wp.func
@@ -712,6 +715,111 @@ def hair_body_energy_far_kernel(
         gradient_out[i] = (weight * barrier_gradient(d, xi, dhat, bp, variant)) * g
 
 
+@wp.func
+def capped_signed_distance(
+    mesh: wp.uint64,
+    vertices: wp.array(dtype=Any),
+    faces: wp.array(dtype=wp.int32),
+    vertex_normals: wp.array(dtype=Any),
+    edge_normals: wp.array(dtype=Any),
+    first_piece: int,
+    seam_sides: wp.array(dtype=wp.vec4),
+    vertex_offset: int,
+    edge_offset: int,
+    points: wp.array(dtype=Any),
+    i: int,
+    v: int,
+    line_stride: int,
+    max_distance: Any,
+    zero_dist: Any,
+):
+    """Pass 1 of 2 of the capped signed distance of point i, index v along its polyline (its
+    predecessor at i - line_stride): a query capped at max(max_distance, the link length)
+    (`chain_query_radius`), at any distance for a polyline's first point (it anchors the sides).
+
+    Returns (d, gradient, side, |d| as float32, found): on a hit d clamped to at most
+    max_distance (gradient zero where clamped) and side +1 outside / -1 inside; on a miss side 0
+    (`capped_signed_distance_of_miss` settles it once every point's side is written); found as
+    `body_signed_distance_face`'s (2: the sign is the winding number's).
+    """
+    zero = zero_dist * type(zero_dist)(0.0)
+    p = points[i]
+    found, d, g = body_signed_distance(
+        mesh, vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides, vertex_offset, edge_offset, p,
+        chain_query_radius(points, i, v, line_stride, max_distance), zero_dist
+    )
+    if found == 0 and v == 0:
+        # The first point anchors its polyline's sides: measured at any distance.
+        found, d, g = body_signed_distance(
+            mesh, vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides, vertex_offset, edge_offset,
+            p, wp.float32(FAR), zero_dist
+        )
+    side = int(0)
+    if found != 0:
+        side = 1
+        if d < zero:
+            side = -1
+    hit_distance = wp.float32(wp.abs(d))
+    if found != 0 and d > max_distance:
+        d = max_distance
+        g = p * zero
+    return d, g, side, hit_distance, found
+
+
+@wp.func
+def capped_signed_distance_of_miss(
+    mesh: wp.uint64,
+    vertices: wp.array(dtype=Any),
+    faces: wp.array(dtype=wp.int32),
+    vertex_normals: wp.array(dtype=Any),
+    edge_normals: wp.array(dtype=Any),
+    first_piece: int,
+    seam_sides: wp.array(dtype=wp.vec4),
+    vertex_offset: int,
+    edge_offset: int,
+    points: wp.array(dtype=Any),
+    side: wp.array(dtype=wp.int32),
+    hit_distance: wp.array(dtype=float),
+    i: int,
+    v: int,
+    line_stride: int,
+    max_distance: Any,
+    zero_dist: Any,
+):
+    """Pass 2 of 2 for a point i whose pass 1 missed (side[i] == 0; the other points' sides
+    written): (d, gradient), outside beyond max_distance (reported as max_distance, gradient
+    zero) or inside, where a query capped by the last hit before it (unbounded without one)
+    gives its depth.
+    """
+    zero = zero_dist * type(zero_dist)(0.0)
+    p = points[i]
+    hit = chain_hit_before(side, i, v, line_stride)
+    if hit >= 0 and side[hit] > 0:
+        return max_distance, p * zero
+    radius = depth_query_radius(points, hit_distance, i, hit)
+    found, d, g = body_signed_distance(
+        mesh, vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides, vertex_offset, edge_offset, p,
+        radius, zero_dist
+    )
+    if found == 0 and radius < wp.float32(FAR):
+        found, d, g = body_signed_distance(
+            mesh, vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides, vertex_offset, edge_offset,
+            p, wp.float32(FAR), zero_dist
+        )
+    if found == 2 and d > zero:
+        # A piece of a face cut at a self-intersection: the chain of misses proved the point
+        # inside, whatever the piece's pseudo-normal says.
+        d = -d
+        g = -g
+    if found == 0:
+        d = max_distance
+        g = p * zero
+    if d > max_distance:
+        d = max_distance
+        g = p * zero
+    return d, g
+
+
 @wp.kernel
 def signed_distance_capped_kernel(
     # In:
@@ -747,30 +855,13 @@ def signed_distance_capped_kernel(
     """
     i = wp.tid()
     v = (i // line_stride) % points_per_line
-    zero = zero_dist * type(zero_dist)(0.0)
     body = (i // points_per_batch) * body_batch_stride
-    p = points[i]
-    found, d, g = body_signed_distance(
+    d, g, side, hit_distance, found = capped_signed_distance(
         mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides,
-        body * body_vertex_count, body * body_face_count * 3, p,
-        chain_query_radius(points, i, v, line_stride, max_distance), zero_dist
+        body * body_vertex_count, body * body_face_count * 3, points, i, v, line_stride, max_distance, zero_dist
     )
-    if found == 0 and v == 0:
-        # The first point anchors its polyline's sides: measured at any distance.
-        found, d, g = body_signed_distance(
-            mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides,
-            body * body_vertex_count, body * body_face_count * 3, p, wp.float32(FAR), zero_dist
-        )
-    side = int(0)
-    if found != 0:
-        side = 1
-        if d < zero:
-            side = -1
     side_out[i] = side
-    hit_distance_out[i] = wp.float32(wp.abs(d))
-    if found != 0 and d > max_distance:
-        d = max_distance
-        g = p * zero
+    hit_distance_out[i] = hit_distance
     distance_out[i] = d
     gradient_out[i] = g
     winding_out[i] = int(found == 2)
@@ -809,35 +900,12 @@ def signed_distance_far_kernel(
     if side[i] != 0:
         return
     v = (i // line_stride) % points_per_line
-    zero = zero_dist * type(zero_dist)(0.0)
-    p = points[i]
-    hit = chain_hit_before(side, i, v, line_stride)
-    if hit >= 0 and side[hit] > 0:
-        distance_out[i] = max_distance
-        gradient_out[i] = p * zero
-        return
     body = (i // points_per_batch) * body_batch_stride
-    radius = depth_query_radius(points, hit_distance, i, hit)
-    found, d, g = body_signed_distance(
+    d, g = capped_signed_distance_of_miss(
         mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides,
-        body * body_vertex_count, body * body_face_count * 3, p, radius, zero_dist
+        body * body_vertex_count, body * body_face_count * 3, points, side, hit_distance, i, v, line_stride,
+        max_distance, zero_dist
     )
-    if found == 0 and radius < wp.float32(FAR):
-        found, d, g = body_signed_distance(
-            mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides,
-            body * body_vertex_count, body * body_face_count * 3, p, wp.float32(FAR), zero_dist
-        )
-    if found == 2 and d > zero:
-        # A piece of a face cut at a self-intersection: the chain of misses proved the point
-        # inside, whatever the piece's pseudo-normal says.
-        d = -d
-        g = -g
-    if found == 0:
-        d = max_distance
-        g = p * zero
-    if d > max_distance:
-        d = max_distance
-        g = p * zero
     distance_out[i] = d
     gradient_out[i] = g
 
@@ -915,6 +983,122 @@ def signed_distance_winding_kernel(
         g = p * zero_dist * type(zero_dist)(0.0)
     distance_out[i] = d
     gradient_out[i] = g
+
+
+@wp.func
+def hair_vertex_of_thread(t: int, num_strands: int, num_vertices: int):
+    """(index of the point in the hair's (B, M, N) order, its vertex index along its strand) of
+    thread t of a launch over B M N threads in (batch, vertex, strand) order: a warp's threads
+    query the same vertex of neighbouring strands (near each other, similar BVH walks) rather
+    than one strand's, centimetres apart, with no transposed copy of the hair.
+    """
+    per_batch = num_strands * num_vertices
+    b = t // per_batch
+    rest = t - b * per_batch
+    v = rest // num_strands
+    s = rest - v * num_strands
+    return b * per_batch + s * num_vertices + v, v
+
+
+@wp.kernel
+def hair_capped_signed_distance_kernel(
+    # In:
+    x: wp.array(dtype=Any),
+    mesh_ids: wp.array(dtype=wp.uint64),
+    body_vertices: wp.array(dtype=Any),
+    faces: wp.array(dtype=wp.int32),
+    vertex_normals: wp.array(dtype=Any),
+    edge_normals: wp.array(dtype=Any),
+    winding_ids: wp.array(dtype=wp.uint64),
+    first_piece: int,
+    seam_sides: wp.array(dtype=wp.vec4),
+    num_strands: int,
+    num_vertices: int,
+    body_vertex_count: int,
+    body_face_count: int,
+    body_batch_stride: int,
+    max_distance: Any,
+    zero_dist: Any,
+    # Out:
+    distance_out: wp.array(dtype=Any),
+    gradient_out: wp.array(dtype=Any),
+    side_out: wp.array(dtype=wp.int32),
+    hit_distance_out: wp.array(dtype=float),
+    winding_out: wp.array(dtype=wp.int32),
+):
+    """`signed_distance_capped_kernel` (pass 1 of 2) of hair (B, M, N) vec3 in its own layout,
+    threads in (batch, vertex, strand) order (`hair_vertex_of_thread`); outputs in the hair's
+    order. Pass 2 is `hair_body_keep_out_push_kernel`'s.
+    """
+    i, v = hair_vertex_of_thread(wp.tid(), num_strands, num_vertices)
+    body = (i // (num_strands * num_vertices)) * body_batch_stride
+    d, g, side, hit_distance, found = capped_signed_distance(
+        mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides,
+        body * body_vertex_count, body * body_face_count * 3, x, i, v, 1, max_distance, zero_dist
+    )
+    side_out[i] = side
+    hit_distance_out[i] = hit_distance
+    distance_out[i] = d
+    gradient_out[i] = g
+    winding_out[i] = int(found == 2)
+
+
+@wp.kernel
+def hair_body_keep_out_push_kernel(
+    # In:
+    x: wp.array(dtype=Any),
+    mesh_ids: wp.array(dtype=wp.uint64),
+    body_vertices: wp.array(dtype=Any),
+    faces: wp.array(dtype=wp.int32),
+    vertex_normals: wp.array(dtype=Any),
+    edge_normals: wp.array(dtype=Any),
+    winding_ids: wp.array(dtype=wp.uint64),
+    first_piece: int,
+    seam_sides: wp.array(dtype=wp.vec4),
+    num_strands: int,
+    num_vertices: int,
+    body_vertex_count: int,
+    body_face_count: int,
+    body_batch_stride: int,
+    max_distance: Any,
+    zero_dist: Any,
+    distance: wp.array(dtype=Any),
+    gradient: wp.array(dtype=Any),
+    side: wp.array(dtype=wp.int32),
+    hit_distance: wp.array(dtype=float),
+    margin: Any,
+    push_above: Any,
+    push_below: Any,
+    # Out:
+    pushed_out: wp.array(dtype=Any),
+    pushed_count_out: wp.array(dtype=wp.int32),
+):
+    """The body pass's push of hair (B, M, N) vec3, threads as `hair_capped_signed_distance_kernel`'s,
+    whose outputs (`distance`, `gradient`, `side`, `hit_distance`; the winding pass settled) it
+    reads: each moving vertex (index >= FIRST_MOVING_VERTEX) gets its capped signed distance d
+    (pass 2, `capped_signed_distance_of_miss`, where pass 1 missed) and, where
+    push_above < d < push_below, moves by (margin - d) along the outward direction, counted in
+    `pushed_count_out[0]` (added to: zeroed by the caller); every other vertex is copied.
+    """
+    i, v = hair_vertex_of_thread(wp.tid(), num_strands, num_vertices)
+    p = x[i]
+    if v < FIRST_MOVING_VERTEX:
+        pushed_out[i] = p
+        return
+    d = distance[i]
+    g = gradient[i]
+    if side[i] == 0:
+        body = (i // (num_strands * num_vertices)) * body_batch_stride
+        d, g = capped_signed_distance_of_miss(
+            mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides,
+            body * body_vertex_count, body * body_face_count * 3, x, side, hit_distance, i, v, 1, max_distance,
+            zero_dist
+        )
+    if d > push_above and d < push_below:
+        pushed_out[i] = p + g * (margin - d)
+        wp.atomic_add(pushed_count_out, 0, 1)
+    else:
+        pushed_out[i] = p
 
 
 @wp.kernel

@@ -343,6 +343,75 @@ def test_capped_signed_distance_equals_clamped_unbounded(rng, dtype):
         hair_body_signed_distance_and_normal(x, body, max_distance=0.0)
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_keep_out_push_moves_near_and_inside_vertices_to_the_margin(rng, device, dtype):
+    """`hair_body_keep_out_push`: each moving vertex with push_above < d < push_below (d the capped
+    signed distance) lands `margin` outside, moved along the outward direction; fixed and far
+    vertices are untouched bit for bit, and the count is theirs (added to a caller's counter)."""
+    from hairwarp.ops import hair_body_keep_out_push
+    from hairwarp.ops.hair_body_contact import hair_body_signed_distance_and_normal
+
+    _, _, vt, ft = _sphere(dtype=dtype, device=device)
+    body = BodyMesh(vt, ft)
+    x = _t(_in_and_out_strands(rng, m=16, n=20), dtype, device)[None].expand(2, -1, -1, -1)
+    margin, below, cap = 0.05, 0.025, 0.1
+    tol = F64_ATOL if dtype == torch.float64 else F32_ATOL
+    d, g = hair_body_signed_distance_and_normal(x, body, max_distance=cap)
+    moving = torch.zeros_like(d, dtype=torch.bool)
+    moving[..., 2:] = True
+    for above in (-float("inf"), -0.2):
+        chosen = moving & (d < below) & (d > above)
+        counter = torch.full((1,), 7, dtype=torch.int32, device=device)
+        pushed, count = hair_body_keep_out_push(x, body, margin=margin, push_below=below, push_above=above,
+                                                max_distance=cap, pushed_count=counter)
+        assert count is counter and int(count) == 7 + int(chosen.sum())
+        assert int(chosen.sum()) > 20 and int((moving & ~chosen).sum()) > 20  # both kinds present
+        assert bool((d[..., :2] < below).any())  # fixed vertices that would be pushed if they moved
+        assert torch.equal(pushed[~chosen], x[~chosen])
+        torch.testing.assert_close(pushed[chosen], x[chosen] + (margin - d[chosen])[:, None] * g[chosen], rtol=0, atol=tol)
+        # On this convex body the closest point stays: the pushed vertices are `margin` outside.
+        after = hair_body_signed_distance(pushed, body)[chosen]
+        torch.testing.assert_close(after, torch.full_like(after, margin), rtol=0, atol=10 * tol)
+    assert bool((d < -0.2).any())  # the window left deep ones where they were
+    pushed, count = hair_body_keep_out_push(x[0], body, margin=margin, push_below=below, max_distance=cap)
+    assert pushed.shape == x[0].shape and int(count) == int((moving[0] & (d[0] < below)).sum())
+
+
+def test_keep_out_push_bad_input_raises_naming_the_argument():
+    from hairwarp.ops import hair_body_keep_out_push
+
+    _, _, vt, ft = _sphere(frequency=2)
+    body = BodyMesh(vt, ft)
+    x = torch.zeros(2, 4, 3, dtype=torch.float64)
+    settings = dict(margin=1e-3, push_below=5e-4, max_distance=1e-2)
+    with pytest.raises(ValueError, match="x: expected shape"):
+        hair_body_keep_out_push(x[..., :2], body, **settings)
+    with pytest.raises(ValueError, match="x: expected shape"):
+        hair_body_keep_out_push(x[0], body, **settings)
+    with pytest.raises(ValueError, match="x: contains NaN"):
+        hair_body_keep_out_push(x + float("nan"), body, **settings)
+    with pytest.raises(ValueError, match="x: expected dtype"):
+        hair_body_keep_out_push(x.half(), body, **settings)
+    with pytest.raises(ValueError, match="body: expected a BodyMesh"):
+        hair_body_keep_out_push(x, (vt, ft), **settings)
+    with pytest.raises(ValueError, match="body: batch size"):
+        hair_body_keep_out_push(x[None].expand(3, -1, -1, -1), BodyMesh(vt[None].expand(2, -1, -1), ft), **settings)
+    with pytest.raises(ValueError, match="margin"):
+        hair_body_keep_out_push(x, body, **{**settings, "margin": -1e-3})
+    with pytest.raises(ValueError, match="margin"):
+        hair_body_keep_out_push(x, body, **{**settings, "margin": float("nan")})
+    with pytest.raises(ValueError, match="max_distance"):
+        hair_body_keep_out_push(x, body, **{**settings, "max_distance": 0.0})
+    with pytest.raises(ValueError, match="push_below"):
+        hair_body_keep_out_push(x, body, **{**settings, "push_below": 0.1})
+    with pytest.raises(ValueError, match="push_above"):
+        hair_body_keep_out_push(x, body, **settings, push_above=1e-3)
+    with pytest.raises(ValueError, match="pushed_count: expected dtype"):
+        hair_body_keep_out_push(x, body, **settings, pushed_count=torch.zeros(1))
+    with pytest.raises(ValueError, match="pushed_count: expected shape"):
+        hair_body_keep_out_push(x, body, **settings, pushed_count=torch.zeros(2, dtype=torch.int32))
+
+
 def test_far_hair_has_zero_energy_and_gradient():
     _, _, vt, ft = _sphere()
     x = torch.zeros(2, 3, 5, 3, dtype=torch.float64)

@@ -194,6 +194,129 @@ def test_keep_out_of_body_turns_strands_out_of_a_pinch_between_two_parts():
     torch.testing.assert_close(turned[:, :, :2], rigid[:, :, :2])
 
 
+def _keep_out_in_torch(x, rigid, body, *, margin, passes, trigger, turns, final_depth):
+    """Oracle: the body pass as it was written before its rounds became one kernel launch each
+    (`hair_body_keep_out_push`): plain torch over `hair_body_signed_distance_and_normal`, a host
+    read per round. Returns (positions, the number of rounds that pushed)."""
+    from hairwarp.methods.keep_out import _KEEP_OUT_QUERY, _turn_out_of_pinches
+    from hairwarp.ops import hair_body_signed_distance_and_normal
+
+    for k in range(passes):
+        distance, direction = hair_body_signed_distance_and_normal(x, body, max_distance=_KEEP_OUT_QUERY)
+        near = distance < trigger * margin
+        near[..., :2] = False
+        if not bool(near.any()):
+            return x, k
+        push = torch.where(near, margin - distance, torch.zeros_like(distance))
+        x = follow_the_leader(rigid, x + push[..., None] * direction, check=False)
+    x = _turn_out_of_pinches(x, rigid, body, margin=margin, rounds=turns)
+    distance, direction = hair_body_signed_distance_and_normal(x, body, max_distance=_KEEP_OUT_QUERY)
+    shallow = (distance < 0.0) & (distance > -final_depth * margin)
+    shallow[..., :2] = False
+    push = torch.where(shallow, margin - distance, torch.zeros_like(distance))
+    return x + push[..., None] * direction, passes
+
+
+def _keep_out_scenes(device, dtype):
+    """(name, hair, body) scenes with vertices deep inside, near the surface and far outside:
+    one sphere (strands hanging through it or grazing its side, arcs along it within the trigger,
+    a strand clear of it), and two overlapping spheres (strands in the lens they share: the pinch turns,
+    and pieces of the crossing signed by the winding number)."""
+    v, f = icosphere(8, radius=0.1)
+    v, f = torch.tensor(v, dtype=torch.float32), torch.tensor(f, dtype=torch.int32)
+    n = 16
+    offsets = torch.tensor([-0.04, -0.01, 0.02, 0.0998, 0.1002, 0.1004, 0.1006, 0.13])
+    sphere = torch.zeros(1, len(offsets), n, 3, dtype=dtype)
+    sphere[0, :, :, 0] = offsets[:, None].to(dtype)
+    sphere[0, :, :, 1] = 0.14 - 0.02 * torch.arange(n, dtype=dtype)[None, :]
+    sphere[0, :, :, 2] = 0.003 * torch.arange(len(offsets), dtype=dtype)[:, None]
+    # Arcs along the sphere 0.1, 0.3 and 0.7 mm off it (the faceted mesh lies up to ~0.3 mm
+    # inside the sphere): most of their vertices within the trigger, outside.
+    angle = torch.linspace(1.1 * math.pi, 1.9 * math.pi, n, dtype=torch.float64)
+    ring = torch.sqrt((0.1 + torch.tensor([1e-4, 3e-4, 7e-4], dtype=torch.float64)) ** 2 - 0.03**2)[:, None]
+    arcs = torch.stack([ring * torch.cos(angle), ring * torch.sin(angle), torch.full_like(ring * angle, 0.03)], -1)
+    sphere = torch.cat([sphere, arcs[None].to(dtype)], 1)
+    lens = torch.zeros(1, 3, n, 3, dtype=dtype)
+    lens[0, :, :, 2] = torch.tensor([-0.004, 0.0, 0.004], dtype=dtype)[:, None]
+    lens[0, :, :, 1] = 0.15 - 0.02 * torch.arange(n, dtype=dtype)[None, :]
+    two = BodyMesh(torch.cat([v + torch.tensor([-0.09, 0.0, 0.0]), v + torch.tensor([0.09, 0.0, 0.0])]).to(device),
+                   torch.cat([f, f + len(v)]).to(device))
+    return [("sphere", sphere.to(device), BodyMesh(v.to(device), f.to(device))), ("two spheres", lens.to(device), two)]
+
+
+# The body pass's settings the oracle is compared under: the default (the rounds stop early on
+# the sphere, run out in the lens), one round (it runs out: the turns and the final push), two
+# rounds with every depth pushed at the end, and a trigger at the whole margin.
+_KEEP_OUT_CASES = [{}, dict(passes=1, turns=0), dict(passes=2, turns=2, final_depth=math.inf), dict(trigger=1.0)]
+# Float32 positions of metres: the kernels and the oracle run the same float32 operations (a
+# fused multiply-add on a GPU can round the push's last bit differently).
+_KEEP_OUT_ATOL = 1e-6  # [m]
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_keep_out_of_body_equals_the_plain_torch_rounds(device, dtype):
+    """`keep_out_of_body` (a push kernel per round, `hair_body_keep_out_push`) against the same
+    pass in plain torch: equal positions and equal numbers of rounds, in every setting; the
+    scenes push in some rounds, stop early in some cases and run out in others."""
+    from hairwarp.methods.keep_out import (KEEP_OUT_FINAL_DEPTH, KEEP_OUT_MARGIN, KEEP_OUT_PASSES, KEEP_OUT_TRIGGER,
+                                           KEEP_OUT_TURNS, keep_out_of_body, pushed_out_of_body)
+
+    defaults = dict(margin=KEEP_OUT_MARGIN, passes=KEEP_OUT_PASSES, trigger=KEEP_OUT_TRIGGER, turns=KEEP_OUT_TURNS,
+                    final_depth=KEEP_OUT_FINAL_DEPTH)
+    outcomes = set()
+    for name, x, body in _keep_out_scenes(device, dtype):
+        rigid = x.clone()
+        for case in _KEEP_OUT_CASES:
+            settings = {**defaults, **case}
+            expected, expected_rounds = _keep_out_in_torch(x, rigid, body, **settings)
+            out = keep_out_of_body(x, rigid, body, **case)
+            _, rounds = pushed_out_of_body(x, rigid, body, margin=settings["margin"], passes=settings["passes"],
+                                           trigger=settings["trigger"])
+            assert rounds == expected_rounds, (name, case)
+            torch.testing.assert_close(out, expected, rtol=0, atol=_KEEP_OUT_ATOL, msg=lambda m: f"{name} {case}: {m}")
+            assert out.dtype == x.dtype and out.shape == x.shape
+            outcomes.add("stopped early" if rounds < settings["passes"] else "ran out")
+            assert rounds >= 1 and float((out - x).abs().max()) > 1e-3  # no comparison of nothing
+    assert outcomes == {"stopped early", "ran out"}
+
+
+def test_keep_out_of_body_checks_its_arguments_once():
+    from hairwarp.methods.keep_out import keep_out_of_body
+
+    _, x, body = _keep_out_scenes("cpu", torch.float32)[0]
+    with pytest.raises(ValueError, match="x: expected shape"):
+        keep_out_of_body(x[0], x[0], body)
+    with pytest.raises(ValueError, match="x: contains NaN"):
+        keep_out_of_body(x + float("nan"), x, body)
+    with pytest.raises(ValueError, match="rigid: expected shape"):
+        keep_out_of_body(x, x[:, :2], body)
+    with pytest.raises(ValueError, match="rigid: expected dtype"):
+        keep_out_of_body(x, x.double(), body)
+    with pytest.raises(ValueError, match="body: expected a BodyMesh"):
+        keep_out_of_body(x, x, None)
+    with pytest.raises(ValueError, match="margin"):
+        keep_out_of_body(x, x, body, margin=-1e-3)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="the CUDA path (pinned count reads) needs a CUDA device")
+def test_keep_out_of_body_on_cuda_equals_the_cpu_on_a_side_stream():
+    """The CUDA rounds (the count copied to pinned memory behind each push, read after the
+    projection is queued) give the CPU's positions and rounds, also on a stream of their own."""
+    from hairwarp.methods.keep_out import keep_out_of_body, pushed_out_of_body
+
+    for (name, x, body), (_, x_cuda, body_cuda) in zip(_keep_out_scenes("cpu", torch.float32),
+                                                        _keep_out_scenes("cuda", torch.float32)):
+        for case in _KEEP_OUT_CASES:
+            expected = keep_out_of_body(x, x.clone(), body, **case)
+            stream = torch.cuda.Stream()
+            stream.wait_stream(torch.cuda.current_stream())  # the inputs, made on the default stream
+            with torch.cuda.stream(stream):
+                out = keep_out_of_body(x_cuda, x_cuda.clone(), body_cuda, **case)
+            stream.synchronize()
+            torch.testing.assert_close(out.cpu(), expected, rtol=0, atol=1e-5, msg=lambda m: f"{name} {case}: {m}")
+        assert pushed_out_of_body(x_cuda, x_cuda.clone(), body_cuda)[1] == pushed_out_of_body(x, x.clone(), body)[1]
+
+
 def test_network_methods_keep_out_of_the_body_by_default():
     """`MethodOptions.keep_out`, on by default: the shipped static network leaves long straight
     hair grown on the body at rest partly inside it (64 strands); through the body pass no vertex

@@ -8,6 +8,7 @@ rigid placement with none inside should ever get back.
 from __future__ import annotations
 
 import itertools
+import math
 
 import torch
 
@@ -34,9 +35,11 @@ def keep_out_of_body(x: torch.Tensor, rigid: torch.Tensor, body, *, margin: floa
     """Hair pushed out of the body with its rest lengths kept (up to a crease: see below).
 
     Each round pushes every moving vertex (index >= 2) that lies inside the body or nearer its
-    surface than `trigger` x `margin` along the signed distance's gradient to `margin`, then
-    projects the strands back onto the rigid placement's segment lengths (follow-the-leader),
-    which can move later vertices in again: hence a few rounds. Should every round find some, each
+    surface than `trigger` x `margin` along the signed distance's gradient to `margin`
+    (`hairwarp.ops.hair_body_keep_out_push`: a query and a push kernel, the count left on the
+    device), then projects the strands back onto the rigid placement's segment lengths
+    (follow-the-leader), which can move later vertices in again: hence a few rounds
+    (`pushed_out_of_body`). Should every round find some, each
     strand still inside is turned out of the pinch that holds it (`_turn_out_of_pinches`, up to
     `turns` rounds), then the vertices still inside and less than `final_depth` x `margin` deep
     are pushed out without the projection (each by `margin` plus its depth, which stretches its
@@ -55,18 +58,17 @@ def keep_out_of_body(x: torch.Tensor, rigid: torch.Tensor, body, *, margin: floa
 
     Returns:
         (B, M, N, 3) positions [m] (no autograd).
-    """
-    from hairwarp.config import NUM_FIXED_VERTICES
-    from hairwarp.ops import follow_the_leader, hair_body_signed_distance_and_normal
 
-    for _ in range(passes):
-        distance, direction = hair_body_signed_distance_and_normal(x, body, max_distance=_KEEP_OUT_QUERY)
-        near = distance < trigger * margin
-        near[..., :NUM_FIXED_VERTICES] = False
-        if not bool(near.any()):
-            return x
-        push = torch.where(near, margin - distance, torch.zeros_like(distance))
-        x = follow_the_leader(rigid, x + push[..., None] * direction, check=False)
+    Raises:
+        ValueError: naming the argument for a wrong shape, dtype or device, NaN/Inf in `x`, or a
+            margin that is not a finite number >= 0 (checked once, not per round).
+    """
+    from hairwarp.ops import hair_body_keep_out_push
+
+    _check_arguments(x, rigid, body, margin)
+    x, rounds = pushed_out_of_body(x, rigid, body, margin=margin, passes=passes, trigger=trigger, check=False)
+    if rounds < passes:
+        return x
     # The rounds ran out. Where two body parts meet (the arm against the torso) the push takes a
     # vertex out of one into the other: those strands are turned out of the pinch instead.
     x = _turn_out_of_pinches(x, rigid, body, margin=margin, rounds=turns)
@@ -76,11 +78,100 @@ def keep_out_of_body(x: torch.Tensor, rigid: torch.Tensor, body, *, margin: floa
     # its depth (its two segments stretch by as much). Deeper ones stay: pushed without the
     # projection they stretched whole strands (whiplash at full size: a frame's segments 1.5 %
     # longer on average, eighteenth session).
-    distance, direction = hair_body_signed_distance_and_normal(x, body, max_distance=_KEEP_OUT_QUERY)
-    shallow = (distance < 0.0) & (distance > -final_depth * margin)
-    shallow[..., :NUM_FIXED_VERTICES] = False
-    push = torch.where(shallow, margin - distance, torch.zeros_like(distance))
-    return x + push[..., None] * direction
+    return hair_body_keep_out_push(x, body, margin=margin, push_below=0.0, push_above=-final_depth * margin,
+                                   max_distance=_KEEP_OUT_QUERY, check=False)[0]
+
+
+def pushed_out_of_body(x: torch.Tensor, rigid: torch.Tensor, body, *, margin: float = KEEP_OUT_MARGIN,
+                       passes: int = KEEP_OUT_PASSES, trigger: float = KEEP_OUT_TRIGGER,
+                       check: bool = True) -> tuple[torch.Tensor, int]:
+    """The rounds of `keep_out_of_body` alone: push (`hair_body_keep_out_push`), then project
+    (follow-the-leader), until a round pushes nothing or `passes` rounds have pushed.
+
+    Args:
+        x, rigid, body, margin, passes, trigger: as `keep_out_of_body`'s.
+        check: validate the arguments (False: a caller that did).
+
+    Returns:
+        ((B, M, N, 3) positions [m]: the input of the first round that pushed nothing, bit for
+        bit, or the last round's projection; the number of rounds that pushed, == passes when
+        every round did).
+    """
+    from hairwarp.ops import follow_the_leader, hair_body_keep_out_push
+
+    if check:
+        _check_arguments(x, rigid, body, margin)
+    pushed_counts = _RoundCounts(passes, x.device)
+    for k in range(passes):
+        pushed, _ = hair_body_keep_out_push(x, body, margin=margin, push_below=trigger * margin,
+                                            max_distance=_KEEP_OUT_QUERY, pushed_count=pushed_counts.slot(k),
+                                            check=False)
+        # The count is read after the projection is queued (`_RoundCounts`: why every round).
+        pushed_counts.send(k)
+        projected = follow_the_leader(rigid, pushed, check=False)
+        if pushed_counts.read(k) == 0:
+            return x, k
+        x = projected
+    return x, passes
+
+
+class _RoundCounts:
+    """The pushed-vertex count of each round on the device, read by the host a round at a time.
+
+    The rounds stop at the first that pushes nothing, so each round's count is read: one host
+    synchronisation per round. On CUDA the read waits for the push alone: the count is copied
+    to pinned host memory behind it and the round's projection is queued before the host waits,
+    so the GPU projects while the host reads the count and queues the next round. A round that
+    pushed nothing so wastes one projection (18 us on an H100 at 1 024 x 100, the tile kernel,
+    docs/physics.md section 1), where reading first would idle the GPU for a host round trip
+    (a copy, a wake-up and two launches: tens of microseconds, estimated, not measured) in
+    every round that goes on. Measured on the 2-core CPU (long straight hair grown on the body
+    at 128 x 100, its network drape), where every launch has finished when it returns: a read
+    costs 1.3 us, a round (push and projection) 5.6 ms, a round's three launches alone ~40 us
+    of host time. Rejected: reading every other round (a stop after an odd number of rounds
+    then runs one more whole round: 5.6 ms there, an extra query on CUDA); kernels that skip on
+    a device flag with one read at the end (all `passes` rounds are launched, ~40 us of host
+    time each on the CPU, that rounds which stop early, the common case, never spend; it pays
+    only for rounds replayed from a CUDA graph, and the pass's pinch turns are host-driven and
+    its body and hair change from call to call).
+    """
+
+    def __init__(self, passes: int, device: torch.device):
+        self._device = torch.zeros(max(passes, 1), dtype=torch.int32, device=device)
+        self._cuda = device.type == "cuda"
+        if self._cuda:
+            self._host = torch.empty(max(passes, 1), dtype=torch.int32, pin_memory=True)
+            self._sent = torch.cuda.Event()
+
+    def slot(self, k: int) -> torch.Tensor:
+        """Round k's counter, (1,) int32 on the device (zeroed)."""
+        return self._device[k:k + 1]
+
+    def send(self, k: int) -> None:
+        """Start copying round k's count to the host (after the work queued so far)."""
+        if self._cuda:
+            self._host[k:k + 1].copy_(self._device[k:k + 1], non_blocking=True)
+            self._sent.record()
+
+    def read(self, k: int) -> int:
+        """Round k's count, once `send(k)`'s copy has landed."""
+        if self._cuda:
+            self._sent.synchronize()
+            return int(self._host[k])
+        return int(self._device[k])
+
+
+def _check_arguments(x: torch.Tensor, rigid: torch.Tensor, body, margin: float) -> None:
+    """The body pass's arguments, checked once (its rounds run unchecked)."""
+    from hairwarp._validate import check_tensor
+    from hairwarp.ops import BodyMesh
+
+    if not isinstance(body, BodyMesh):
+        raise ValueError(f"body: expected a BodyMesh, got {type(body).__name__}")
+    check_tensor("x", x, shape=(None, None, None, 3), device=body.device, allow_empty=False)
+    check_tensor("rigid", rigid, shape=tuple(x.shape), dtypes=(x.dtype,), device=x.device, finite=False)
+    if not (math.isfinite(float(margin)) and float(margin) >= 0.0):
+        raise ValueError(f"margin: expected a finite number >= 0, got {margin}")
 
 
 def _axes(like: torch.Tensor) -> torch.Tensor:
@@ -177,4 +268,4 @@ def keep_out_of_body_in_frames(x: torch.Tensor, frames, **settings) -> torch.Ten
 
 
 __all__ = ["KEEP_OUT_FINAL_DEPTH", "KEEP_OUT_MARGIN", "KEEP_OUT_PASSES", "KEEP_OUT_TRIGGER", "KEEP_OUT_TURNS",
-           "keep_out_of_body", "keep_out_of_body_in_frames"]
+           "keep_out_of_body", "keep_out_of_body_in_frames", "pushed_out_of_body"]

@@ -5,6 +5,7 @@ from hairwarp.ops.distances import edge_edge_distance, point_triangle_distance
 from hairwarp.ops.hair_body_contact import (
     BodyMesh,
     hair_body_contact_energy,
+    hair_body_keep_out_push,
     hair_body_signed_distance,
     hair_body_signed_distance_and_normal,
     point_mesh_signed_distance,
@@ -32,6 +33,7 @@ __all__ = [
     "hair_hair_contact_pairs",
     "BodyMesh",
     "hair_body_contact_energy",
+    "hair_body_keep_out_push",
     "hair_body_signed_distance",
     "hair_body_signed_distance_and_normal",
     "point_mesh_signed_distance",

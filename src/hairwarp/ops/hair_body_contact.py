@@ -4,7 +4,8 @@ device code in `hairwarp.kernels.hair_body_contact`.
 `BodyMesh` owns the posed body's `wp.Mesh`(es): validated once, refitted in place when the body
 deforms (`update`), and cropped to the triangles the hair can reach (`crop`, `crop_for_hair`).
 `hair_body_contact_energy` is the contact term, `hair_body_signed_distance` the per-vertex
-distance for metrics, `point_mesh_signed_distance` the one-shot signed distance of points.
+distance for metrics, `point_mesh_signed_distance` the one-shot signed distance of points,
+`hair_body_keep_out_push` the body pass's push (`hairwarp.methods.keep_out`).
 
 Sign convention: d < 0 inside the body, by the angle-weighted pseudo-normal of the closest
 feature (face, edge or vertex; see the kernel module for why, and why not the winding number).
@@ -1184,6 +1185,104 @@ def hair_body_signed_distance_and_normal(
     points = x.transpose(-3, -2).contiguous()
     distance, direction = _signed_distance_forward(points.reshape(-1, 3), body, m * n, float(max_distance), n, m)
     return distance.reshape(points.shape[:-1]).transpose(-2, -1), direction.reshape(points.shape).transpose(-3, -2)
+
+
+def hair_body_keep_out_push(
+    x: torch.Tensor, body: BodyMesh, *, margin: float, push_below: float, push_above: float = -math.inf,
+    max_distance: float, pushed_count: torch.Tensor | None = None, check: bool = True,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Hair vertices near or inside the body pushed to `margin` outside it (the body pass's push).
+
+    Every moving vertex (index >= `hairwarp.config.NUM_FIXED_VERTICES`) whose signed distance d
+    (the capped query of `hair_body_signed_distance_and_normal(x, body, max_distance)`) lies in
+    (push_above, push_below) moves by (margin - d) along the outward direction; the other
+    vertices are copied. A capped query (pass 1) and one kernel that settles the misses, pushes
+    and counts (pass 2), with no host synchronisation: the count stays on the device.
+
+    Args:
+        x: (M, N, 3) or (B, M, N, 3) hair vertices [m], float32/float64.
+        body: the posed body; batch size 1 (shared by every hair batch item) or B.
+        margin: [m], finite, >= 0: where a pushed vertex lands (its signed distance then).
+        push_below: [m], finite, <= max_distance: vertices with d below it (and above
+            `push_above`) are pushed.
+        push_above: [m] < push_below (-inf: every vertex below `push_below`, at any depth).
+        max_distance: [m] > 0, finite: the query's cap (distances above it are not needed).
+        pushed_count: optional (1,) int32 tensor on x's device that the number of pushed
+            vertices is added to (a caller's counter, e.g. one slot per round); default a new
+            zeroed one.
+        check: validate the arguments (False: a caller that validated them once; checking the
+            values of a CUDA tensor waits for the GPU).
+
+    Returns:
+        (pushed positions like `x` [m] (no autograd), `pushed_count` (1,) int32 on the device).
+
+    Raises:
+        ValueError: naming the argument for a wrong shape, dtype or device, NaN/Inf, a body whose
+            batch size matches neither 1 nor B, or numbers out of range.
+    """
+    if check:
+        _check_body(body)
+        _check_hair(x, body)
+        numbers = {"margin": margin, "push_below": push_below, "max_distance": max_distance}
+        for name, value in numbers.items():
+            if not math.isfinite(float(value)):
+                raise ValueError(f"{name}: expected a finite number, got {value}")
+        if not float(margin) >= 0.0:
+            raise ValueError(f"margin: expected a number >= 0, got {margin}")
+        if not float(max_distance) > 0.0:
+            raise ValueError(f"max_distance: expected a number > 0, got {max_distance}")
+        if not float(push_below) <= float(max_distance):
+            raise ValueError(f"push_below: expected a number <= max_distance ({max_distance}), got {push_below}")
+        if not float(push_above) < float(push_below):
+            raise ValueError(f"push_above: expected a number < push_below ({push_below}), got {push_above}")
+        if pushed_count is not None:
+            check_tensor("pushed_count", pushed_count, shape=(1,), dtypes=(torch.int32,), device=x.device)
+            if not pushed_count.is_contiguous():
+                raise ValueError("pushed_count: expected a contiguous tensor")
+    if pushed_count is None:
+        pushed_count = torch.zeros(1, dtype=torch.int32, device=x.device)
+    hair = x.contiguous()
+    pushed = torch.empty_like(hair)
+    scalars = [_warp.scalar(margin, hair.dtype), _warp.scalar(push_above, hair.dtype),
+               _warp.scalar(push_below, hair.dtype)]
+    with _warp.launch_scope(hair.device):
+        queried = _capped_hair_signed_distance(hair, body, float(max_distance))
+        _warp.launch(kernels.hair_body_keep_out_push_kernel, dim=hair.numel() // 3, inputs=queried + scalars,
+                     outputs=[_warp.as_warp(pushed, vec3=True), _warp.as_warp(pushed_count)],
+                     device=_warp.warp_device(hair.device))
+    return pushed, pushed_count
+
+
+def _capped_hair_signed_distance(x: torch.Tensor, body: BodyMesh, max_distance: float) -> list:
+    """Pass 1 of the capped query of contiguous (..., M, N, 3) hair in its own layout
+    (`kernels.hair_capped_signed_distance_kernel`), and the winding pass where the body has
+    pieces signed by it; inside `_warp.launch_scope`. Returns the arguments of a pass 2
+    (`kernels.hair_body_keep_out_push_kernel`) up to its own: the hair, the body, the counts,
+    the cap and pass 1's distance, gradient, side and hit distance (Warp views that keep their
+    tensors alive).
+    """
+    m, n = x.shape[-3], x.shape[-2]
+    count = x.numel() // 3
+    device = _warp.warp_device(x.device)
+    hair = _warp.as_warp(x, vec3=True)
+    counts = [body.num_vertices, body.num_faces, _body_stride(body, count // (m * n))]
+    scalars = [_warp.scalar(max_distance, x.dtype), _warp.scalar(_ZERO_DISTANCE[x.dtype], x.dtype)]
+    per_vertex = x.shape[:-1]
+    results = [_warp.as_warp(torch.empty(per_vertex, dtype=x.dtype, device=x.device)),
+               _warp.as_warp(torch.empty_like(x), vec3=True),
+               _warp.as_warp(torch.empty(per_vertex, dtype=torch.int32, device=x.device)),
+               _warp.as_warp(torch.empty(per_vertex, dtype=torch.float32, device=x.device))]
+    winding = _warp.as_warp(torch.empty(per_vertex, dtype=torch.int32, device=x.device))
+    mesh = body._kernel_arrays(x.dtype)
+    _warp.launch(kernels.hair_capped_signed_distance_kernel, dim=count, inputs=[hair] + mesh + [m, n] + counts + scalars,
+                 outputs=results + [winding], device=device)
+    if body._winding_pieces:
+        # Points whose closest face is a piece on a self-intersection's crossing whose side of the
+        # other part is not known, signed by the winding number before pass 2 reads the sides.
+        _warp.launch(kernels.signed_distance_winding_kernel, dim=count,
+                     inputs=[hair] + mesh + [m * n] + counts + scalars + [winding], outputs=results[:3],
+                     device=device)
+    return [hair] + mesh + [m, n] + counts + scalars + results
 
 
 class HairBodyDistanceCache:

@@ -1,0 +1,73 @@
+"""ms per drape of the body pass (`hairwarp.methods.keep_out.keep_out_of_body`) at batch 1.
+
+The pass runs after every network drape by default (`MethodOptions.keep_out`). Its input here is
+the shipped static network's raw drape (`keep_out=False`) of the scenes of tools/static_rows.py
+that the networks leave partly inside the body: long straight hair grown on the body at rest
+(the rounds stop early) and a bob at head_turn t = 0.5 s. Full size is 1 024 strands x 100
+vertices; on the CPU the default keeps every 8th strand.
+
+    python benchmarks/bm_keep_out.py --device cuda --out OUT
+    python benchmarks/bm_keep_out.py --device cpu --out OUT          # --strand-stride 8
+
+Prints one row per scene (ms per drape, the rounds the pass ran where the library reports them)
+and writes OUT/keep_out.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+import torch
+
+# name -> build_scene arguments (tools/static_rows.py's scenes).
+SCENES = {
+    "long_straight_rest_grown_on_body": dict(hairstyle="long_straight", pose="rest", grow="body"),
+    "bob_head_turn_0.5s": dict(hairstyle="bob", pose="head_turn", time=0.5),
+}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--strand-stride", type=int, default=None, help="default: 1 on CUDA, 8 on the CPU")
+    parser.add_argument("--scenes", default=",".join(SCENES))
+    parser.add_argument("--repeats", type=int, default=10)
+    parser.add_argument("--out", default="hairwarp-out")
+    args = parser.parse_args(argv)
+
+    import hairwarp as hw
+    from hairwarp.methods import keep_out
+    from hairwarp.runtime import machine_description, machine_name, time_ms
+
+    device = torch.device(args.device)
+    stride = args.strand_stride or (1 if device.type == "cuda" else 8)
+    os.makedirs(args.out, exist_ok=True)
+    rows = []
+    for name in args.scenes.split(","):
+        scene = hw.build_scene(strand_stride=stride, **SCENES[name])
+        raw = hw.drape(scene, method="static", device=device, keep_out=False, progress=False)
+        x = raw.positions[None].float().contiguous()
+        rigid = raw.frames.rigid.positions.float().contiguous()
+        body = raw.frames.body_mesh
+        with torch.no_grad():
+            ms = time_ms(lambda: keep_out.keep_out_of_body(x, rigid, body), device, repeats=args.repeats)
+            rounds = getattr(keep_out, "pushed_out_of_body", None)
+            rounds = None if rounds is None else rounds(x, rigid, body)[1]
+        row = {"scene": name, "strands": x.shape[1], "vertices": x.shape[2], "keep_out_ms": ms,
+               "push_rounds": rounds}
+        rows.append(row)
+        print(f"{name}: {x.shape[1]} x {x.shape[2]}, {ms:.2f} ms per drape"
+              + ("" if rounds is None else f", {rounds} pushing rounds"), flush=True)
+    record = {"device": machine_name(device), "machine": machine_description(device),
+              "command": "python benchmarks/bm_keep_out.py " + " ".join(sys.argv[1:] if argv is None else argv),
+              "strand_stride": stride, "rows": rows}
+    with open(os.path.join(args.out, "keep_out.json"), "w") as fh:
+        json.dump(record, fh, indent=1, default=float)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
