@@ -3,7 +3,8 @@
 The pass runs after every network drape by default (`MethodOptions.keep_out`). Its input here is
 the shipped static network's raw drape (`keep_out=False`) of the scenes of tools/static_rows.py
 that the networks leave partly inside the body: long straight hair grown on the body at rest
-(the rounds stop early) and a bob at head_turn t = 0.5 s. Full size is 1 024 strands x 100
+(the rounds stop early), a bob at head_turn t = 0.5 s and long curly hair grown on the head at
+nod t = 0.5 s (every round pushes, then the pinch turns run). Full size is 1 024 strands x 100
 vertices; on the CPU the default keeps every 8th strand.
 
     python benchmarks/bm_keep_out.py --device cuda --out OUT
@@ -26,6 +27,7 @@ import torch
 SCENES = {
     "long_straight_rest_grown_on_body": dict(hairstyle="long_straight", pose="rest", grow="body"),
     "bob_head_turn_0.5s": dict(hairstyle="bob", pose="head_turn", time=0.5),
+    "long_curly_nod_0.5s_grown_on_head": dict(hairstyle="long_curly", pose="nod", time=0.5, grow="head"),
 }
 
 
