@@ -1019,6 +1019,7 @@ def hair_capped_signed_distance_kernel(
     body_batch_stride: int,
     max_distance: Any,
     zero_dist: Any,
+    active_strands: wp.array(dtype=wp.int32),
     # Out:
     distance_out: wp.array(dtype=Any),
     gradient_out: wp.array(dtype=Any),
@@ -1029,8 +1030,20 @@ def hair_capped_signed_distance_kernel(
     """`signed_distance_capped_kernel` (pass 1 of 2) of hair (B, M, N) vec3 in its own layout,
     threads in (batch, vertex, strand) order (`hair_vertex_of_thread`); outputs in the hair's
     order. Pass 2 is `hair_body_keep_out_push_kernel`'s.
+
+    `active_strands`: (B * M,) flags, or an empty array for every strand. The vertices of a
+    strand flagged 0 are not queried: they report a hit at `max_distance` with a zero gradient
+    (a round of the body pass queries only the strands the last round moved).
     """
     i, v = hair_vertex_of_thread(wp.tid(), num_strands, num_vertices)
+    if active_strands.shape[0] > 0:
+        if active_strands[i // num_vertices] == 0:
+            side_out[i] = 1
+            hit_distance_out[i] = wp.float32(max_distance)
+            distance_out[i] = max_distance
+            gradient_out[i] = x[i] * (zero_dist * type(zero_dist)(0.0))
+            winding_out[i] = 0
+            return
     body = (i // (num_strands * num_vertices)) * body_batch_stride
     d, g, side, hit_distance, found = capped_signed_distance(
         mesh_ids[body], body_vertices, faces, vertex_normals, edge_normals, first_piece, seam_sides,
@@ -1072,13 +1085,16 @@ def hair_body_keep_out_push_kernel(
     # Out:
     pushed_out: wp.array(dtype=Any),
     pushed_count_out: wp.array(dtype=wp.int32),
+    pushed_strands_out: wp.array(dtype=wp.int32),
 ):
     """The body pass's push of hair (B, M, N) vec3, threads as `hair_capped_signed_distance_kernel`'s,
     whose outputs (`distance`, `gradient`, `side`, `hit_distance`; the winding pass settled) it
     reads: each moving vertex (index >= FIRST_MOVING_VERTEX) gets its capped signed distance d
     (pass 2, `capped_signed_distance_of_miss`, where pass 1 missed) and, where
     push_above < d < push_below, moves by (margin - d) along the outward direction, counted in
-    `pushed_count_out[0]` (added to: zeroed by the caller); every other vertex is copied.
+    `pushed_count_out[0]` (added to: zeroed by the caller) and its strand flagged in
+    `pushed_strands_out` ((B * M,), set to 1: zeroed by the caller; an empty array: not flagged);
+    every other vertex is copied.
     """
     i, v = hair_vertex_of_thread(wp.tid(), num_strands, num_vertices)
     p = x[i]
@@ -1097,6 +1113,8 @@ def hair_body_keep_out_push_kernel(
     if d > push_above and d < push_below:
         pushed_out[i] = p + g * (margin - d)
         wp.atomic_add(pushed_count_out, 0, 1)
+        if pushed_strands_out.shape[0] > 0:
+            pushed_strands_out[i // num_vertices] = 1
     else:
         pushed_out[i] = p
 

@@ -377,6 +377,35 @@ def test_keep_out_push_moves_near_and_inside_vertices_to_the_margin(rng, device,
     assert pushed.shape == x[0].shape and int(count) == int((moving[0] & (d[0] < below)).sum())
 
 
+def test_keep_out_push_queries_only_the_active_strands_and_flags_the_pushed_ones(rng, device):
+    """`hair_body_keep_out_push(active_strands=, pushed_strands=)`: a strand flagged 0 is copied
+    bit for bit even where it is inside; the active ones are pushed as with no flags; every strand
+    with a pushed vertex, and no other, is flagged 1 (the next round's active strands)."""
+    from hairwarp.ops import hair_body_keep_out_push
+
+    _, _, vt, ft = _sphere(dtype=torch.float64, device=device)
+    body = BodyMesh(vt, ft)
+    x = _t(_in_and_out_strands(rng, m=16, n=20), torch.float64, device)[None].expand(2, -1, -1, -1).contiguous()
+    x[:, 10:] += 10.0  # six strands far from the body
+    settings = dict(margin=0.05, push_below=0.025, max_distance=0.1)
+    everything, _ = hair_body_keep_out_push(x, body, **settings)
+    moved = (everything != x).any(-1).any(-1)  # (2, 16): strands with a pushed vertex
+    assert bool(moved[:, :10].all()) and not bool(moved[:, 10:].any())
+    active = torch.ones((2, 16), dtype=torch.int32, device=device)
+    active[0, ::2] = 0
+    active[1, 1::2] = 0
+    flagged = torch.zeros((2, 16), dtype=torch.int32, device=device)
+    pushed, count = hair_body_keep_out_push(x, body, **settings, active_strands=active, pushed_strands=flagged)
+    on = active.bool()
+    assert torch.equal(pushed[~on], x[~on]) and torch.equal(pushed[on], everything[on])
+    assert torch.equal(flagged.bool(), moved & on)
+    assert int(count) == int(((everything != x).any(-1) & on[..., None]).sum())
+    with pytest.raises(ValueError, match="active_strands"):
+        hair_body_keep_out_push(x, body, **settings, active_strands=active[0])
+    with pytest.raises(ValueError, match="pushed_strands"):
+        hair_body_keep_out_push(x, body, **settings, pushed_strands=flagged.long())
+
+
 def test_keep_out_push_bad_input_raises_naming_the_argument():
     from hairwarp.ops import hair_body_keep_out_push
 

@@ -86,7 +86,8 @@ def pushed_out_of_body(x: torch.Tensor, rigid: torch.Tensor, body, *, margin: fl
                        passes: int = KEEP_OUT_PASSES, trigger: float = KEEP_OUT_TRIGGER,
                        check: bool = True) -> tuple[torch.Tensor, int]:
     """The rounds of `keep_out_of_body` alone: push (`hair_body_keep_out_push`), then project
-    (follow-the-leader), until a round pushes nothing or `passes` rounds have pushed.
+    (follow-the-leader), until a round pushes nothing or `passes` rounds have pushed; each round
+    after the first queries only the strands the round before it pushed.
 
     Args:
         x, rigid, body, margin, passes, trigger: as `keep_out_of_body`'s.
@@ -102,10 +103,17 @@ def pushed_out_of_body(x: torch.Tensor, rigid: torch.Tensor, body, *, margin: fl
     if check:
         _check_arguments(x, rigid, body, margin)
     pushed_counts = _RoundCounts(passes, x.device)
+    # After the first round only the strands the last round pushed are queried: the others are
+    # as that round found them (the projection leaves a strand at its rest lengths where it
+    # was, up to rounding), so none of their vertices is near. At full size most rounds after
+    # the first push a few strands of 1 024: the rest of each round's queries were wasted.
+    flags = torch.zeros((2, *x.shape[:-2]), dtype=torch.int32, device=x.device)
     for k in range(passes):
+        active, flagged = (None if k == 0 else flags[(k - 1) % 2]), flags[k % 2]
+        flagged.zero_()
         pushed, _ = hair_body_keep_out_push(x, body, margin=margin, push_below=trigger * margin,
                                             max_distance=_KEEP_OUT_QUERY, pushed_count=pushed_counts.slot(k),
-                                            check=False)
+                                            active_strands=active, pushed_strands=flagged, check=False)
         # The count is read after the projection is queued (`_RoundCounts`: why every round).
         pushed_counts.send(k)
         projected = follow_the_leader(rigid, pushed, check=False)

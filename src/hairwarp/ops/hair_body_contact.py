@@ -1189,7 +1189,8 @@ def hair_body_signed_distance_and_normal(
 
 def hair_body_keep_out_push(
     x: torch.Tensor, body: BodyMesh, *, margin: float, push_below: float, push_above: float = -math.inf,
-    max_distance: float, pushed_count: torch.Tensor | None = None, check: bool = True,
+    max_distance: float, pushed_count: torch.Tensor | None = None, active_strands: torch.Tensor | None = None,
+    pushed_strands: torch.Tensor | None = None, check: bool = True,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Hair vertices near or inside the body pushed to `margin` outside it (the body pass's push).
 
@@ -1210,6 +1211,10 @@ def hair_body_keep_out_push(
         pushed_count: optional (1,) int32 tensor on x's device that the number of pushed
             vertices is added to (a caller's counter, e.g. one slot per round); default a new
             zeroed one.
+        active_strands: optional (M,) or (B, M) int32 flags like `x`'s strands: only the strands
+            flagged non-zero are queried and pushed, the others copied (None: every strand).
+        pushed_strands: optional (M,) or (B, M) int32 tensor, zeroed by the caller: each strand
+            with a pushed vertex is set to 1 (the next round's `active_strands`).
         check: validate the arguments (False: a caller that validated them once; checking the
             values of a CUDA tensor waits for the GPU).
 
@@ -1239,24 +1244,33 @@ def hair_body_keep_out_push(
             check_tensor("pushed_count", pushed_count, shape=(1,), dtypes=(torch.int32,), device=x.device)
             if not pushed_count.is_contiguous():
                 raise ValueError("pushed_count: expected a contiguous tensor")
+        for name, flags in (("active_strands", active_strands), ("pushed_strands", pushed_strands)):
+            if flags is not None:
+                check_tensor(name, flags, shape=tuple(x.shape[:-2]), dtypes=(torch.int32,), device=x.device)
+                if not flags.is_contiguous():
+                    raise ValueError(f"{name}: expected a contiguous tensor")
     if pushed_count is None:
         pushed_count = torch.zeros(1, dtype=torch.int32, device=x.device)
     hair = x.contiguous()
     pushed = torch.empty_like(hair)
     scalars = [_warp.scalar(margin, hair.dtype), _warp.scalar(push_above, hair.dtype),
                _warp.scalar(push_below, hair.dtype)]
+    none = torch.empty(0, dtype=torch.int32, device=x.device)
+    active = _warp.as_warp(none if active_strands is None else active_strands)
+    flagged = _warp.as_warp(none if pushed_strands is None else pushed_strands)
     with _warp.launch_scope(hair.device):
-        queried = _capped_hair_signed_distance(hair, body, float(max_distance))
+        queried = _capped_hair_signed_distance(hair, body, float(max_distance), active)
         _warp.launch(kernels.hair_body_keep_out_push_kernel, dim=hair.numel() // 3, inputs=queried + scalars,
-                     outputs=[_warp.as_warp(pushed, vec3=True), _warp.as_warp(pushed_count)],
+                     outputs=[_warp.as_warp(pushed, vec3=True), _warp.as_warp(pushed_count), flagged],
                      device=_warp.warp_device(hair.device))
     return pushed, pushed_count
 
 
-def _capped_hair_signed_distance(x: torch.Tensor, body: BodyMesh, max_distance: float) -> list:
+def _capped_hair_signed_distance(x: torch.Tensor, body: BodyMesh, max_distance: float, active_strands) -> list:
     """Pass 1 of the capped query of contiguous (..., M, N, 3) hair in its own layout
-    (`kernels.hair_capped_signed_distance_kernel`), and the winding pass where the body has
-    pieces signed by it; inside `_warp.launch_scope`. Returns the arguments of a pass 2
+    (`kernels.hair_capped_signed_distance_kernel`; `active_strands` a Warp int32 array of the
+    strands to query, empty for all), and the winding pass where the body has pieces signed by
+    it; inside `_warp.launch_scope`. Returns the arguments of a pass 2
     (`kernels.hair_body_keep_out_push_kernel`) up to its own: the hair, the body, the counts,
     the cap and pass 1's distance, gradient, side and hit distance (Warp views that keep their
     tensors alive).
@@ -1274,8 +1288,9 @@ def _capped_hair_signed_distance(x: torch.Tensor, body: BodyMesh, max_distance: 
                _warp.as_warp(torch.empty(per_vertex, dtype=torch.float32, device=x.device))]
     winding = _warp.as_warp(torch.empty(per_vertex, dtype=torch.int32, device=x.device))
     mesh = body._kernel_arrays(x.dtype)
-    _warp.launch(kernels.hair_capped_signed_distance_kernel, dim=count, inputs=[hair] + mesh + [m, n] + counts + scalars,
-                 outputs=results + [winding], device=device)
+    _warp.launch(kernels.hair_capped_signed_distance_kernel, dim=count,
+                 inputs=[hair] + mesh + [m, n] + counts + scalars + [active_strands], outputs=results + [winding],
+                 device=device)
     if body._winding_pieces:
         # Points whose closest face is a piece on a self-intersection's crossing whose side of the
         # other part is not known, signed by the winding number before pass 2 reads the sides.
