@@ -48,7 +48,8 @@ def main(argv=None) -> int:
     # and as the network returns them.
     methods += [("static", {"keep_out": False}), ("dynamic", {"keep_out": False})]
     if args.checkpoint:
-        methods += [("static", {"checkpoint": args.checkpoint}), ("static", {"checkpoint": args.checkpoint, "keep_out": False})]
+        methods += [("static", {"checkpoint": args.checkpoint}),
+                    ("static", {"checkpoint": args.checkpoint, "keep_out": False})]
     rows = []
     lines = ["| scene | method | ms | inside % | length change % | E / E* | distance mean / p95 [mm] | tips vs E* [mm] |",
              "|---|---|---:|---:|---:|---:|---:|---:|"]
