@@ -39,6 +39,7 @@ def main(argv=None) -> int:
                    help="a comparison motion, or demo: the demo's (long straight hair grown around the body, a "
                         "one-second head turn) (default: whiplash)")
     p.add_argument("--strand-stride", type=int, default=4)
+    p.add_argument("--settings", default=",".join(SETTINGS), help="comma-separated names of SETTINGS (default: all)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="keep_out_settings_out")
@@ -57,7 +58,10 @@ def main(argv=None) -> int:
     with torch.no_grad():
         rollout = load_inertial_step(None, device).rollout(equilibrium.positions.to(rigid.dtype), rigid)
     rows = {}
+    chosen = args.settings.split(",")
     for name, settings in SETTINGS.items():
+        if name not in chosen:
+            continue
         t0 = time.perf_counter()
         x = keep_out_of_body_in_frames(rollout.clone(), frames, **settings)
         seconds = time.perf_counter() - t0

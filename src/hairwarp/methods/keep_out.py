@@ -232,11 +232,12 @@ def _turn_out_of_pinches(x: torch.Tensor, rigid: torch.Tensor, body, *, margin: 
     axes = _axes(x)
     weights = torch.tensor([0.25, 0.5, 1.0, 2.0, 4.0], dtype=x.dtype, device=x.device)
     index = torch.arange(n, device=x.device)
-    for _ in range(rounds):
+    inside_before = inside[bs, ms].sum(-1)
+    for k in range(rounds + 1):
         distance = hair_body_signed_distance(strands, body)[bs, slot]  # (S, N)
         stuck = distance < 0
         stuck[:, :NUM_FIXED_VERTICES] = False
-        if not bool(stuck.any()):
+        if k == rounds or not bool(stuck.any()):
             break
         first = torch.where(stuck, index, torch.full_like(index, n)).min(-1).values
         rows = torch.nonzero(first < n)[:, 0]
@@ -257,8 +258,12 @@ def _turn_out_of_pinches(x: torch.Tensor, rigid: torch.Tensor, body, *, margin: 
         score = torch.where(clearance >= 0.5 * margin, (turns * own[:, None]).sum(-1), clearance - 10.0)
         strands[b, s, i] = candidates[torch.arange(len(i), device=x.device), score.argmax(-1)]
         strands = follow_the_leader(rest, strands, check=False)
+    # A turn can take later vertices of its strand into another part of the body: a strand left
+    # with as many vertices inside as it had keeps its old place (whiplash at full size, the
+    # swept inertial step: the turns raised the worst frame's share inside from 1.06 % to 1.13 %).
+    better = stuck.sum(-1) < inside_before
     x = x.clone()
-    x[bs, ms] = strands[bs, slot]
+    x[bs[better], ms[better]] = strands[bs[better], slot[better]]
     return x
 
 
