@@ -194,6 +194,42 @@ def test_keep_out_of_body_turns_strands_out_of_a_pinch_between_two_parts():
     torch.testing.assert_close(turned[:, :, :2], rigid[:, :, :2])
 
 
+def test_pinch_turns_never_leave_a_strand_with_more_vertices_inside():
+    """`_turn_out_of_pinches` on strands hanging in every direction through two overlapping spheres:
+    a strand the turns do not free of some of its vertices inside keeps its place bit for bit, so
+    no strand ends with more vertices inside than it had."""
+    from hairwarp.config import NUM_FIXED_VERTICES
+    from hairwarp.methods.keep_out import KEEP_OUT_MARGIN, _turn_out_of_pinches
+
+    v, f = icosphere(8, radius=0.1)
+    v, f = torch.tensor(v, dtype=torch.float32), torch.tensor(f, dtype=torch.int32)
+    body = BodyMesh(torch.cat([v + torch.tensor([-0.09, 0.0, 0.0]), v + torch.tensor([0.09, 0.0, 0.0])]),
+                    torch.cat([f, f + len(v)]))
+    g = torch.Generator().manual_seed(3)
+    m, n = 48, 24
+    roots = torch.tensor([0.0, 0.16, 0.0]) + 0.04 * (torch.rand(m, 3, generator=g) - 0.5)
+    heading = torch.nn.functional.normalize(torch.randn(m, 3, generator=g) * torch.tensor([1.0, 0.3, 1.0])
+                                            + torch.tensor([0.0, -1.0, 0.0]), dim=-1)
+    bend = 0.02 * torch.randn(m, n, 3, generator=g).cumsum(1)
+    x = (roots[:, None] + 0.012 * torch.arange(n)[None, :, None] * heading[:, None] + bend)[None]
+    from hairwarp.ops import follow_the_leader
+
+    rigid = x.clone()
+    x = follow_the_leader(rigid, x, check=False)
+
+    def inside(y):
+        return (hair_body_signed_distance(y, body)[..., NUM_FIXED_VERTICES:] < 0).sum(-1)[0]
+
+    before = inside(x)
+    assert int((before > 0).sum()) >= 20  # most strands start inside
+    turned = _turn_out_of_pinches(x, rigid, body, margin=KEEP_OUT_MARGIN, rounds=12)
+    after = inside(turned)
+    assert bool((after <= before).all())
+    kept = after == before
+    assert torch.equal(turned[0, kept], x[0, kept]) and int(kept.sum()) < m
+    assert int((after < before).sum()) >= 5
+
+
 def _keep_out_in_torch(x, rigid, body, *, margin, passes, trigger, turns, final_depth):
     """Oracle: the body pass as it was written before its rounds became one kernel launch each
     (`hair_body_keep_out_push`): plain torch over `hair_body_signed_distance_and_normal`, a host
