@@ -194,6 +194,33 @@ def test_keep_out_of_body_turns_strands_out_of_a_pinch_between_two_parts():
     torch.testing.assert_close(turned[:, :, :2], rigid[:, :, :2])
 
 
+def test_constants_fitted_by_length_follow_the_anchors():
+    """`fit_constants_by_length`: strands of each anchor's length get its G, beta and tension
+    factor; a strand between two anchors gets constants between theirs; bad anchors are refused."""
+    from hairwarp.models.inertial import fit_constants_by_length
+
+    step = InertialStep(InertialConfig(coupling="chain"))
+    anchors = [(0.18, 0.99, 0.98, 0.5), (0.3, 0.99, 0.95, 1.0), (0.55, 0.985, 0.9, 2.0)]
+    error = fit_constants_by_length(step, anchors)
+    assert error < 0.2
+    lengths = [0.18, 0.3, 0.55, 0.42]
+    rigid = torch.zeros(len(lengths), 40, 3)
+    for i, length in enumerate(lengths):
+        rigid[i, :, 1] = -torch.linspace(0.0, length, 40)
+    raw = step.net(vertex_features(rigid)).detach()  # (M, N, 3): logit G, logit beta, log tension
+    beta = torch.sigmoid(raw[:, 20, 1])
+    gate = torch.sigmoid(raw[:, 20, 0])
+    tension = torch.exp(raw[:, 20, 2])
+    for i, (_, g, b, t) in enumerate(anchors):
+        assert abs(float(beta[i]) - b) < 0.01 and abs(float(gate[i]) - g) < 0.003
+        assert abs(float(tension[i]) / t - 1) < 0.15
+    assert 0.9 < float(beta[3]) < 0.95 and 1.0 < float(tension[3]) < 2.0
+    with pytest.raises(ValueError, match="anchors"):
+        fit_constants_by_length(step, [])
+    with pytest.raises(ValueError, match="anchors"):
+        fit_constants_by_length(step, [(0.3, 1.0, 0.9, 1.0)])
+
+
 def test_pinch_turns_never_leave_a_strand_with_more_vertices_inside():
     """`_turn_out_of_pinches` on strands hanging in every direction through two overlapping spheres:
     a strand the turns do not free of some of its vertices inside keeps its place bit for bit, so

@@ -27,8 +27,18 @@ term is mostly the equilibrium's offset, which no constant of the step removes. 
 setting and the shipped step are then run as the method "inertial" (with the body pass) on the
 held-out motions for penetration and length.
 
+The same rule on each hairstyle's training clips alone gives one setting per hairstyle; in the
+nineteenth session's run they fell in order of strand length (bob: beta 0.98, tension x0.5;
+medium wavy: 0.95, x1; long straight and long curly: 0.9, x2; G 0.99 for all). OUT/lengthwise_inertial.pt
+is a chain step whose constants follow the strand length through those anchors
+(`hairwarp.models.inertial.fit_constants_by_length`); `--lengthwise-from OUT/inertial_sweep.json`
+writes it from an earlier run without the clips.
+
 Writes OUT/inertial_sweep.json, OUT/inertial_sweep.md, OUT/chosen_inertial.pt (the chosen
-constants as a step checkpoint) and OUT/inertial_sweep.png (the objective over G x beta).
+constants as a step checkpoint), OUT/lengthwise_inertial.pt and OUT/inertial_sweep.png (the
+objective over G x beta).
+
+    python3 tools/inertial_sweep.py --lengthwise-from docs/network_diagnosis/inertial_sweep_session19_h100.json --out OUT
 """
 
 from __future__ import annotations
@@ -121,6 +131,9 @@ def main(argv=None) -> int:
     parser.add_argument("--tensions", default="0.5,1,2", help="tension factors (x a hanging strand's)")
     parser.add_argument("--choose", default="goals", choices=("goals", "loss"),
                         help="how the training clips choose the setting (module docstring)")
+    parser.add_argument("--lengthwise-from", default=None, metavar="JSON",
+                        help="skip the clips and the grid: read an earlier run's inertial_sweep.json and write "
+                             "OUT/lengthwise_inertial.pt from it (module docstring)")
     args = parser.parse_args(argv)
 
     from hairwarp.methods import MethodOptions
@@ -131,6 +144,12 @@ def main(argv=None) -> int:
     from train_inertial import EVALUATION, _evaluation_scene
 
     device = torch.device(args.device)
+    os.makedirs(args.out, exist_ok=True)
+    if args.lengthwise_from:
+        with open(args.lengthwise_from) as f:
+            record = json.load(f)
+        _save_lengthwise(record["settings"], record["train_clips"], record["equilibrium"], args)
+        return 0
     cache = os.path.join(args.out, "clips")
     os.makedirs(cache, exist_ok=True)
     tag = f"s{args.strand_stride}"
@@ -179,6 +198,8 @@ def main(argv=None) -> int:
                            "train_objective": chosen["train_objective"],
                            "train_swing_goals_met": chosen["train_swing_goals_met"]})
 
+    _save_lengthwise(results, list(train), baseline, args)
+
     # The chosen step and the shipped one as the method runs them (the body pass included).
     method_rows = {}
     for name, checkpoint in (("shipped", None), ("chosen", os.path.join(args.out, "chosen_inertial.pt"))):
@@ -207,6 +228,42 @@ def main(argv=None) -> int:
     print(text)
     _plot(results, os.path.join(args.out, "inertial_sweep.png"), machine, size)
     return 0
+
+
+def _save_lengthwise(results: list[dict], train: list[str], baseline: dict, args) -> list:
+    """Choose a setting per hairstyle of the training clips (the same rule on that hairstyle's
+    clips alone), and write OUT/lengthwise_inertial.pt: a chain step whose constants follow the
+    hairstyles' median strand length (`fit_constants_by_length`). Returns the anchors
+    [(L [m], G, beta, tension, hairstyle)].
+    """
+    from hairwarp.models.checkpoint import save_checkpoint
+    from hairwarp.models.inertial import fit_constants_by_length
+    from hairwarp.training.inertial import ClipSpec, clip_scene
+
+    styles: dict[str, list[str]] = {}
+    for name in train:
+        styles.setdefault(name.split("_head_moves")[0], []).append(name)
+    anchors = []
+    for style, names in styles.items():
+        def rank(r, names=names):
+            objective = sum(r["rows"][n]["loss"] / baseline[n]["loss"] for n in names) / len(names)
+            goals = sum(_swing_goals_met(r["rows"][n]) for n in names)
+            return (-goals, objective) if args.choose == "goals" else (objective,)
+
+        best = min(results, key=rank)
+        rigid = clip_scene(ClipSpec(style, "head_moves", 0, 0.0, 0.05), 8, 100).frames().rigid.positions[0]
+        length = float((rigid[:, 1:] - rigid[:, :-1]).norm(dim=-1).sum(-1).median())
+        anchors.append((length, best["gate"], best["retention"], best["tension"], style))
+    anchors.sort()
+    step = _step(0.98, 0.9, 1.0)
+    error = fit_constants_by_length(step, [a[:4] for a in anchors])
+    save_checkpoint(os.path.join(args.out, "lengthwise_inertial.pt"), step.float(),
+                    extra={"chosen_by": f"tools/inertial_sweep.py --choose {args.choose}, per hairstyle",
+                           "anchors": anchors, "fit_max_logit_error": error})
+    for a in anchors:
+        print(f"{a[4]}: median strand length {a[0]:.3f} m -> G {a[1]:g}, beta {a[2]:g}, tension x{a[3]:g}")
+    print(f"lengthwise step written (largest logit error of the fit {error:.3f})", flush=True)
+    return anchors
 
 
 def _fmt(v, spec=".2f"):

@@ -284,5 +284,67 @@ class InertialStep(nn.Module):
         return torch.stack(out)
 
 
+def fit_constants_by_length(step: InertialStep, anchors, *, iterations: int = 3000, seed: int = 0) -> float:
+    """Fit `step`'s coefficient MLP so that its G, beta and (chain) tension factor depend on the
+    strand length L alone, interpolated between anchors.
+
+    The logits of G and beta and the log of the tension factor are interpolated linearly in L
+    between the anchors and held constant beyond the first and the last; the MLP (which reads
+    s / L, s and L) is fitted to them by least squares over L in [0.02, 1.2] m and s / L in
+    [0, 1]. Used for constants chosen per hairstyle on training clips
+    (`tools/inertial_sweep.py`: short hair wants less damping and less tension than long hair).
+
+    Args:
+        step: an `InertialStep` (its MLP is overwritten in place).
+        anchors: [(L [m], G, beta, tension factor), ...], at least one, G and beta in (0, 1),
+            the tension > 0 (ignored by a "vertex" step).
+        iterations: Adam steps of the fit.
+        seed: the fit's sampling.
+
+    Returns:
+        The largest absolute error of the fitted logits at the anchors (a check of the fit).
+
+    Raises:
+        ValueError: no anchors, or values out of range.
+    """
+    rows = sorted((float(a[0]), float(a[1]), float(a[2]), float(a[3])) for a in anchors)
+    if not rows:
+        raise ValueError("anchors: expected at least one (L, G, beta, tension)")
+    for length, gate, retention, tension in rows:
+        if not (length > 0 and 0 < gate < 1 and 0 < retention < 1 and tension > 0):
+            raise ValueError(f"anchors: expected L > 0, G and beta in (0, 1), tension > 0, got "
+                             f"{(length, gate, retention, tension)}")
+    knots = torch.tensor([r[0] for r in rows], dtype=torch.float64)
+    targets = torch.tensor([[math.log(g / (1 - g)), math.log(b / (1 - b)), math.log(t)] for _, g, b, t in rows],
+                           dtype=torch.float64)
+    outputs = step.net[-1].out_features
+
+    def target_of(length: torch.Tensor) -> torch.Tensor:
+        if len(knots) == 1:
+            return targets[:, :outputs].expand(len(length), -1)
+        clamped = length.clamp(float(knots[0]), float(knots[-1]))
+        hi = torch.searchsorted(knots, clamped).clamp(1, len(knots) - 1)
+        lo = hi - 1
+        w = ((clamped - knots[lo]) / (knots[hi] - knots[lo]).clamp_min(1e-12)).clamp(0, 1)[:, None]
+        return ((1 - w) * targets[lo] + w * targets[hi])[:, :outputs]
+
+    generator = torch.Generator().manual_seed(seed)
+    parameters = list(step.net.parameters())
+    dtype = parameters[0].dtype
+    optimizer = torch.optim.Adam(parameters, lr=3e-3)
+    for _ in range(iterations):
+        length = 0.02 + 1.18 * torch.rand(512, generator=generator, dtype=torch.float64)
+        length = torch.cat([length, knots])
+        fraction = torch.rand(len(length), generator=generator, dtype=torch.float64)
+        features = torch.stack([fraction, fraction * length, length], dim=-1).to(dtype)
+        loss = (step.net(features) - target_of(length).to(dtype)).square().mean()
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    with torch.no_grad():
+        check = torch.stack([torch.full_like(knots, 0.5), 0.5 * knots, knots], dim=-1).to(dtype)
+        return float((step.net(check).double() - targets[:, :outputs]).abs().max())
+
+
 __all__ = ["COUPLINGS", "DAMPINGS", "InertialConfig", "InertialStep", "NUM_VERTEX_FEATURES", "chain_operator",
-           "hanging_chain_tension", "vertex_features"]
+           "fit_constants_by_length", "hanging_chain_tension", "vertex_features"]
