@@ -136,8 +136,8 @@ def _fidelity_row(result, physics, rigid) -> dict:
     from hairwarp.metrics import motion_fidelity
 
     fid = motion_fidelity(result.positions, physics, rigid)
-    row = {k: fid[k] for k in ("mean_distance_mm", "max_distance_mm", "swing_mm", "physics_swing_mm",
-                               "swing_amplitude_ratio", "swing_correlation")}
+    row = {k: fid[k] for k in ("mean_distance_mm", "max_distance_mm", "strand_distance_p99_mm", "swing_mm",
+                               "physics_swing_mm", "swing_amplitude_ratio", "swing_correlation")}
     row["ms_per_frame"] = result.time_ms
     return row
 

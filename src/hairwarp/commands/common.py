@@ -243,15 +243,17 @@ def markdown_table(rows: list[tuple[str, str, dict]], fidelity: dict | None = No
     head = "| method | ms/frame | penetration % (mean over frames) | length change % (mean) |"
     rule = "|---|---:|---:|---:|"
     if fidelity is not None:
-        head += " distance to physics mean / worst frame [mm] | tip swing [mm] | swing ratio | swing correlation |"
-        rule += "---:|---:|---:|---:|"
+        head += (" distance to physics mean / worst frame [mm] | worst strands (p99, worst frame) [mm] | tip swing [mm] |"
+                 " swing ratio | swing correlation |")
+        rule += "---:|---:|---:|---:|---:|"
     lines = [head, rule]
     for label, ms, m in rows:
         line = f"| {label} | {ms} | {mean(m['penetration_percent']):.3f} | {mean(m['length_change_percent']):.3f} |"
         if fidelity is not None:
             f = fidelity.get(label, {})
             line += (f" {fmt(f.get('mean_distance_mm'), '.1f')} / {fmt(f.get('max_distance_mm'), '.1f')} |"
-                     f" {fmt(f.get('swing_mm'), '.1f')} | {fmt(f.get('swing_amplitude_ratio'), '.2f')} |"
+                     f" {fmt(f.get('strand_distance_p99_mm'), '.1f')} | {fmt(f.get('swing_mm'), '.1f')} |"
+                     f" {fmt(f.get('swing_amplitude_ratio'), '.2f')} |"
                      f" {fmt(f.get('swing_correlation'), '+.2f')} |")
         lines.append(line)
     return "\n".join(lines)
