@@ -9,7 +9,7 @@ import torch
 
 from hairwarp.metrics import motion_fidelity
 from hairwarp.models.checkpoint import load_checkpoint, save_checkpoint
-from hairwarp.models.inertial import (InertialConfig, InertialStep, chain_operator, hanging_chain_tension,
+from hairwarp.models.inertial import (InertialConfig, InertialStep, chain_operator, hanging_chain_tension, limited_change,
                                       vertex_features)
 from hairwarp.ops import BodyMesh, follow_the_leader, hair_body_signed_distance
 from meshes import icosphere
@@ -364,20 +364,34 @@ def test_keep_out_of_body_checks_its_arguments_once():
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="the CUDA path (pinned count reads) needs a CUDA device")
 def test_keep_out_of_body_on_cuda_equals_the_cpu_on_a_side_stream():
     """The CUDA rounds (the count copied to pinned memory behind each push, read after the
-    projection is queued) give the CPU's positions and rounds, also on a stream of their own."""
+    projection is queued) give the CPU's positions and rounds, also on a stream of their own.
+
+    The scenes are moved 1.3 mm off the sphere's mirror plane z = 0 for the CPU comparison: a
+    strand in that plane has two closest faces, one on each side, and the CPU's and the GPU's
+    tree walks may pick either (pushed +2.2 mm or -2.2 mm in z, both right). On one device the
+    default stream and a side stream must agree to the bit.
+    """
     from hairwarp.methods.keep_out import keep_out_of_body, pushed_out_of_body
 
+    off_plane = torch.tensor([0.0, 0.0, 0.0013])
     for (name, x, body), (_, x_cuda, body_cuda) in zip(_keep_out_scenes("cpu", torch.float32),
                                                         _keep_out_scenes("cuda", torch.float32)):
         for case in _KEEP_OUT_CASES:
-            expected = keep_out_of_body(x, x.clone(), body, **case)
+            x_off, x_cuda_off = x + off_plane, x_cuda + off_plane.cuda()
+            expected = keep_out_of_body(x_off, x_off.clone(), body, **case)
+            on_default = keep_out_of_body(x_cuda, x_cuda.clone(), body_cuda, **case)
             stream = torch.cuda.Stream()
             stream.wait_stream(torch.cuda.current_stream())  # the inputs, made on the default stream
             with torch.cuda.stream(stream):
                 out = keep_out_of_body(x_cuda, x_cuda.clone(), body_cuda, **case)
+                out_off = keep_out_of_body(x_cuda_off, x_cuda_off.clone(), body_cuda, **case)
             stream.synchronize()
-            torch.testing.assert_close(out.cpu(), expected, rtol=0, atol=1e-5, msg=lambda m: f"{name} {case}: {m}")
-        assert pushed_out_of_body(x_cuda, x_cuda.clone(), body_cuda)[1] == pushed_out_of_body(x, x.clone(), body)[1]
+            torch.testing.assert_close(out, on_default, rtol=0, atol=0, msg=lambda m: f"{name} {case}: {m}")
+            torch.testing.assert_close(out_off.cpu(), expected, rtol=0, atol=1e-5,
+                                       msg=lambda m: f"{name} {case}: {m}")
+            assert float((out_off.cpu() - x_off).abs().max()) > 1e-3  # the pass pushed
+            assert (pushed_out_of_body(x_cuda_off, x_cuda_off.clone(), body_cuda)[1]
+                    == pushed_out_of_body(x_off, x_off.clone(), body)[1])
 
 
 def test_network_methods_keep_out_of_the_body_by_default():
@@ -614,3 +628,60 @@ def test_the_optimum_equilibrium_is_each_frames_static_drape():
     assert e_opt.shape == (optimum["rigid"].shape[0],)
     assert bool((e_opt <= e_rigid).all()), (e_opt, e_rigid)
     assert float((optimum["equilibrium"] - static["equilibrium"]).norm(dim=-1).max()) > 1e-4
+
+
+def test_limited_change_caps_each_strands_mean_and_keeps_small_ones():
+    change = torch.zeros(3, 6, 3, dtype=torch.float64)
+    change[0, 2:, 0] = 0.004  # mean 4 mm: scaled to the limit
+    change[1, 2:, 1] = 0.0005  # 0.5 mm: kept
+    limited = limited_change(change, 0.001)
+    sizes = limited[:, 2:].norm(dim=-1).mean(dim=-1)
+    assert math.isclose(float(sizes[0]), 0.001, rel_tol=1e-12)
+    torch.testing.assert_close(limited[1:], change[1:], rtol=0, atol=0)
+    torch.testing.assert_close(limited[0] / 0.25, change[0], rtol=1e-12, atol=0)  # direction and shape kept
+
+
+def _flipping_equilibrium(frames=30, flip=range(8, 12)):
+    """4 hanging strands, the head still; their equilibrium swings 0.1 m sideways at the tip for the
+    frames of `flip` (a static network's drape jumping to the other side of a shoulder and back)."""
+    rest = _hanging(4, 8)
+    rigid = rest.expand(frames, -1, -1, -1).clone()
+    tilt = torch.zeros_like(rest)
+    tilt[:, :, 0] = 0.1 * torch.linspace(0, 1, 8, dtype=rest.dtype)
+    jumped = torch.zeros(frames, 1, 1, 1, dtype=rest.dtype)
+    jumped[list(flip)] = 1.0
+    return follow_the_leader(rigid, rigid + jumped * tilt), rigid
+
+
+def test_a_limited_equilibrium_speed_stops_a_jumping_equilibrium_from_flinging_the_strand():
+    equilibrium, rigid = _flipping_equilibrium()
+    swing = {}
+    for speed in (None, 1e6, 0.06):
+        step = InertialStep(InertialConfig(coupling="chain", equilibrium_speed=speed)).double()
+        with torch.no_grad():
+            out = step.rollout(equilibrium, rigid)
+        swing[speed] = out
+    # A limit no jump reaches is no limit.
+    torch.testing.assert_close(swing[1e6], swing[None], rtol=0, atol=1e-12)
+    tip = {k: float((v[:, :, -1] - rigid[:, :, -1]).norm(dim=-1).max()) for k, v in swing.items()}
+    # Unlimited, the step follows the jump (0.1 m at the tip); at 0.06 m/s (1 mm a frame for the
+    # strand's mean) the four jumped frames move the target a few millimetres.
+    assert tip[None] > 0.03, tip
+    assert tip[0.06] < 0.25 * tip[None], tip
+    assert tip[0.06] < 0.01, tip
+
+
+def test_rollout_gradient_through_a_limited_equilibrium_matches_finite_differences():
+    equilibrium, rigid = _flipping_equilibrium(frames=12, flip=range(4, 7))
+    step = InertialStep(InertialConfig(coupling="chain", equilibrium_speed=0.06)).double()
+    target = rigid + 0.01
+    equilibrium = equilibrium.clone().requires_grad_(True)
+    (step.rollout(equilibrium, rigid) - target).square().sum().backward()
+    analytic = equilibrium.grad.clone()
+    for index in [(5, 1, 7, 0), (4, 2, 4, 1), (6, 3, 6, 0)]:  # frames where the limit is active
+        e = torch.zeros_like(equilibrium)
+        e[index] = 1e-6
+        with torch.no_grad():
+            fd = ((step.rollout(equilibrium + e, rigid) - target).square().sum()
+                  - (step.rollout(equilibrium - e, rigid) - target).square().sum()) / 2e-6
+        assert math.isclose(float(analytic[index]), float(fd), rel_tol=1e-5, abs_tol=1e-10), index

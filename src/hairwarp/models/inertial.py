@@ -35,6 +35,10 @@ free vertex to the scalp), so p = E + (I + D + L_w)^-1 d. With w = 0 this is the
 w is a hanging strand's (h^2 g (L - s) / l^2, `hanging_chain_tension`) times a learned factor.
 The operator is one (N-2) x (N-2) inverse per strand, made once per sequence (`coefficients`).
 
+`equilibrium_speed` limits how fast E(t) - P_rigid(t), the equilibrium's offset from the rigid
+placement, may change per strand: the static network's drape can jump between frames where the
+hair cannot, and the step would swing every jump (`InertialConfig.equilibrium_speed`).
+
 Trained on physics trajectories (`hairwarp.training.inertial`): rollouts from the first frame, on
 the step's own predictions, back-propagated through the whole clip.
 """
@@ -77,6 +81,13 @@ class InertialConfig(_DictConfig):
             the pull coupled along the strand by a learned tension (the module docstring).
         tension_init: the chain's tension at initialisation, as a multiple of a hanging strand's
             (`hanging_chain_tension`); the MLP learns the factor per vertex.
+        equilibrium_speed: the fastest the equilibrium's offset from the rigid placement may move
+            [m/s], per strand (the mean over its moving vertices); None, unlimited. The static
+            network's drape of a strand can jump between frames (a long strand flips from one side
+            of the shoulder to the other and back: up to 110 mm in one frame where the physics'
+            strands move at most 17-40 mm), and the step turns every such jump into a swing that
+            flings the strand out (docs/network_diagnosis.md, "Twentieth session"). The pose moves
+            the resting drape slowly; the swing is the step's own.
     """
 
     hidden_dim: int = 32
@@ -86,6 +97,7 @@ class InertialConfig(_DictConfig):
     damping: str = "absolute"
     coupling: str = "vertex"
     tension_init: float = 1.0
+    equilibrium_speed: float | None = None
 
     def __post_init__(self):
         if not isinstance(self.hidden_dim, int) or isinstance(self.hidden_dim, bool) or self.hidden_dim <= 0:
@@ -102,6 +114,10 @@ class InertialConfig(_DictConfig):
             raise ValueError(f"InertialConfig.coupling: expected one of {list(COUPLINGS)}, got {self.coupling!r}")
         if not isinstance(self.tension_init, (int, float)) or not 0.0 < self.tension_init < math.inf:
             raise ValueError(f"InertialConfig.tension_init: expected a positive number, got {self.tension_init!r}")
+        speed = self.equilibrium_speed
+        if speed is not None and (not isinstance(speed, (int, float)) or isinstance(speed, bool) or not speed >= 0
+                                  or math.isinf(speed)):
+            raise ValueError(f"InertialConfig.equilibrium_speed: expected None or a number >= 0 [m/s], got {speed!r}")
 
 
 def vertex_features(rigid: torch.Tensor) -> torch.Tensor:
@@ -271,17 +287,39 @@ class InertialStep(nn.Module):
             for name, value in (("initial[0]", prev), ("initial[1]", prev2)):
                 check_tensor(name, value, shape=tuple(rigid.shape[1:]), dtypes=(rigid.dtype,), device=rigid.device)
         coefficients = self.coefficients(rigid)
+        limit = None if self.config.equilibrium_speed is None else self.config.equilibrium_speed / self.config.fps
+        offset = equilibrium[0] - rigid[0]  # the equilibrium's offset from the rigid placement, rate-limited
         # The head at rest before the first frame; then how the rigid placement moved a frame ago.
         head_velocity = torch.cat([torch.zeros_like(rigid[:2]), rigid[1:-1] - rigid[:-2]])
         if self.config.damping == "absolute":
             head_velocity = torch.zeros_like(rigid)
         out = []
         for t in range(rigid.shape[0]):
-            x = self.step(equilibrium[t:t + 1], rigid[t:t + 1], prev[None], prev2[None], head_velocity[t:t + 1],
+            target = equilibrium[t]
+            if limit is not None:
+                offset = offset + limited_change(equilibrium[t] - rigid[t] - offset, limit)
+                target = rigid[t] + offset
+            x = self.step(target[None], rigid[t:t + 1], prev[None], prev2[None], head_velocity[t:t + 1],
                           coefficients)[0]
             out.append(x)
             prev2, prev = prev, x
         return torch.stack(out)
+
+
+def limited_change(change: torch.Tensor, limit: float) -> torch.Tensor:
+    """`change` scaled per strand so that its mean length over the moving vertices is at most `limit`.
+
+    Args:
+        change: (M, N, 3) a per-vertex change [m] (0 at the fixed vertices).
+        limit: the largest mean change a strand may take [m], >= 0.
+
+    Returns:
+        (M, N, 3): `change` where a strand's mean is within `limit`, else that strand's change
+        scaled down to it (direction and shape kept).
+    """
+    size = change[:, NUM_FIXED_VERTICES:].norm(dim=-1).mean(dim=-1)
+    scale = (limit / size.clamp_min(1e-12)).clamp(max=1.0)
+    return change * scale[:, None, None]
 
 
 def fit_constants_by_length(step: InertialStep, anchors, *, iterations: int = 3000, seed: int = 0) -> float:
@@ -347,4 +385,4 @@ def fit_constants_by_length(step: InertialStep, anchors, *, iterations: int = 30
 
 
 __all__ = ["COUPLINGS", "DAMPINGS", "InertialConfig", "InertialStep", "NUM_VERTEX_FEATURES", "chain_operator",
-           "fit_constants_by_length", "hanging_chain_tension", "vertex_features"]
+           "fit_constants_by_length", "hanging_chain_tension", "limited_change", "vertex_features"]
