@@ -366,10 +366,13 @@ def test_keep_out_of_body_on_cuda_equals_the_cpu_on_a_side_stream():
     """The CUDA rounds (the count copied to pinned memory behind each push, read after the
     projection is queued) give the CPU's positions and rounds, also on a stream of their own.
 
-    The scenes are moved 1.3 mm off the sphere's mirror plane z = 0 for the CPU comparison: a
-    strand in that plane has two closest faces, one on each side, and the CPU's and the GPU's
-    tree walks may pick either (pushed +2.2 mm or -2.2 mm in z, both right). On one device the
-    default stream and a side stream must agree to the bit.
+    On one device the default stream and a side stream must agree to the bit, in both scenes.
+    The CPU is compared on the sphere moved 1.3 mm off its mirror plane z = 0: a strand in that
+    plane has two closest faces, one on each side, and the CPU's and the GPU's tree walks may pick
+    either (pushed +2.2 mm or -2.2 mm in z, both right). The two spheres' pinch turns choose among
+    near-equal turns (float32 against float64 on the CPU alone: 9.7 mm apart once moved off the
+    mirror plane x = 0), so there each device is held to the plain torch rounds on its own
+    device instead (`test_keep_out_of_body_equals_the_plain_torch_rounds`).
     """
     from hairwarp.methods.keep_out import keep_out_of_body, pushed_out_of_body
 
@@ -387,6 +390,8 @@ def test_keep_out_of_body_on_cuda_equals_the_cpu_on_a_side_stream():
                 out_off = keep_out_of_body(x_cuda_off, x_cuda_off.clone(), body_cuda, **case)
             stream.synchronize()
             torch.testing.assert_close(out, on_default, rtol=0, atol=0, msg=lambda m: f"{name} {case}: {m}")
+            if name != "sphere":
+                continue
             torch.testing.assert_close(out_off.cpu(), expected, rtol=0, atol=1e-5,
                                        msg=lambda m: f"{name} {case}: {m}")
             assert float((out_off.cpu() - x_off).abs().max()) > 1e-3  # the pass pushed
