@@ -120,6 +120,21 @@ def _scores(x, clip) -> dict:
             "swing_correlation": fid["swing_correlation"], "swing_amplitude_ratio": fid["swing_amplitude_ratio"]}
 
 
+def _offset_rates(clip) -> dict:
+    """How fast the physics' and the equilibrium's offsets from the rigid placement move, per strand
+    and frame (the mean over a strand's moving vertices) [mm per frame]: mean, 99.9th percentile,
+    max. The static network's drape can jump where the hair cannot (`InertialConfig.equilibrium_speed`).
+    """
+    from hairwarp.config import NUM_FIXED_VERTICES
+
+    out = {}
+    for name in ("physics", "equilibrium"):
+        offset = (clip[name] - clip["rigid"])[:, :, NUM_FIXED_VERTICES:]
+        rate = ((offset[1:] - offset[:-1]).norm(dim=-1).mean(dim=-1) * 1e3).flatten().double().cpu()
+        out[name] = {"mean": float(rate.mean()), "p999": float(rate.quantile(0.999)), "max": float(rate.max())}
+    return out
+
+
 def _swing_goals_met(row: dict, rigid_row: dict | None = None) -> int:
     """How many goals a clip's row meets: the swing's correlation >= 0.8 and amplitude 0.75-1.33,
     and, given the rigid placement's row, worst strands (p99 of the strand distance to the physics)
@@ -247,7 +262,8 @@ def main(argv=None) -> int:
     size = tuple(next(iter(held.values()))["rigid"].shape[1:3]) if held else None
     record = {"command": " ".join(["python3", "tools/inertial_sweep.py", *(argv or sys.argv[1:])]), "device": machine,
               "size": size, "choose": args.choose, "train_clips": list(train), "held_out": list(held),
-              "equilibrium": baseline, "rigid": rigid_rows, "settings": results, "method_rows": method_rows}
+              "equilibrium": baseline, "rigid": rigid_rows, "settings": results, "method_rows": method_rows,
+              "offset_rates_mm_per_frame": {n: _offset_rates(c) for n, c in {**train, **held}.items()}}
     with open(os.path.join(args.out, "inertial_sweep.json"), "w") as f:
         json.dump(record, f, indent=1)
     text = _markdown(record, shipped)
@@ -334,6 +350,11 @@ def _markdown(record: dict, shipped: dict | None) -> str:
                      f"{_fmt(None if dist is None else dist / rigid_mean)} | {_fmt(_summary(ho, 'swing_correlation'))} | "
                      f"{_fmt(_summary(ho, 'swing_amplitude_ratio'))} | {_fmt(_p99_ratio(r, record, held))} |"
                      + (" shipped" if r is shipped else ""))
+    lines += ["", "How fast the offset from the rigid placement moves, per strand and frame [mm]: mean / 99.9th "
+              "percentile / max", "", "| clip | physics | equilibrium |", "|---|---|---|"]
+    for name, rates in record.get("offset_rates_mm_per_frame", {}).items():
+        cells = [" / ".join(f"{rates[k][q]:.1f}" for q in ("mean", "p999", "max")) for k in ("physics", "equilibrium")]
+        lines.append(f"| {name} | {cells[0]} | {cells[1]} |")
     if not record["method_rows"]:
         return "\n".join(lines) + "\n"
     lines += ["", "Held-out motions through the method (body pass included): mean distance [mm] (x rigid), "
@@ -381,7 +402,8 @@ def _plot(results: list[dict], path: str, machine: str, size) -> None:
         ax.set_yticks(range(len(retentions)), [f"{b:g}" for b in retentions])
         for (i, j), v in ((ij, grid[ij[0]][ij[1]]) for ij in itertools.product(range(len(retentions)), range(len(gates)))):
             ax.text(j, i, f"{v:.2f}", ha="center", va="center", color="w", fontsize=7)
-        ax.set(title=f"{damping} damping, tension x{tension:g}: train objective", xlabel="G", ylabel="beta")
+        ax.set_title(f"{damping} damping, tension x{tension:g}\ntrain objective (best over the speeds)", fontsize=9)
+        ax.set(xlabel="G", ylabel="beta")
         fig.colorbar(image, ax=ax, fraction=0.046)
     fig.text(0.01, 0.01, f"tools/inertial_sweep.py, {machine}, strands x vertices {size}; lower is better", fontsize=7)
     fig.tight_layout()

@@ -13,12 +13,15 @@ inertial step (`hairwarp.models.inertial`), so that the hair keeps a state of it
 
 The step's checkpoint is `MethodOptions.checkpoint` (a file written by `InertialTrainer`), else
 the shipped `hairformer_inertial.pt`: the chain step (`InertialConfig(coupling="chain")`) with
-constants, not trained weights: G = 0.98, beta = 0.95 and half a hanging strand's tension, the
-setting of a 60-point grid that meets the swing goals on the most of eight full-size training
+constants, not trained weights: G = 0.99, beta = 0.95 damping the velocity relative to the head's,
+half a hanging strand's tension, and the equilibrium's offset from the rigid placement followed at
+0.12 m/s at most (the static network's drape can jump between frames, which flung strands out).
+It is the setting of a 72-point grid that meets the most goals (swing correlation and amplitude,
+worst strands no farther from the physics than the rigid placement's) on eight full-size training
 clips (`tools/inertial_sweep.py`; training by rollouts never moved the step at full size). On the
-six held-out motions at full size it meets 9 of the 15 goals (correlation, amplitude, distance)
-where the earlier constants (beta = 0.9, a whole hanging strand's tension) met 6
-(docs/network_diagnosis.md, "Nineteenth session"). The static network is the shipped one. The step is trained
+held-out motions at full size it meets 11 of the 15 swing goals (correlation, amplitude, distance)
+where the nineteenth session's constants met 9 and the first ones 6 (docs/network_diagnosis.md,
+"Twentieth session"). The static network is the shipped one. The step is trained
 at one frame rate (`InertialConfig.fps`, 60 1/s): a motion at another rate is refused with the
 resampling to use.
 """

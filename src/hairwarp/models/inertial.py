@@ -19,8 +19,11 @@ hair (the projection of the static drape, `StaticConfig.length_projection`). bet
 velocity itself, a drag: hair carried at a steady speed (a walk) trails its equilibrium. The
 option `damping="relative"` damps only the velocity relative to the head's instead,
 y(t) = x(t-1) + u + beta * (x(t-1) - x(t-2) - u) with u = P_rigid(t-1) - P_rigid(t-2), which
-removes that drag; trained the same way it swung less and later than the physics on every
-held-out motion (docs/network_diagnosis.md, "The hair's own state"), so the drag stays the default.
+removes that drag (hair carried at a steady u trails by G (1 - beta) / (1 - G) frames of it under
+the drag). Trained as a per-vertex step it swung less and later than the physics on every held-out
+motion (docs/network_diagnosis.md, "The hair's own state"), so the config's default stays the drag;
+as a chain with constants chosen on full-size clips it is the shipped step's (same page,
+"Twentieth session").
 G and beta are read from each vertex's rest arc length (the distance from the root s, the strand's
 length L, s / L) by a small MLP, so that one step serves any hairstyle, strand count and vertex count.
 
