@@ -690,3 +690,48 @@ def test_rollout_gradient_through_a_limited_equilibrium_matches_finite_differenc
             fd = ((step.rollout(equilibrium + e, rigid) - target).square().sum()
                   - (step.rollout(equilibrium - e, rigid) - target).square().sum()) / 2e-6
         assert math.isclose(float(analytic[index]), float(fd), rel_tol=1e-5, abs_tol=1e-10), index
+
+
+def test_a_projection_in_the_rollout_acts_on_the_state_the_next_frames_read():
+    """`rollout(project=...)`: each frame's result passes through the projection before it
+    becomes the state. A floor under swinging strands: every frame stays above it, and the
+    frames after a clamp start from the clamped state, so they differ from clamping a free
+    rollout afterwards; the identity is no projection."""
+    rest = _hanging(3, 8)
+    t = torch.arange(40, dtype=torch.float64)
+    rigid = rest[None] + torch.stack([0.05 * torch.sin(t / 4), 0.03 * torch.sin(t / 3), 0 * t], -1)[:, None, None, :]
+    step = InertialStep(InertialConfig(coupling="chain", damping="relative", retention_init=0.98)).double()
+    floor = -0.12
+
+    def clamp(_, x):
+        return torch.cat([x[..., :1], x[..., 1:2].clamp_min(floor), x[..., 2:]], dim=-1)
+
+    with torch.no_grad():
+        free = step.rollout(rigid.clone(), rigid)
+        same = step.rollout(rigid.clone(), rigid, project=lambda _, x: x)
+        floored = step.rollout(rigid.clone(), rigid, project=clamp)
+    torch.testing.assert_close(same, free, rtol=0, atol=0)
+    assert float(free[..., 1].min()) < floor - 0.001  # the free strands swing below the floor
+    assert float(floored[..., 1].min()) >= floor
+    assert float((floored - clamp(None, free)).abs().max()) > 1e-3  # the state, not the output, was clamped
+
+
+def test_the_method_keeps_the_state_out_of_the_body_when_its_step_asks(tmp_path):
+    """`InertialConfig.keep_out_state`: the method's body pass inside the rollout; every frame is
+    out of the body, at its rest lengths, and the result differs from the pass after the rollout."""
+    import hairwarp as hw
+
+    scene = hw.default_scene("long_straight", "nod", duration=0.25, strand_stride=64, num_vertices=24)
+    paths = {}
+    for keep_out_state in (False, True):
+        step = InertialStep(InertialConfig(coupling="chain", damping="relative", gate_init=0.99, retention_init=0.95,
+                                           tension_init=0.5, equilibrium_speed=0.12, keep_out_state=keep_out_state))
+        paths[keep_out_state] = str(tmp_path / f"step_{keep_out_state}.pt")
+        save_checkpoint(paths[keep_out_state], step)
+    after = hw.simulate(scene, method="inertial", checkpoint=paths[False])
+    inside = hw.simulate(scene, method="inertial", checkpoint=paths[True])
+    assert max(inside.metrics["per_frame"]["penetration_percent"]) == 0.0
+    assert inside.metrics["length_change_percent"] < 0.01
+    assert float((inside.positions - after.positions).abs().max()) > 1e-4
+    with pytest.raises(ValueError, match="keep_out_state"):
+        InertialConfig(keep_out_state=1)

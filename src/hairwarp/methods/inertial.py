@@ -116,7 +116,11 @@ class InertialMethod(Method):
         rigid = frames.rigid.positions
 
         def run():
-            return keep_out_of_body_in_frames(step.rollout(equilibrium.positions.to(rigid.dtype), rigid), frames)
+            target = equilibrium.positions.to(rigid.dtype)
+            if step.config.keep_out_state:
+                # The pass inside the rollout: each frame pushed before the next step reads it.
+                return step.rollout(target, rigid, project=_FrameBodyPass(frames))
+            return keep_out_of_body_in_frames(step.rollout(target, rigid), frames)
 
         with torch.no_grad():
             positions, seconds = timed(run, device)
@@ -125,6 +129,19 @@ class InertialMethod(Method):
         return MethodResult(positions=positions.detach(), time_ms=time_ms,
                             info={**equilibrium.info, "equilibrium": "static",
                                   "step_ms": seconds * 1e3 / frames_count})
+
+
+class _FrameBodyPass:
+    """`keep_out_of_body` of frame t's state (`InertialStep.rollout(project=...)`), with frame t's
+    own body, built when the frame runs and dropped after (one frame's body held at a time).
+    """
+
+    def __init__(self, frames):
+        self._frames = frames
+
+    def __call__(self, t: int, x: torch.Tensor) -> torch.Tensor:
+        frame = self._frames.select(slice(t, t + 1))
+        return keep_out_of_body(x[None], frame.rigid.positions, frame.body_mesh)[0]
 
 
 __all__ = ["INERTIAL_CHECKPOINT", "InertialMethod", "KEEP_OUT_MARGIN", "keep_out_of_body", "load_inertial_step"]

@@ -91,6 +91,10 @@ class InertialConfig(_DictConfig):
             strands move at most 17-40 mm), and the step turns every such jump into a swing that
             flings the strand out (docs/network_diagnosis.md, "Twentieth session"). The pose moves
             the resting drape slowly; the swing is the step's own.
+        keep_out_state: the method's body pass acts on the step's state: each frame is pushed
+            out of the body before the next frame's step reads it (`rollout(project=...)`), so a
+            strand that swings into the shoulder stops there as the physics' does. False: the
+            pass acts on the rollout's output and the state swings on through the body.
     """
 
     hidden_dim: int = 32
@@ -101,6 +105,7 @@ class InertialConfig(_DictConfig):
     coupling: str = "vertex"
     tension_init: float = 1.0
     equilibrium_speed: float | None = None
+    keep_out_state: bool = False
 
     def __post_init__(self):
         if not isinstance(self.hidden_dim, int) or isinstance(self.hidden_dim, bool) or self.hidden_dim <= 0:
@@ -121,6 +126,8 @@ class InertialConfig(_DictConfig):
         if speed is not None and (not isinstance(speed, (int, float)) or isinstance(speed, bool) or not speed >= 0
                                   or math.isinf(speed)):
             raise ValueError(f"InertialConfig.equilibrium_speed: expected None or a number >= 0 [m/s], got {speed!r}")
+        if not isinstance(self.keep_out_state, bool):
+            raise ValueError(f"InertialConfig.keep_out_state: expected a bool, got {self.keep_out_state!r}")
 
 
 def vertex_features(rigid: torch.Tensor) -> torch.Tensor:
@@ -264,7 +271,8 @@ class InertialStep(nn.Module):
             target = torch.cat([equilibrium[:, :, :NUM_FIXED_VERTICES], free], dim=2)
         return follow_the_leader(rigid, target, check=False, max_gain=self.projection_max_gain)
 
-    def rollout(self, equilibrium: torch.Tensor, rigid: torch.Tensor, initial: tuple | None = None) -> torch.Tensor:
+    def rollout(self, equilibrium: torch.Tensor, rigid: torch.Tensor, initial: tuple | None = None,
+                project=None) -> torch.Tensor:
         """A whole sequence, frame by frame, each step on the step's own previous states.
 
         Args:
@@ -272,6 +280,9 @@ class InertialStep(nn.Module):
             rigid: (T, M, N, 3) P_rigid(t) [m], same shape.
             initial: (x(-1), x(-2)), each (M, N, 3): the states before the first frame; None: the
                 first frame's equilibrium, at rest.
+            project: optional callable (t, x (M, N, 3)) -> (M, N, 3) applied to each frame's
+                result before it becomes the state the next frames read (the body pass of
+                `InertialConfig.keep_out_state`); None: the step's own result.
 
         Returns:
             (T, M, N, 3) positions [m].
@@ -304,6 +315,8 @@ class InertialStep(nn.Module):
                 target = rigid[t] + offset
             x = self.step(target[None], rigid[t:t + 1], prev[None], prev2[None], head_velocity[t:t + 1],
                           coefficients)[0]
+            if project is not None:
+                x = project(t, x)
             out.append(x)
             prev2, prev = prev, x
         return torch.stack(out)
