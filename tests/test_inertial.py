@@ -735,3 +735,34 @@ def test_the_method_keeps_the_state_out_of_the_body_when_its_step_asks(tmp_path)
     assert float((inside.positions - after.positions).abs().max()) > 1e-4
     with pytest.raises(ValueError, match="keep_out_state"):
         InertialConfig(keep_out_state=1)
+
+
+def test_the_chain_operators_bending_is_the_clamped_second_difference_penalty():
+    """`chain_operator(..., bending=b)` against a float64 matrix with b sum (d[c-1] - 2 d[c] +
+    d[c+1])^2 written term by term (the two fixed vertices' offsets 0); a kick at one vertex
+    relaxes smoother with it; b = 0 is the chain without bending."""
+    torch.manual_seed(2)
+    n = 6
+    gate_logit, tension = torch.randn(1, n, dtype=torch.float64), torch.rand(1, n, dtype=torch.float64) * 30
+    b = 7.0
+    k = torch.linalg.inv(chain_operator(gate_logit, tension))[0]
+    for c in range(1, n + 1):  # centre c of the strand; free vertex j is strand vertex j + 2
+        terms = {c - 1: 1.0, c: -2.0, c + 1: 1.0}
+        free = {v - 2: coef for v, coef in terms.items() if v >= 2}
+        for i, a in free.items():
+            for j, a2 in free.items():
+                k[i, j] += b * a * a2
+    torch.testing.assert_close(chain_operator(gate_logit, tension, b)[0] @ k, torch.eye(n, dtype=torch.float64),
+                               atol=1e-9, rtol=0)
+    torch.testing.assert_close(chain_operator(gate_logit, tension, 0.0), chain_operator(gate_logit, tension))
+    kick = torch.zeros(n, dtype=torch.float64)
+    kick[3] = 1.0
+
+    def roughness(x):
+        full = torch.cat([torch.zeros(2, dtype=x.dtype), x])
+        return float((full[:-2] - 2 * full[1:-1] + full[2:]).square().sum())
+
+    assert roughness(chain_operator(gate_logit, tension, 1e3)[0] @ kick) < 0.1 * roughness(
+        chain_operator(gate_logit, tension)[0] @ kick)
+    with pytest.raises(ValueError, match="bending"):
+        InertialConfig(bending=-1.0)

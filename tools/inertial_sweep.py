@@ -86,15 +86,17 @@ def _trajectories(scene, device, path) -> dict:
     return data
 
 
-def _step(gate: float, retention: float, tension: float, damping: str = "absolute", speed: float | None = None):
+def _step(gate: float, retention: float, tension: float, damping: str = "absolute", speed: float | None = None,
+          bending: float = 0.0):
     from hairwarp.models.inertial import InertialConfig, InertialStep
 
     return InertialStep(InertialConfig(coupling="chain", damping=damping, gate_init=gate, retention_init=retention,
-                                       tension_init=tension, equilibrium_speed=speed))
+                                       tension_init=tension, equilibrium_speed=speed, bending=bending))
 
 
 def _key(r: dict) -> tuple:
-    return (r["gate"], r["retention"], r["tension"], r.get("damping", "absolute"), r.get("equilibrium_speed"))
+    return (r["gate"], r["retention"], r["tension"], r.get("damping", "absolute"), r.get("equilibrium_speed"),
+            r.get("bending", 0.0))
 
 
 def _speeds(text: str) -> list[float | None]:
@@ -167,6 +169,7 @@ def main(argv=None) -> int:
                         help="what beta damps (InertialConfig.damping): the velocity, or the one relative to the head")
     parser.add_argument("--equilibrium-speeds", default="none",
                         help="InertialConfig.equilibrium_speed values [m/s], 'none' for unlimited")
+    parser.add_argument("--bendings", default="0", help="InertialConfig.bending values")
     parser.add_argument("--no-method-rows", action="store_true",
                         help="skip running the chosen and the shipped step as the method on the held-out motions")
     parser.add_argument("--choose", default="goals", choices=("goals", "loss"),
@@ -212,20 +215,20 @@ def main(argv=None) -> int:
     baseline = {name: _scores(on_device(c)["equilibrium"], on_device(c)) for name, c in {**train, **held}.items()}
     rigid_rows = {n: _scores(on_device(c)["rigid"], on_device(c)) for n, c in {**train, **held}.items()}
     grid = list(itertools.product(_floats(args.gates), _floats(args.retentions), _floats(args.tensions),
-                                  args.dampings.split(","), _speeds(args.equilibrium_speeds)))
+                                  args.dampings.split(","), _speeds(args.equilibrium_speeds), _floats(args.bendings)))
     results = []
     from tqdm.auto import tqdm
 
     with torch.no_grad():
-        for gate, retention, tension, damping, speed in tqdm(grid, desc="settings", dynamic_ncols=True):
-            step = _step(gate, retention, tension, damping, speed).to(device)
+        for gate, retention, tension, damping, speed, bending in tqdm(grid, desc="settings", dynamic_ncols=True):
+            step = _step(gate, retention, tension, damping, speed, bending).to(device)
             rows = {}
             for name, clip in {**train, **held}.items():
                 clip = on_device(clip)
                 rows[name] = _scores(step.rollout(clip["equilibrium"], clip["rigid"]), clip)
             objective = sum(rows[n]["loss"] / baseline[n]["loss"] for n in train) / len(train)
             results.append({"gate": gate, "retention": retention, "tension": tension, "damping": damping,
-                            "equilibrium_speed": speed, "train_objective": objective, "rows": rows})
+                            "equilibrium_speed": speed, "bending": bending, "train_objective": objective, "rows": rows})
     for r in results:
         r["train_swing_goals_met"] = sum(_swing_goals_met(r["rows"][n], rigid_rows[n]) for n in train)
     if args.choose == "goals":
@@ -235,7 +238,7 @@ def main(argv=None) -> int:
     chosen = results[0]
     shipped_config = _shipped_config()
     shipped_key = (shipped_config.gate_init, shipped_config.retention_init, shipped_config.tension_init,
-                   shipped_config.damping, shipped_config.equilibrium_speed)
+                   shipped_config.damping, shipped_config.equilibrium_speed, shipped_config.bending)
     shipped = next((r for r in results if _key(r) == shipped_key), None)
     save_checkpoint(os.path.join(args.out, "chosen_inertial.pt"), _step(*_key(chosen)).float(),
                     extra={"chosen_by": f"tools/inertial_sweep.py --choose {args.choose}",
@@ -301,7 +304,7 @@ def _save_lengthwise(results: list[dict], train: list[str], baseline: dict, args
             goals = sum(_swing_goals_met(r["rows"][n], rigid_rows[n] if rigid_rows else None) for n in names)
             return (-goals, objective) if args.choose == "goals" else (objective,)
 
-        # One damping and equilibrium speed for the whole step: those chosen over all the clips.
+        # One damping, equilibrium speed and bending for the whole step: those chosen over all the clips.
         best = min((r for r in results if _key(r)[3:] == _key(results[0])[3:]), key=rank)
         rigid = clip_scene(ClipSpec(style, "head_moves", 0, 0.0, 0.05), 8, 100).frames().rigid.positions[0]
         length = float((rigid[:, 1:] - rigid[:, :-1]).norm(dim=-1).sum(-1).median())
@@ -331,10 +334,10 @@ def _markdown(record: dict, shipped: dict | None) -> str:
              "loss (lower is better). Held out: mean distance to the physics [mm] over the mean of the rigid "
              "placement's, mean swing correlation, mean amplitude ratio, worst strands (p99 of the strand "
              "distance, worst frame) over the rigid placement's, averaged over the motions.", "",
-             "| G | beta | tension | damping | equilibrium speed [m/s] | train goals met | train objective | "
+             "| G | beta | tension | damping | equilibrium speed [m/s] | bending | train goals met | train objective | "
              "train corr | train amp | "
              "train p99 / rigid | held-out dist / rigid | held-out corr | held-out amp | held-out p99 / rigid |",
-             "|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     rigid_mean = _summary({n: record["rigid"][n] for n in held}, "mean_distance_mm") if held else None
     shown = record["settings"][:12] + ([shipped] if shipped and shipped not in record["settings"][:12] else [])
     for r in shown:
@@ -342,7 +345,7 @@ def _markdown(record: dict, shipped: dict | None) -> str:
         ho = {n: r["rows"][n] for n in held}
         dist = _summary(ho, "mean_distance_mm") if held else None
         lines.append(f"| {r['gate']:g} | {r['retention']:g} | {r['tension']:g} | {r.get('damping', 'absolute')} | "
-                     f"{_fmt(r.get('equilibrium_speed'), 'g')} | "
+                     f"{_fmt(r.get('equilibrium_speed'), 'g')} | {r.get('bending', 0.0):g} | "
                      f"{r['train_swing_goals_met']} / {3 * len(train)} | "
                      f"{r['train_objective']:.3f} | "
                      f"{_fmt(_summary(tr, 'swing_correlation'))} | {_fmt(_summary(tr, 'swing_amplitude_ratio'))} | "
@@ -394,7 +397,7 @@ def _plot(results: list[dict], path: str, machine: str, size) -> None:
                              squeeze=False)
     by: dict[tuple, float] = {}  # the best objective over the equilibrium speeds
     for r in results:
-        by[_key(r)[:4]] = min(by.get(_key(r)[:4], float("inf")), r["train_objective"])
+        by[_key(r)[:4]] = min(by.get(_key(r)[:4], float("inf")), r["train_objective"])  # and bendings
     for ax, (damping, tension) in zip(axes.flat, itertools.product(dampings, tensions)):
         grid = [[by.get((g, b, tension, damping), float("nan")) for g in gates] for b in retentions]
         image = ax.imshow(grid, origin="lower", cmap="viridis")
@@ -402,7 +405,7 @@ def _plot(results: list[dict], path: str, machine: str, size) -> None:
         ax.set_yticks(range(len(retentions)), [f"{b:g}" for b in retentions])
         for (i, j), v in ((ij, grid[ij[0]][ij[1]]) for ij in itertools.product(range(len(retentions)), range(len(gates)))):
             ax.text(j, i, f"{v:.2f}", ha="center", va="center", color="w", fontsize=7)
-        ax.set_title(f"{damping} damping, tension x{tension:g}\ntrain objective (best over the speeds)", fontsize=9)
+        ax.set_title(f"{damping} damping, tension x{tension:g}\ntrain objective (best over speed, bending)", fontsize=9)
         ax.set(xlabel="G", ylabel="beta")
         fig.colorbar(image, ax=ax, fraction=0.046)
     fig.text(0.01, 0.01, f"tools/inertial_sweep.py, {machine}, strands x vertices {size}; lower is better", fontsize=7)

@@ -91,6 +91,11 @@ class InertialConfig(_DictConfig):
             strands move at most 17-40 mm), and the step turns every such jump into a swing that
             flings the strand out (docs/network_diagnosis.md, "Twentieth session"). The pose moves
             the resting drape slowly; the swing is the step's own.
+        bending: the chain's bending stiffness b >= 0 (dimensionless): the relaxation also
+            penalises b * sum (d[i-1] - 2 d[i] + d[i+1])^2, the offset's second differences along
+            the strand with the root clamped (vertices 0 and 1 offset 0), so that a strand swings
+            more as a lever and less as a hanging chain. 0: no bending term. With 100 vertices it
+            acts from about 1e4 (docs/network_diagnosis.md, "Twentieth session", T5).
         keep_out_state: the method's body pass acts on the step's state: each frame is pushed
             out of the body before the next frame's step reads it (`rollout(project=...)`), so a
             strand that swings into the shoulder stops there as the physics' does. False: the
@@ -106,6 +111,7 @@ class InertialConfig(_DictConfig):
     tension_init: float = 1.0
     equilibrium_speed: float | None = None
     keep_out_state: bool = False
+    bending: float = 0.0
 
     def __post_init__(self):
         if not isinstance(self.hidden_dim, int) or isinstance(self.hidden_dim, bool) or self.hidden_dim <= 0:
@@ -126,6 +132,9 @@ class InertialConfig(_DictConfig):
         if speed is not None and (not isinstance(speed, (int, float)) or isinstance(speed, bool) or not speed >= 0
                                   or math.isinf(speed)):
             raise ValueError(f"InertialConfig.equilibrium_speed: expected None or a number >= 0 [m/s], got {speed!r}")
+        if (not isinstance(self.bending, (int, float)) or isinstance(self.bending, bool) or not self.bending >= 0
+                or math.isinf(self.bending)):
+            raise ValueError(f"InertialConfig.bending: expected a number >= 0, got {self.bending!r}")
         if not isinstance(self.keep_out_state, bool):
             raise ValueError(f"InertialConfig.keep_out_state: expected a bool, got {self.keep_out_state!r}")
 
@@ -170,13 +179,16 @@ def hanging_chain_tension(rigid: torch.Tensor, fps: float) -> torch.Tensor:
     return w[:, NUM_FIXED_VERTICES - 1:]
 
 
-def chain_operator(gate_logit: torch.Tensor, tension: torch.Tensor) -> torch.Tensor:
-    """(I + D + L_w)^-1 of every strand (module docstring), made in float64.
+def chain_operator(gate_logit: torch.Tensor, tension: torch.Tensor, bending: float = 0.0) -> torch.Tensor:
+    """(I + D + L_w + b A^T A)^-1 of every strand (module docstring), made in float64.
 
     Args:
         gate_logit: (M, n) the logit of G of the n free vertices: D = (1 - G) / G = exp(-logit).
         tension: (M, n) w >= 0 of the segment above each free vertex (the first one's ties it to
             the fixed vertex 1, whose offset is 0).
+        bending: b >= 0; A (n, n) maps the free vertices' offsets to the second differences
+            d[c-1] - 2 d[c] + d[c+1] at c = 1 .. n (the two fixed vertices' offsets 0: a clamped
+            root; `InertialConfig.bending`).
 
     Returns:
         (M, n, n) the symmetric positive definite operator's inverse (float64).
@@ -185,6 +197,14 @@ def chain_operator(gate_logit: torch.Tensor, tension: torch.Tensor) -> torch.Ten
     w = tension.double()
     below = torch.cat([w[:, 1:], torch.zeros_like(w[:, :1])], dim=1)  # the segment below each vertex
     matrix = torch.diag_embed(1.0 + d + w + below) - torch.diag_embed(w[:, 1:], 1) - torch.diag_embed(w[:, 1:], -1)
+    if bending:
+        n = matrix.shape[-1]
+        # Second differences centred on vertices 1 .. n of the strand (free vertex j is strand vertex j + 2).
+        full = torch.zeros(n, n + 2, dtype=torch.float64, device=matrix.device)
+        rows = torch.arange(n, device=matrix.device)
+        full[rows, rows], full[rows, rows + 1], full[rows, rows + 2] = 1.0, -2.0, 1.0
+        second = full[:, 2:]
+        matrix = matrix + float(bending) * (second.T @ second)
     return torch.cholesky_inverse(torch.linalg.cholesky(matrix))
 
 
@@ -242,7 +262,8 @@ class InertialStep(nn.Module):
             return gate, retention
         # w: the hanging chain's tension times a learned factor (tension_init at the start).
         tension = hanging_chain_tension(rigid, self.config.fps) * torch.exp(raw[:, NUM_FIXED_VERTICES:, 2])
-        return chain_operator(raw[:, NUM_FIXED_VERTICES:, 0], tension).to(rigid.dtype), retention
+        operator = chain_operator(raw[:, NUM_FIXED_VERTICES:, 0], tension, self.config.bending)
+        return operator.to(rigid.dtype), retention
 
     def step(self, equilibrium: torch.Tensor, rigid: torch.Tensor, prev: torch.Tensor, prev2: torch.Tensor,
              head_velocity: torch.Tensor, coefficients: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
