@@ -137,7 +137,7 @@ def _offset_rates(clip) -> dict:
     return out
 
 
-def _swing_goals_met(row: dict, rigid_row: dict | None = None) -> int:
+def _goals_met(row: dict, rigid_row: dict | None = None) -> int:
     """How many goals a clip's row meets: the swing's correlation >= 0.8 and amplitude 0.75-1.33,
     and, given the rigid placement's row, worst strands (p99 of the strand distance to the physics)
     no farther than the rigid placement's (the demo's outer strands that fly out)."""
@@ -230,7 +230,7 @@ def main(argv=None) -> int:
             results.append({"gate": gate, "retention": retention, "tension": tension, "damping": damping,
                             "equilibrium_speed": speed, "bending": bending, "train_objective": objective, "rows": rows})
     for r in results:
-        r["train_swing_goals_met"] = sum(_swing_goals_met(r["rows"][n], rigid_rows[n]) for n in train)
+        r["train_swing_goals_met"] = sum(_goals_met(r["rows"][n], rigid_rows[n]) for n in train)
     if args.choose == "goals":
         results.sort(key=lambda r: (-r["train_swing_goals_met"], r["train_objective"]))
     else:
@@ -301,7 +301,7 @@ def _save_lengthwise(results: list[dict], train: list[str], baseline: dict, args
     for style, names in styles.items():
         def rank(r, names=names):
             objective = sum(r["rows"][n]["loss"] / baseline[n]["loss"] for n in names) / len(names)
-            goals = sum(_swing_goals_met(r["rows"][n], rigid_rows[n] if rigid_rows else None) for n in names)
+            goals = sum(_goals_met(r["rows"][n], rigid_rows[n] if rigid_rows else None) for n in names)
             return (-goals, objective) if args.choose == "goals" else (objective,)
 
         # One damping, equilibrium speed and bending for the whole step: those chosen over all the clips.
