@@ -11,7 +11,9 @@ vertices; on the CPU the default keeps every 8th strand.
     python benchmarks/bm_keep_out.py --device cpu --out OUT          # --strand-stride 8
 
 Prints one row per scene (ms per drape, the rounds the pass ran where the library reports them)
-and writes OUT/keep_out.json.
+and writes OUT/keep_out.json. `--profile` adds, per scene, the time of the pushing rounds alone
+(`pushed_out_of_body`) and each kernel's device time per drape under `torch.profiler` (the
+largest 25), to tell the device's work from the host's launches and reads.
 """
 
 from __future__ import annotations
@@ -37,6 +39,8 @@ def main(argv=None) -> int:
     parser.add_argument("--strand-stride", type=int, default=None, help="default: 1 on CUDA, 8 on the CPU")
     parser.add_argument("--scenes", default=",".join(SCENES))
     parser.add_argument("--repeats", type=int, default=10)
+    parser.add_argument("--profile", action="store_true",
+                        help="also time the rounds alone and record each kernel's device time per drape")
     parser.add_argument("--out", default="hairwarp-out")
     args = parser.parse_args(argv)
 
@@ -60,6 +64,15 @@ def main(argv=None) -> int:
             rounds = None if rounds is None else rounds(x, rigid, body)[1]
         row = {"scene": name, "strands": x.shape[1], "vertices": x.shape[2], "keep_out_ms": ms,
                "push_rounds": rounds}
+        if args.profile:
+            with torch.no_grad():
+                row["rounds_alone_ms"] = time_ms(lambda: keep_out.pushed_out_of_body(x, rigid, body), device,
+                                                 repeats=args.repeats)
+                row["kernels_us_per_drape"], row["wall_ms_under_profiler"] = _kernel_profile(
+                    lambda: keep_out.keep_out_of_body(x, rigid, body), device)
+            print(f"  rounds alone {row['rounds_alone_ms']:.2f} ms; device busy "
+                  f"{sum(row['kernels_us_per_drape'].values()) / 1e3:.2f} ms of "
+                  f"{row['wall_ms_under_profiler']:.2f} ms under the profiler", flush=True)
         rows.append(row)
         print(f"{name}: {x.shape[1]} x {x.shape[2]}, {ms:.2f} ms per drape"
               + ("" if rounds is None else f", {rounds} pushing rounds"), flush=True)
@@ -69,6 +82,33 @@ def main(argv=None) -> int:
     with open(os.path.join(args.out, "keep_out.json"), "w") as fh:
         json.dump(record, fh, indent=1, default=float)
     return 0
+
+
+def _kernel_profile(fn, device: torch.device, repeats: int = 5) -> tuple[dict[str, float], float]:
+    """Each kernel's device time per call of `fn` [us] (the 25 largest) and the wall time per
+    call under the profiler [ms]."""
+    import time
+
+    from hairwarp.runtime import synchronize
+
+    activities = [torch.profiler.ProfilerActivity.CPU]
+    if device.type == "cuda":
+        activities.append(torch.profiler.ProfilerActivity.CUDA)
+    fn()
+    synchronize(device)
+    with torch.profiler.profile(activities=activities) as prof:
+        start = time.perf_counter()
+        for _ in range(repeats):
+            fn()
+        synchronize(device)
+        wall = (time.perf_counter() - start) * 1e3 / repeats
+    kernels: dict[str, float] = {}
+    for event in prof.key_averages():
+        us = getattr(event, "device_time_total", 0.0) if device.type == "cuda" else 0.0
+        if us and event.device_type == torch.autograd.DeviceType.CUDA:
+            kernels[event.key[:120]] = kernels.get(event.key[:120], 0.0) + us / repeats
+    top = dict(sorted(kernels.items(), key=lambda kv: -kv[1])[:25])
+    return top, wall
 
 
 if __name__ == "__main__":

@@ -87,11 +87,12 @@ def _trajectories(scene, device, path) -> dict:
 
 
 def _step(gate: float, retention: float, tension: float, damping: str = "absolute", speed: float | None = None,
-          bending: float = 0.0):
+          bending: float = 0.0, keep_out_state: bool = False):
     from hairwarp.models.inertial import InertialConfig, InertialStep
 
     return InertialStep(InertialConfig(coupling="chain", damping=damping, gate_init=gate, retention_init=retention,
-                                       tension_init=tension, equilibrium_speed=speed, bending=bending))
+                                       tension_init=tension, equilibrium_speed=speed, bending=bending,
+                                       keep_out_state=keep_out_state))
 
 
 def _key(r: dict) -> tuple:
@@ -172,6 +173,9 @@ def main(argv=None) -> int:
     parser.add_argument("--bendings", default="0", help="InertialConfig.bending values")
     parser.add_argument("--no-method-rows", action="store_true",
                         help="skip running the chosen and the shipped step as the method on the held-out motions")
+    parser.add_argument("--state-pushed", action="store_true",
+                        help="also run the chosen step with InertialConfig.keep_out_state (the body pass acting on "
+                             "the step's state) as a method row")
     parser.add_argument("--choose", default="goals", choices=("goals", "loss"),
                         help="how the training clips choose the setting (module docstring)")
     parser.add_argument("--lengthwise-from", default=None, metavar="JSON",
@@ -245,11 +249,18 @@ def main(argv=None) -> int:
                            "train_objective": chosen["train_objective"],
                            "train_swing_goals_met": chosen["train_swing_goals_met"]})
 
+    if args.state_pushed:
+        save_checkpoint(os.path.join(args.out, "chosen_state_pushed_inertial.pt"),
+                        _step(*_key(chosen), keep_out_state=True).float(),
+                        extra={"chosen_by": f"tools/inertial_sweep.py --choose {args.choose}, keep_out_state on"})
+
     _save_lengthwise(results, list(train), baseline, args, rigid_rows)
 
     # The chosen step and the shipped one as the method runs them (the body pass included).
     method_rows = {}
     runs = () if args.no_method_rows else (("shipped", None), ("chosen", os.path.join(args.out, "chosen_inertial.pt")))
+    if args.state_pushed and not args.no_method_rows:
+        runs += (("chosen_state_pushed", os.path.join(args.out, "chosen_state_pushed_inertial.pt")),)
     for name, checkpoint in runs:
         for label, scene in held_scenes.items():
             frames = scene.frames(device=device)
@@ -362,17 +373,18 @@ def _markdown(record: dict, shipped: dict | None) -> str:
         return "\n".join(lines) + "\n"
     lines += ["", "Held-out motions through the method (body pass included): mean distance [mm] (x rigid), "
               "correlation, amplitude, inside % mean / max, length change % max", "",
-              "| scene | rigid [mm] | shipped | chosen |", "|---|---:|---|---|"]
+              "| scene | rigid [mm] | " + " | ".join(record["method_rows"]) + " |",
+              "|---|---:|" + "---|" * len(record["method_rows"])]
     for label in held:
         rigid = record["rigid"][label]["mean_distance_mm"]
         cells = []
-        for name in ("shipped", "chosen"):
+        for name in record["method_rows"]:
             r = record["method_rows"][name][label]
             cells.append(f"{r['mean_distance_mm']:.1f} ({r['mean_distance_mm'] / rigid:.2f}x), "
                          f"{_fmt(r['swing_correlation'], '.3f')}, {_fmt(r['swing_amplitude_ratio'])}, "
                          f"{r['penetration_percent_mean']:.3f} / {r['penetration_percent_max']:.3f}, "
                          f"{r['length_change_percent_max']:.3f}")
-        lines.append(f"| {label} | {rigid:.1f} | {cells[0]} | {cells[1]} |")
+        lines.append(f"| {label} | {rigid:.1f} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
