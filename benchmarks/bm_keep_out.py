@@ -12,8 +12,9 @@ vertices; on the CPU the default keeps every 8th strand.
 
 Prints one row per scene (ms per drape, the rounds the pass ran where the library reports them)
 and writes OUT/keep_out.json. `--profile` adds, per scene, the time of the pushing rounds alone
-(`pushed_out_of_body`) and each kernel's device time per drape under `torch.profiler` (the
-largest 25), to tell the device's work from the host's launches and reads.
+(`pushed_out_of_body`), each kernel's device time per drape under `torch.profiler` (the largest
+25) and the host's Python functions' own time per drape under `cProfile` (the largest 20, the
+waits for the device among them), to tell the device's work from the host's launches and reads.
 """
 
 from __future__ import annotations
@@ -70,6 +71,8 @@ def main(argv=None) -> int:
                                                  repeats=args.repeats)
                 row["kernels_us_per_drape"], row["wall_ms_under_profiler"] = _kernel_profile(
                     lambda: keep_out.keep_out_of_body(x, rigid, body), device)
+                row["host_python_us_per_drape"] = _host_profile(lambda: keep_out.keep_out_of_body(x, rigid, body),
+                                                                device)
             print(f"  rounds alone {row['rounds_alone_ms']:.2f} ms; device busy "
                   f"{sum(row['kernels_us_per_drape'].values()) / 1e3:.2f} ms of "
                   f"{row['wall_ms_under_profiler']:.2f} ms under the profiler", flush=True)
@@ -109,6 +112,28 @@ def _kernel_profile(fn, device: torch.device, repeats: int = 5) -> tuple[dict[st
             kernels[event.key[:120]] = kernels.get(event.key[:120], 0.0) + us / repeats
     top = dict(sorted(kernels.items(), key=lambda kv: -kv[1])[:25])
     return top, wall
+
+
+def _host_profile(fn, device: torch.device, repeats: int = 5) -> dict[str, float]:
+    """The host's Python functions by their own time per call of `fn` [us] (`cProfile`, the 20
+    largest; a wait for the device shows as the function that waits)."""
+    import cProfile
+    import pstats
+
+    from hairwarp.runtime import synchronize
+
+    fn()
+    synchronize(device)
+    profiler = cProfile.Profile()
+    profiler.enable()
+    for _ in range(repeats):
+        fn()
+    synchronize(device)
+    profiler.disable()
+    stats = pstats.Stats(profiler).stats
+    own = {f"{os.path.basename(path)}:{line}({name})": entry[2] * 1e6 / repeats
+           for (path, line, name), entry in stats.items()}
+    return dict(sorted(own.items(), key=lambda kv: -kv[1])[:20])
 
 
 if __name__ == "__main__":
