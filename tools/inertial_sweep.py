@@ -41,7 +41,8 @@ writes it from an earlier run without the clips.
 
 Writes OUT/inertial_sweep.json, OUT/inertial_sweep.md, OUT/chosen_inertial.pt (the chosen
 constants as a step checkpoint), OUT/lengthwise_inertial.pt and OUT/inertial_sweep.png (the
-objective over G x beta).
+objective over G x beta); with `--state-pushed` also OUT/chosen_state_pushed_inertial.pt (the
+chosen constants with `InertialConfig.keep_out_state`), run as a third method row.
 
     python3 tools/inertial_sweep.py --lengthwise-from docs/network_diagnosis/inertial_sweep_session19_h100.json --out OUT
 """
