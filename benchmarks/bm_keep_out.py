@@ -15,8 +15,6 @@ and writes OUT/keep_out.json. `--profile` adds, per scene, the time of the pushi
 (`pushed_out_of_body`), each kernel's device time per drape under `torch.profiler` (the largest
 25) and the host's Python functions' own time per drape under `cProfile` (the largest 20, the
 waits for the device among them), to tell the device's work from the host's launches and reads.
-`--queued` times the pass with its rounds queued and their counts read once at the end
-(`read_each_round=False`), alternated with the default, and how far apart the two land.
 """
 
 from __future__ import annotations
@@ -44,15 +42,12 @@ def main(argv=None) -> int:
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--profile", action="store_true",
                         help="also time the rounds alone and record each kernel's device time per drape")
-    parser.add_argument("--queued", action="store_true",
-                        help="also time the pass with its rounds queued and read once (read_each_round=False), "
-                             "alternated with the default, and record how far its positions are from it")
     parser.add_argument("--out", default="hairwarp-out")
     args = parser.parse_args(argv)
 
     import hairwarp as hw
     from hairwarp.methods import keep_out
-    from hairwarp.runtime import machine_description, machine_name, time_ms, time_ms_interleaved
+    from hairwarp.runtime import machine_description, machine_name, time_ms
 
     device = torch.device(args.device)
     stride = args.strand_stride or (1 if device.type == "cuda" else 8)
@@ -70,17 +65,6 @@ def main(argv=None) -> int:
             rounds = None if rounds is None else rounds(x, rigid, body)[1]
         row = {"scene": name, "strands": x.shape[1], "vertices": x.shape[2], "keep_out_ms": ms,
                "push_rounds": rounds}
-        if args.queued:
-            with torch.no_grad():
-                both = time_ms_interleaved({
-                    "read": lambda: keep_out.keep_out_of_body(x, rigid, body),
-                    "queued": lambda: keep_out.keep_out_of_body(x, rigid, body, read_each_round=False)}, device)
-                difference = (keep_out.keep_out_of_body(x, rigid, body, read_each_round=False)
-                               - keep_out.keep_out_of_body(x, rigid, body)).norm(dim=-1).max()
-            row.update(keep_out_read_ms=both["read"], keep_out_queued_ms=both["queued"],
-                       queued_max_difference_m=float(difference))
-            print(f"  alternated: rounds read one by one {both['read']:.2f} ms, queued and read once "
-                  f"{both['queued']:.2f} ms; positions {float(difference):.2e} m apart at most", flush=True)
         if args.profile:
             with torch.no_grad():
                 row["rounds_alone_ms"] = time_ms(lambda: keep_out.pushed_out_of_body(x, rigid, body), device,

@@ -170,32 +170,6 @@ def test_keep_out_of_body_leaves_no_vertex_inside_and_keeps_rest_lengths():
     torch.testing.assert_close(once[:, :, :2], rigid[:, :, :2])
 
 
-@pytest.mark.parametrize("passes", [1, 3, 8])
-def test_the_rounds_queued_without_reads_land_where_the_read_rounds_do(passes):
-    """`pushed_out_of_body(read_each_round=False)` (every round queued, one read at the end)
-    against the rounds read one by one: the same round count and positions up to rounding, and
-    a strand that no round reaches is left as it was, bit for bit."""
-    from hairwarp.methods.keep_out import pushed_out_of_body
-
-    v, f = icosphere(8, radius=0.1)
-    body = BodyMesh(torch.tensor(v, dtype=torch.float32), torch.tensor(f, dtype=torch.int32))
-    m, n = 6, 16
-    x = torch.zeros(2, m, n, 3)
-    x[:, :, :, 0] = torch.linspace(-0.04, 0.04, m)[:, None]
-    x[:, :, :, 1] = 0.14 - 0.02 * torch.arange(n)[None, :]
-    x[1, :, :, 0] += 0.3  # the second frame's strands hang beside the sphere: no round reaches them
-    x[0, -1, :, 2] += 0.3  # and one strand of the first
-    rigid = x.clone()
-    read, rounds_read = pushed_out_of_body(x, rigid, body, passes=passes)
-    queued, rounds_queued = pushed_out_of_body(x, rigid, body, passes=passes, read_each_round=False)
-    assert rounds_queued == rounds_read >= 1
-    torch.testing.assert_close(queued, read, atol=1e-6, rtol=0)
-    assert torch.equal(queued[1], x[1]) and torch.equal(queued[0, -1], x[0, -1])
-    # Nothing near the body: no round pushes, the input comes back unchanged.
-    far, rounds_far = pushed_out_of_body(x[1:], rigid[1:], body, passes=passes, read_each_round=False)
-    assert rounds_far == 0 and torch.equal(far, x[1:])
-
-
 def test_keep_out_of_body_turns_strands_out_of_a_pinch_between_two_parts():
     """Two overlapping spheres (an arm against a torso) and strands hanging through the lens they
     share: pushed along the gradient a vertex leaves one sphere for the other, so pushes alone

@@ -31,8 +31,7 @@ _KEEP_OUT_QUERY = 1.0e-2
 
 def keep_out_of_body(x: torch.Tensor, rigid: torch.Tensor, body, *, margin: float = KEEP_OUT_MARGIN,
                      passes: int = KEEP_OUT_PASSES, trigger: float = KEEP_OUT_TRIGGER,
-                     turns: int = KEEP_OUT_TURNS, final_depth: float = KEEP_OUT_FINAL_DEPTH,
-                     read_each_round: bool = True) -> torch.Tensor:
+                     turns: int = KEEP_OUT_TURNS, final_depth: float = KEEP_OUT_FINAL_DEPTH) -> torch.Tensor:
     """Hair pushed out of the body with its rest lengths kept (up to a crease: see below).
 
     Each round pushes every moving vertex (index >= 2) that lies inside the body or nearer its
@@ -56,7 +55,6 @@ def keep_out_of_body(x: torch.Tensor, rigid: torch.Tensor, body, *, margin: floa
         turns: at most this many rounds of `_turn_out_of_pinches` (0: none).
         final_depth: vertices left inside less than this many margins deep are pushed out
             without the projection (0: none; inf: every one).
-        read_each_round: as `pushed_out_of_body`'s (False: the rounds queued with one read).
 
     Returns:
         (B, M, N, 3) positions [m] (no autograd).
@@ -68,8 +66,7 @@ def keep_out_of_body(x: torch.Tensor, rigid: torch.Tensor, body, *, margin: floa
     from hairwarp.ops import hair_body_keep_out_push
 
     _check_arguments(x, rigid, body, margin)
-    x, rounds = pushed_out_of_body(x, rigid, body, margin=margin, passes=passes, trigger=trigger, check=False,
-                                   read_each_round=read_each_round)
+    x, rounds = pushed_out_of_body(x, rigid, body, margin=margin, passes=passes, trigger=trigger, check=False)
     if rounds < passes:
         return x
     # The rounds ran out. Where two body parts meet (the arm against the torso) the push takes a
@@ -87,7 +84,7 @@ def keep_out_of_body(x: torch.Tensor, rigid: torch.Tensor, body, *, margin: floa
 
 def pushed_out_of_body(x: torch.Tensor, rigid: torch.Tensor, body, *, margin: float = KEEP_OUT_MARGIN,
                        passes: int = KEEP_OUT_PASSES, trigger: float = KEEP_OUT_TRIGGER,
-                       check: bool = True, read_each_round: bool = True) -> tuple[torch.Tensor, int]:
+                       check: bool = True) -> tuple[torch.Tensor, int]:
     """The rounds of `keep_out_of_body` alone: push (`hair_body_keep_out_push`), then project
     (follow-the-leader), until a round pushes nothing or `passes` rounds have pushed; each round
     after the first queries only the strands the round before it pushed.
@@ -95,12 +92,6 @@ def pushed_out_of_body(x: torch.Tensor, rigid: torch.Tensor, body, *, margin: fl
     Args:
         x, rigid, body, margin, passes, trigger: as `keep_out_of_body`'s.
         check: validate the arguments (False: a caller that did).
-        read_each_round: read each round's count and stop at the first that pushed nothing
-            (one host synchronisation a round). False: every round is queued without a read;
-            a round after the last that pushed queries no strand and changes nothing (each
-            round's projection is kept only for the strands it queried, and only if it pushed
-            any), and the counts are read once at the end. The same positions up to float
-            rounding (a strand the other way is projected again in rounds that push others).
 
     Returns:
         ((B, M, N, 3) positions [m]: the input of the first round that pushed nothing, bit for
@@ -111,8 +102,6 @@ def pushed_out_of_body(x: torch.Tensor, rigid: torch.Tensor, body, *, margin: fl
 
     if check:
         _check_arguments(x, rigid, body, margin)
-    if not read_each_round:
-        return _pushed_without_reads(x, rigid, body, margin=margin, passes=passes, trigger=trigger)
     pushed_counts = _RoundCounts(passes, x.device)
     # After the first round only the strands the last round pushed are queried: the others are
     # as that round found them (the projection leaves a strand at its rest lengths where it
@@ -132,30 +121,6 @@ def pushed_out_of_body(x: torch.Tensor, rigid: torch.Tensor, body, *, margin: fl
             return x, k
         x = projected
     return x, passes
-
-
-def _pushed_without_reads(x: torch.Tensor, rigid: torch.Tensor, body, *, margin: float, passes: int,
-                          trigger: float) -> tuple[torch.Tensor, int]:
-    """`pushed_out_of_body`'s rounds, all queued with no host read between them (its
-    `read_each_round=False`): round k queries the strands round k - 1 pushed (every strand in
-    round 0) and keeps its projection where it queried, if it pushed any vertex; one read of the
-    counts at the end.
-    """
-    from hairwarp.ops import follow_the_leader, hair_body_keep_out_push
-
-    counts = torch.zeros(passes, dtype=torch.int32, device=x.device)
-    flags = torch.zeros((passes, *x.shape[:-2]), dtype=torch.int32, device=x.device)
-    for k in range(passes):
-        active = None if k == 0 else flags[k - 1]
-        pushed, _ = hair_body_keep_out_push(x, body, margin=margin, push_below=trigger * margin,
-                                            max_distance=_KEEP_OUT_QUERY, pushed_count=counts[k:k + 1],
-                                            active_strands=active, pushed_strands=flags[k], check=False)
-        projected = follow_the_leader(rigid, pushed, check=False)
-        keep = counts[k] > 0
-        if active is not None:
-            keep = keep & (active != 0)[..., None, None]
-        x = torch.where(keep, projected, x)
-    return x, int((counts > 0).sum())
 
 
 class _RoundCounts:
