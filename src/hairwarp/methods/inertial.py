@@ -13,15 +13,17 @@ inertial step (`hairwarp.models.inertial`), so that the hair keeps a state of it
 
 The step's checkpoint is `MethodOptions.checkpoint` (a file written by `InertialTrainer`), else
 the shipped `hairformer_inertial.pt`: the chain step (`InertialConfig(coupling="chain")`) with
-constants, not trained weights: G = 0.99, beta = 0.95 damping the velocity relative to the head's,
-half a hanging strand's tension, and the equilibrium's offset from the rigid placement followed at
-0.12 m/s at most (the static network's drape can jump between frames, which flung strands out).
-It is the setting of a 72-point grid that meets the most goals (swing correlation and amplitude,
-worst strands no farther from the physics than the rigid placement's) on eight full-size training
-clips (`tools/inertial_sweep.py`; training by rollouts never moved the step at full size). On the
-held-out motions at full size it meets 11 of the 15 swing goals (correlation, amplitude, distance)
-where the nineteenth session's constants met 9 and the first ones 6 (docs/network_diagnosis.md,
-"Twentieth session"). The static network is the shipped one. The step is trained
+constants, not trained weights: G = 0.995, beta = 0.97 damping the velocity relative to the head's,
+half a hanging strand's tension, the equilibrium's offset from the rigid placement followed at
+0.12 m/s at most (the static network's drape can jump between frames, which flung strands out),
+and a bending term of 3e4 (`InertialConfig.bending`: the strand keeps its shape while it swings,
+which lets a weak pull swing without overshooting). It is the setting of a 48-point grid that
+meets the most goals (swing correlation and amplitude, worst strands no farther from the physics
+than the rigid placement's) on eight full-size training clips (`tools/inertial_sweep.py`; training
+by rollouts never moved the step at full size). On the held-out motions at full size it meets 13
+of the 15 swing goals (correlation, amplitude, distance) where the twentieth session's constants
+met 11, the nineteenth session's 9 and the first ones 6 (docs/network_diagnosis.md, "Twenty-first
+session"). The static network is the shipped one. The step is trained
 at one frame rate (`InertialConfig.fps`, 60 1/s): a motion at another rate is refused with the
 resampling to use.
 """
