@@ -92,7 +92,7 @@ def _kernel_profile(fn, device: torch.device, repeats: int = 5) -> tuple[dict[st
     call under the profiler [ms]."""
     import time
 
-    from hairwarp.runtime import synchronize
+    from hairwarp.runtime import kernel_device_times, synchronize
 
     activities = [torch.profiler.ProfilerActivity.CPU]
     if device.type == "cuda":
@@ -105,12 +105,7 @@ def _kernel_profile(fn, device: torch.device, repeats: int = 5) -> tuple[dict[st
             fn()
         synchronize(device)
         wall = (time.perf_counter() - start) * 1e3 / repeats
-    kernels: dict[str, float] = {}
-    for event in prof.key_averages():
-        us = getattr(event, "device_time_total", 0.0) if device.type == "cuda" else 0.0
-        if us and event.device_type == torch.autograd.DeviceType.CUDA:
-            kernels[event.key[:120]] = kernels.get(event.key[:120], 0.0) + us / repeats
-    top = dict(sorted(kernels.items(), key=lambda kv: -kv[1])[:25])
+    top = kernel_device_times(prof, per=repeats, top=25) if device.type == "cuda" else {}
     return top, wall
 
 

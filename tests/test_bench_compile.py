@@ -108,3 +108,22 @@ def test_interleaved_timing_alternates_the_rivals_and_balances_their_calls():
     assert timed.count("slow") == 4 and 8 <= timed.count("fast") <= 20
     switches = sum(a != b for a, b in zip(timed, timed[1:]))
     assert switches >= 4  # the rivals alternate: not all of one, then all of the other
+
+
+def test_kernel_device_times_keeps_device_rows_and_divides_by_the_calls():
+    """`hairwarp.runtime.kernel_device_times`: only rows with device time and no CPU time (kernels,
+    copies) count, each divided by `per`, largest first, cut to `top`."""
+    from types import SimpleNamespace
+
+    from hairwarp.runtime import kernel_device_times
+
+    rows = [SimpleNamespace(key="push_kernel", device_time_total=300.0, cpu_time_total=0.0),
+            SimpleNamespace(key="aten::empty", device_time_total=0.0, cpu_time_total=50.0),
+            SimpleNamespace(key="cudaLaunchKernel", device_time_total=20.0, cpu_time_total=40.0),
+            SimpleNamespace(key="query_kernel", device_time_total=900.0, cpu_time_total=0.0),
+            SimpleNamespace(key="Memcpy DtoH", device_time_total=30.0, cpu_time_total=0.0)]
+    profile = SimpleNamespace(key_averages=lambda: rows)
+    times = kernel_device_times(profile, per=3)
+    assert list(times) == ["query_kernel", "push_kernel", "Memcpy DtoH"]
+    assert times["query_kernel"] == 300.0 and times["Memcpy DtoH"] == 10.0
+    assert list(kernel_device_times(profile, per=3, top=1)) == ["query_kernel"]

@@ -22,7 +22,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 
 def _profile_steps(solver, posed, first: int, steps: int, device) -> dict:
-    from hairwarp.runtime import synchronize
+    from hairwarp.runtime import kernel_device_times, synchronize
 
     activities = [torch.profiler.ProfilerActivity.CPU, torch.profiler.ProfilerActivity.CUDA]
     iterations = 0
@@ -35,17 +35,12 @@ def _profile_steps(solver, posed, first: int, steps: int, device) -> dict:
             iterations += solver.step().iterations
         synchronize(device)
     wall = time.perf_counter() - t0
-    kernels = {}
-    for event in prof.key_averages():
-        us = getattr(event, "device_time_total", None) or getattr(event, "cuda_time_total", 0.0)
-        # Device-side rows only (kernels and copies): their CPU time is zero.
-        if us and not event.cpu_time_total:
-            kernels[event.key] = us / max(iterations, 1)
+    kernels = kernel_device_times(prof, per=max(iterations, 1))
     busy = sum(kernels.values())
     return {"steps": steps, "iterations": iterations, "wall_ms_per_step": wall * 1e3 / steps,
             "wall_us_per_iteration_under_profiler": wall * 1e6 / max(iterations, 1),
             "device_busy_us_per_iteration": busy,
-            "kernels_us_per_iteration": dict(sorted(kernels.items(), key=lambda kv: -kv[1])[:40])}
+            "kernels_us_per_iteration": dict(list(kernels.items())[:40])}
 
 
 def main(argv=None) -> int:

@@ -138,6 +138,20 @@ def time_ms_interleaved(fns: dict[str, Callable[[], object]], device: torch.devi
     return {name: statistics.median(s) for name, s in samples.items()}
 
 
+def kernel_device_times(profile, per: float = 1.0, top: int | None = None) -> dict[str, float]:
+    """Each device-side row of a finished `torch.profiler.profile` (kernels and copies: rows with
+    no CPU time), its total device time [us] divided by `per` (calls, iterations), largest first,
+    the `top` largest (None: all); names as the profiler keys them.
+    """
+    times: dict[str, float] = {}
+    for event in profile.key_averages():
+        us = getattr(event, "device_time_total", None) or getattr(event, "cuda_time_total", 0.0)
+        if us and not event.cpu_time_total:
+            times[event.key] = times.get(event.key, 0.0) + us / max(per, 1e-12)
+    ranked = sorted(times.items(), key=lambda kv: -kv[1])
+    return dict(ranked if top is None else ranked[:top])
+
+
 def cpu_model_name() -> str | None:
     """The CPU's model name from /proc/cpuinfo (None where that file is not readable)."""
     try:
