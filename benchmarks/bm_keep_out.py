@@ -11,7 +11,11 @@ vertices; on the CPU the default keeps every 8th strand.
     python benchmarks/bm_keep_out.py --device cpu --out OUT          # --strand-stride 8
 
 Prints one row per scene (ms per drape, the rounds the pass ran where the library reports them)
-and writes OUT/keep_out.json. `--profile` adds, per scene, the time of the pushing rounds alone
+and writes OUT/keep_out.json. On CUDA each row also times the pass launched eagerly against the
+pass replayed from CUDA graphs (`keep_out.KEEP_OUT_GRAPHS`, alternated in one process; their
+results must agree bit for bit), and the static method's whole drape of the frame (network and
+pass, both replayed) against the network alone (`keep_out=False`): the batch-1 latency.
+`--profile` adds, per scene, the time of the pushing rounds alone
 (`pushed_out_of_body`), each kernel's device time per drape under `torch.profiler` (the largest
 25) and the host's Python functions' own time per drape under `cProfile` (the largest 20, the
 waits for the device among them), to tell the device's work from the host's launches and reads.
@@ -47,7 +51,7 @@ def main(argv=None) -> int:
 
     import hairwarp as hw
     from hairwarp.methods import keep_out
-    from hairwarp.runtime import machine_description, machine_name, time_ms
+    from hairwarp.runtime import machine_description, machine_name, time_ms, time_ms_interleaved
 
     device = torch.device(args.device)
     stride = args.strand_stride or (1 if device.type == "cuda" else 8)
@@ -65,6 +69,8 @@ def main(argv=None) -> int:
             rounds = None if rounds is None else rounds(x, rigid, body)[1]
         row = {"scene": name, "strands": x.shape[1], "vertices": x.shape[2], "keep_out_ms": ms,
                "push_rounds": rounds}
+        if device.type == "cuda":
+            row.update(_replayed_against_eager(keep_out, x, rigid, body, raw.frames, device, time_ms_interleaved))
         if args.profile:
             with torch.no_grad():
                 row["rounds_alone_ms"] = time_ms(lambda: keep_out.pushed_out_of_body(x, rigid, body), device,
@@ -85,6 +91,35 @@ def main(argv=None) -> int:
     with open(os.path.join(args.out, "keep_out.json"), "w") as fh:
         json.dump(record, fh, indent=1, default=float)
     return 0
+
+
+def _replayed_against_eager(keep_out, x, rigid, body, frames, device, time_ms_interleaved) -> dict:
+    """The pass eager against replayed from graphs, alternated; the static method's drape of
+    `frames` (network and pass) against the network alone. Returns the row's entries."""
+    from hairwarp.methods import MethodOptions
+    from hairwarp.methods.networks import NetworkMethod
+
+    def pass_with(graphs: bool):
+        def call():
+            previous, keep_out.KEEP_OUT_GRAPHS = keep_out.KEEP_OUT_GRAPHS, graphs
+            try:
+                return keep_out.keep_out_of_body(x, rigid, body)
+            finally:
+                keep_out.KEEP_OUT_GRAPHS = previous
+        return call
+
+    with torch.no_grad():
+        eager, replayed = pass_with(False), pass_with(True)
+        difference = max(float((replayed() - eager()).abs().max()) for _ in range(3))
+        times = time_ms_interleaved({"eager": eager, "replayed": replayed}, device)
+        whole, alone = NetworkMethod("static"), NetworkMethod("static", MethodOptions(keep_out=False))
+        drapes = time_ms_interleaved({"static_drape": lambda: whole.drape(frames),
+                                      "network_alone": lambda: alone.drape(frames)}, device)
+    print(f"  pass eager {times['eager']:.2f} ms, replayed {times['replayed']:.2f} ms (largest difference "
+          f"{difference:.1e} m); the static method's drape {drapes['static_drape']:.2f} ms, its network alone "
+          f"{drapes['network_alone']:.2f} ms", flush=True)
+    return {"eager_ms": times["eager"], "replayed_ms": times["replayed"], "replayed_minus_eager_max_m": difference,
+            "static_drape_ms": drapes["static_drape"], "network_alone_ms": drapes["network_alone"]}
 
 
 def _kernel_profile(fn, device: torch.device, repeats: int = 5) -> tuple[dict[str, float], float]:

@@ -343,6 +343,69 @@ def test_keep_out_of_body_equals_the_plain_torch_rounds(device, dtype):
     assert outcomes == {"stopped early", "ran out"}
 
 
+def _pass_settings(case: dict) -> dict:
+    from hairwarp.methods.keep_out import (KEEP_OUT_FINAL_DEPTH, KEEP_OUT_MARGIN, KEEP_OUT_PASSES, KEEP_OUT_TRIGGER,
+                                           KEEP_OUT_TURNS)
+
+    settings = {**dict(margin=KEEP_OUT_MARGIN, passes=KEEP_OUT_PASSES, trigger=KEEP_OUT_TRIGGER,
+                       turns=KEEP_OUT_TURNS, final_depth=KEEP_OUT_FINAL_DEPTH), **case}
+    return {k: (int(v) if k in ("passes", "turns") else float(v)) for k, v in settings.items()}
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_replayed_keep_out_equals_the_eager_pass(dtype):
+    """`_ReplayedPass`, the pass in fixed work for CUDA graphs (every round launched, the turns in
+    fixed slots), called plainly on the CPU: the eager pass's positions bit for bit, in every
+    setting, twice over the same buffers, also where a frame has more stuck strands than its
+    slots (they grow)."""
+    from hairwarp.methods.keep_out import _ReplayedPass, keep_out_of_body
+
+    grew = 0
+    for name, x, body in _keep_out_scenes("cpu", dtype):
+        for case in _KEEP_OUT_CASES:
+            eager = keep_out_of_body(x, x.clone(), body, **case)
+            replayed = _ReplayedPass(x, x.clone(), body, _pass_settings(case))
+            replayed.width = 1
+            for _ in range(2):
+                assert torch.equal(replayed(x, x.clone()), eager), (name, case)
+            grew += replayed.width > 1
+            assert float((eager - x).abs().max()) > 1e-3
+    assert grew >= 2
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
+def test_keep_out_replayed_from_cuda_graphs_equals_the_eager_launches():
+    """At batch 1 on CUDA the pass replays its graphs from the second call on the same body: the
+    eager launches' positions bit for bit, in every setting (the rounds stopping early and
+    running out, the turns), on a body moved in place (`BodyMesh.update`) too."""
+    from hairwarp.methods import keep_out
+
+    for name, x, body in _keep_out_scenes("cuda", torch.float32):
+        for case in _KEEP_OUT_CASES:
+            keep_out.KEEP_OUT_GRAPHS = False
+            try:
+                eager = keep_out.keep_out_of_body(x, x.clone(), body, **case)
+            finally:
+                keep_out.KEEP_OUT_GRAPHS = True
+            first = keep_out.keep_out_of_body(x, x.clone(), body, **case)
+            for _ in range(2):
+                torch.testing.assert_close(keep_out.keep_out_of_body(x, x.clone(), body, **case), eager, rtol=0, atol=0,
+                                           msg=lambda m: f"{name} {case}: {m}")
+            torch.testing.assert_close(first, eager, rtol=0, atol=0)
+            held = body.__dict__["_replayed_keep_out"]
+            assert any(v is not None for v in held.values())
+        vertices = body.vertices.clone() if hasattr(body, "vertices") else None
+        if vertices is not None:
+            body.update(vertices + torch.tensor([0.0, 0.002, 0.0], device="cuda"))
+            keep_out.KEEP_OUT_GRAPHS = False
+            try:
+                eager = keep_out.keep_out_of_body(x, x.clone(), body)
+            finally:
+                keep_out.KEEP_OUT_GRAPHS = True
+            keep_out.keep_out_of_body(x, x.clone(), body)
+            torch.testing.assert_close(keep_out.keep_out_of_body(x, x.clone(), body), eager, rtol=0, atol=0)
+
+
 def test_keep_out_of_body_checks_its_arguments_once():
     from hairwarp.methods.keep_out import keep_out_of_body
 
