@@ -47,6 +47,10 @@ def main(argv=None) -> int:
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--profile", action="store_true",
                         help="also time the rounds alone and record each kernel's device time per drape")
+    parser.add_argument("--turn-rounds-per-replay", default="",
+                        help="on CUDA, also time the replayed pass with these many pinch-turn rounds per replay "
+                             "(comma-separated, alternated in one process; the library's default is "
+                             "keep_out._TURN_ROUNDS_PER_REPLAY)")
     parser.add_argument("--out", default="hairwarp-out")
     args = parser.parse_args(argv)
 
@@ -72,6 +76,10 @@ def main(argv=None) -> int:
                "push_rounds": rounds}
         if device.type == "cuda":
             row.update(_replayed_against_eager(keep_out, x, rigid, body, raw.frames, device, time_ms_interleaved))
+            if args.turn_rounds_per_replay:
+                row["replayed_ms_by_turn_rounds_per_replay"] = _turn_rounds_per_replay(
+                    keep_out, x, rigid, body, [int(v) for v in args.turn_rounds_per_replay.split(",")], device,
+                    time_ms_interleaved)
         if args.profile:
             with torch.no_grad():
                 row["rounds_alone_ms"] = time_ms(lambda: keep_out.pushed_out_of_body(x, rigid, body), device,
@@ -123,6 +131,26 @@ def _replayed_against_eager(keep_out, x, rigid, body, frames, device, time_ms_in
           flush=True)
     return {"eager_ms": times["eager"], "replayed_ms": times["replayed"], "replayed_minus_eager_max_m": difference,
             "static_drape_ms": drape_ms, "static_drape_pass_ms": pass_ms}
+
+
+def _turn_rounds_per_replay(keep_out, x, rigid, body, values, device, time_ms_interleaved) -> dict:
+    """The replayed pass (its own instances, called directly: no argument check) with each number
+    of pinch-turn rounds per replay, alternated; every one must give the same positions."""
+    settings = dict(margin=keep_out.KEEP_OUT_MARGIN, passes=keep_out.KEEP_OUT_PASSES,
+                    trigger=keep_out.KEEP_OUT_TRIGGER, turns=keep_out.KEEP_OUT_TURNS,
+                    final_depth=keep_out.KEEP_OUT_FINAL_DEPTH)
+    calls, results = {}, []
+    with torch.no_grad():
+        for value in values:
+            replayed = keep_out._ReplayedPass(x, rigid, body, settings)
+            replayed.turn_rounds_per_replay = value
+            calls[str(value)] = lambda p=replayed: p(x, rigid)
+            results.append(calls[str(value)]())
+        if any(not torch.equal(r, results[0]) for r in results):
+            raise RuntimeError("the replayed pass's positions depend on its turn rounds per replay")
+        times = time_ms_interleaved(calls, device)
+    print("  turn rounds per replay: " + ", ".join(f"{k}: {v:.2f} ms" for k, v in times.items()), flush=True)
+    return times
 
 
 def _kernel_profile(fn, device: torch.device, repeats: int = 5) -> tuple[dict[str, float], float]:

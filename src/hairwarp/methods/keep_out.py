@@ -355,6 +355,9 @@ def _turn_out_of_pinches(x: torch.Tensor, rigid: torch.Tensor, body, *, margin: 
 KEEP_OUT_GRAPHS = True
 # Turn slots a replayed pass starts with; a frame with more stuck strands captures more.
 _REPLAYED_TURN_SLOTS = 16
+# Pinch-turn rounds per replay of a replayed pass (a host read after each replay: where the rounds
+# stop early, the rest of a replay's rounds are the device's wasted work).
+_TURN_ROUNDS_PER_REPLAY = 3
 
 
 def _replayed_pass(x: torch.Tensor, rigid: torch.Tensor, body, settings: dict) -> _ReplayedPass | None:
@@ -412,6 +415,7 @@ class _ReplayedPass:
         self.axes = _axes(x)
         self.weights = torch.tensor(_TURN_WEIGHTS, dtype=x.dtype, device=x.device)
         self.width = min(_REPLAYED_TURN_SLOTS, x.shape[1])
+        self.turn_rounds_per_replay = _TURN_ROUNDS_PER_REPLAY
         self.turn_graphs: dict[int, dict] = {}
         self.rounds = self._captured(self._rounds)
         self.crease = self._captured(self._crease)
@@ -432,13 +436,22 @@ class _ReplayedPass:
                 turns = self._turn_graphs(self.width)
                 turns["select"]()
             if stuck > 0:
-                for _ in range(s["turns"]):
-                    turns["round"]()
+                # Groups of rounds, a read after each: a round after one that turned nothing
+                # finds what it found and turns nothing too, so the eager rounds' stop is kept.
+                for group in self._turn_groups():
+                    turns[group]()
                     if int(turns["turned"]) == 0:
                         break
                 turns["keep"]()
         self.crease()
         return self.out.clone()
+
+    def _turn_groups(self) -> list[tuple[str, int]]:
+        """The turn rounds as replays: keys ("rounds", count) of `turn_rounds_per_replay` rounds
+        each (`_TURN_ROUNDS_PER_REPLAY`; set before the first call that turns), the remainder last.
+        """
+        turns, per = self.settings["turns"], max(1, min(self.turn_rounds_per_replay, self.settings["turns"]))
+        return [("rounds", per)] * (turns // per) + ([("rounds", turns % per)] if turns % per else [])
 
     def _captured(self, fn) -> CapturedCall | Callable[[], None]:
         if self.x.device.type != "cuda":
@@ -488,16 +501,21 @@ class _ReplayedPass:
             g["rest"].copy_(_strand_rows(self.rigid, order))
             g["stuck"].copy_((inside > 0).sum())
 
-        def turn_round():
-            g["turned"].copy_(_pinch_turn_round(g["strands"], g["rest"], g["valid"], body, margin=margin,
-                                                axes=self.axes, weights=self.weights))
+        def turn_rounds(count):
+            def run():
+                for _ in range(count):
+                    turned = _pinch_turn_round(g["strands"], g["rest"], g["valid"], body, margin=margin,
+                                               axes=self.axes, weights=self.weights)
+                g["turned"].copy_(turned)
+            return run
 
         def keep():
             self.positions.copy_(_keep_better(self.positions, g["strands"], g["order"], g["valid"], g["inside"],
                                               body))
 
         saved = self.positions.clone()
-        for name, fn in (("select", select), ("round", turn_round), ("keep", keep)):
+        for name, fn in (("select", select), ("keep", keep),
+                         *((group, turn_rounds(group[1])) for group in set(self._turn_groups()))):
             g[name] = self._captured(fn)
         self.positions.copy_(saved)
         self.turn_graphs[width] = g
