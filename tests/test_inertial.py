@@ -261,11 +261,11 @@ def _keep_out_in_torch(x, rigid, body, *, margin, passes, trigger, turns, final_
     """Oracle: the body pass as it was written before its rounds became one kernel launch each
     (`hair_body_keep_out_push`): plain torch over `hair_body_signed_distance_and_normal`, a host
     read per round. Returns (positions, the number of rounds that pushed)."""
-    from hairwarp.methods.keep_out import _KEEP_OUT_QUERY, _turn_out_of_pinches
+    from hairwarp.methods.keep_out import _query_cap, _turn_out_of_pinches
     from hairwarp.ops import hair_body_signed_distance_and_normal
 
     for k in range(passes):
-        distance, direction = hair_body_signed_distance_and_normal(x, body, max_distance=_KEEP_OUT_QUERY)
+        distance, direction = hair_body_signed_distance_and_normal(x, body, max_distance=_query_cap(margin))
         near = distance < trigger * margin
         near[..., :2] = False
         if not bool(near.any()):
@@ -273,7 +273,7 @@ def _keep_out_in_torch(x, rigid, body, *, margin, passes, trigger, turns, final_
         push = torch.where(near, margin - distance, torch.zeros_like(distance))
         x = follow_the_leader(rigid, x + push[..., None] * direction, check=False)
     x = _turn_out_of_pinches(x, rigid, body, margin=margin, rounds=turns)
-    distance, direction = hair_body_signed_distance_and_normal(x, body, max_distance=_KEEP_OUT_QUERY)
+    distance, direction = hair_body_signed_distance_and_normal(x, body, max_distance=_query_cap(margin))
     shallow = (distance < 0.0) & (distance > -final_depth * margin)
     shallow[..., :2] = False
     push = torch.where(shallow, margin - distance, torch.zeros_like(distance))

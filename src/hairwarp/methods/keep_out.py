@@ -28,8 +28,20 @@ KEEP_OUT_TRIGGER = 0.5
 KEEP_OUT_FINAL_DEPTH = 1.0
 # Rounds of turning strands out of pinches between body parts (`_turn_out_of_pinches`).
 KEEP_OUT_TURNS = 12
-# Distances queried exactly up to this [m]; farther vertices are left alone.
-_KEEP_OUT_QUERY = 1.0e-2
+# Distances are queried exactly up to this [m], or twice the margin where that is more; farther
+# vertices are left alone (`_query_cap`).
+_KEEP_OUT_QUERY = 2.0e-3
+
+
+def _query_cap(margin: float) -> float:
+    """The pass's query cap [m]: every decision reads a distance below the margin (the push
+    below `trigger` x margin, the turns' clearance of half the margin) or a sign (exact inside at
+    any depth), so a cap above the margin changes no position. A tighter cap prunes the tree
+    walk of hair lying on the body: the same positions bit for bit at 1 cm, 3 mm and 1 mm on the
+    three scenes of benchmarks/bm_keep_out.py at full size, 187 / 92 / 162 ms a drape at 1 cm
+    against 150 / 61 / 144 at 3 mm on the 2-core CPU (twenty-second session).
+    """
+    return max(_KEEP_OUT_QUERY, 2.0 * float(margin))
 
 
 def keep_out_of_body(x: torch.Tensor, rigid: torch.Tensor, body, *, margin: float = KEEP_OUT_MARGIN,
@@ -95,7 +107,7 @@ def _pushed_out_of_creases(x: torch.Tensor, body, *, margin: float, final_depth:
     from hairwarp.ops import hair_body_keep_out_push
 
     return hair_body_keep_out_push(x, body, margin=margin, push_below=0.0, push_above=-final_depth * margin,
-                                   max_distance=_KEEP_OUT_QUERY, check=False)[0]
+                                   max_distance=_query_cap(margin), check=False)[0]
 
 
 def pushed_out_of_body(x: torch.Tensor, rigid: torch.Tensor, body, *, margin: float = KEEP_OUT_MARGIN,
@@ -143,7 +155,7 @@ def _push_round(x: torch.Tensor, rigid: torch.Tensor, body, k: int, flags: torch
     active, flagged = (None if k == 0 else flags[(k - 1) % 2]), flags[k % 2]
     flagged.zero_()
     pushed, _ = hair_body_keep_out_push(x, body, margin=margin, push_below=trigger * margin,
-                                        max_distance=_KEEP_OUT_QUERY, pushed_count=count,
+                                        max_distance=_query_cap(margin), pushed_count=count,
                                         active_strands=active, pushed_strands=flagged, check=False)
     return follow_the_leader(rigid, pushed, check=False)
 
@@ -220,8 +232,8 @@ def _axes(like: torch.Tensor) -> torch.Tensor:
 _TURN_WEIGHTS = (0.25, 0.5, 1.0, 2.0, 4.0)
 
 
-def _capped_signed_distance(points: torch.Tensor, body) -> torch.Tensor:
-    """(B, S, K) signed distances [m] of (B, S, K, 3) polylines, capped at `_KEEP_OUT_QUERY`.
+def _capped_signed_distance(points: torch.Tensor, body, margin: float) -> torch.Tensor:
+    """(B, S, K) signed distances [m] of (B, S, K, 3) polylines, capped at `_query_cap(margin)`.
 
     Only signs and clearances below half the margin are read: the capped query (exact inside at
     any depth) skips the unbounded walk of every far vertex, which was the pass's largest kernel
@@ -229,14 +241,14 @@ def _capped_signed_distance(points: torch.Tensor, body) -> torch.Tensor:
     """
     from hairwarp.ops import hair_body_signed_distance_and_normal
 
-    return hair_body_signed_distance_and_normal(points, body, _KEEP_OUT_QUERY)[0]
+    return hair_body_signed_distance_and_normal(points, body, _query_cap(margin))[0]
 
 
-def _vertices_inside(x: torch.Tensor, body) -> torch.Tensor:
+def _vertices_inside(x: torch.Tensor, body, margin: float) -> torch.Tensor:
     """(B, M) int64: each strand's moving vertices inside the body."""
     from hairwarp.config import NUM_FIXED_VERTICES
 
-    return (_capped_signed_distance(x, body)[..., NUM_FIXED_VERTICES:] < 0).sum(-1)
+    return (_capped_signed_distance(x, body, margin)[..., NUM_FIXED_VERTICES:] < 0).sum(-1)
 
 
 def _stuck_slots(inside: torch.Tensor, width: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -283,7 +295,7 @@ def _pinch_turn_round(strands: torch.Tensor, rest: torch.Tensor, valid: torch.Te
     from hairwarp.ops import follow_the_leader
 
     batch, width, n = strands.shape[:3]
-    stuck = (_capped_signed_distance(strands, body) < 0) & valid[..., None]
+    stuck = (_capped_signed_distance(strands, body, margin) < 0) & valid[..., None]
     stuck[..., :NUM_FIXED_VERTICES] = False
     index = torch.arange(n, device=strands.device)
     first = torch.where(stuck, index, torch.full_like(index, n)).min(-1).values  # (B, S)
@@ -296,7 +308,7 @@ def _pinch_turn_round(strands: torch.Tensor, rest: torch.Tensor, valid: torch.Te
     turns = torch.cat([blends, axes.expand(batch, width, -1, 3)], 2)
     turns = turns / turns.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     candidates = before[..., None, :] + length[..., None, :] * turns  # (B, S, K, 3)
-    clearance = _capped_signed_distance(candidates, body)  # every candidate in one query
+    clearance = _capped_signed_distance(candidates, body, margin)  # every candidate in one query
     score = torch.where(clearance >= 0.5 * margin, (turns * own[..., None, :]).sum(-1), clearance - 10.0)
     best = candidates.gather(2, score.argmax(-1)[..., None, None].expand(-1, -1, 1, 3))
     moved = strands.scatter(2, i[..., None, None].expand(-1, -1, 1, 3), best)
@@ -307,7 +319,7 @@ def _pinch_turn_round(strands: torch.Tensor, rest: torch.Tensor, valid: torch.Te
 
 
 def _keep_better(x: torch.Tensor, strands: torch.Tensor, order: torch.Tensor, valid: torch.Tensor,
-                 inside_before: torch.Tensor, body) -> torch.Tensor:
+                 inside_before: torch.Tensor, body, margin: float) -> torch.Tensor:
     """(B, M, N, 3) `x` with the turned `strands` (B, S, N, 3) written back to their places
     `order` where a valid slot ends with fewer vertices inside than `inside_before` (B, S) had.
 
@@ -315,7 +327,7 @@ def _keep_better(x: torch.Tensor, strands: torch.Tensor, order: torch.Tensor, va
     with as many vertices inside as it had keeps its old place (whiplash at full size, the swept
     inertial step: the turns raised the worst frame's share inside from 1.06 % to 1.13 %).
     """
-    better = valid & (_vertices_inside(strands, body) < inside_before)
+    better = valid & (_vertices_inside(strands, body, margin) < inside_before)
     places = order[..., None, None].expand(-1, -1, x.shape[2], 3)
     return x.scatter(1, places, torch.where(better[..., None, None], strands, x.gather(1, places)))
 
@@ -336,7 +348,7 @@ def _turn_out_of_pinches(x: torch.Tensor, rigid: torch.Tensor, body, *, margin: 
     """
     if rounds <= 0:
         return x
-    inside = _vertices_inside(x, body)
+    inside = _vertices_inside(x, body, margin)
     width = int((inside > 0).sum(-1).max())
     if width == 0:
         return x
@@ -347,7 +359,7 @@ def _turn_out_of_pinches(x: torch.Tensor, rigid: torch.Tensor, body, *, margin: 
     for _ in range(rounds):
         if int(_pinch_turn_round(strands, rest, valid, body, margin=margin, axes=axes, weights=weights)) == 0:
             break
-    return _keep_better(x, strands, order, valid, inside.gather(1, order), body)
+    return _keep_better(x, strands, order, valid, inside.gather(1, order), body, margin)
 
 
 # Whether a pass at batch 1 on CUDA replays its launches from CUDA graphs (`_ReplayedPass`) from
@@ -355,9 +367,12 @@ def _turn_out_of_pinches(x: torch.Tensor, rigid: torch.Tensor, body, *, margin: 
 KEEP_OUT_GRAPHS = True
 # Turn slots a replayed pass starts with; a frame with more stuck strands captures more.
 _REPLAYED_TURN_SLOTS = 16
-# Pinch-turn rounds per replay of a replayed pass (a host read after each replay: where the rounds
-# stop early, the rest of a replay's rounds are the device's wasted work).
-_TURN_ROUNDS_PER_REPLAY = 3
+# Pinch-turn rounds per replay of a replayed pass, a host read after each. More rounds a replay
+# save reads but waste the device's work where the rounds stop early: one H100, 1 024 x 100,
+# long straight hair grown on the body, 1 / 3 / 12 rounds a replay 2.13 / 2.41 / 5.20 ms a pass
+# (`python3 benchmarks/bm_keep_out.py --device cuda --turn-rounds-per-replay 1,3,12`, twenty-second
+# session).
+_TURN_ROUNDS_PER_REPLAY = 1
 
 
 def _replayed_pass(x: torch.Tensor, rigid: torch.Tensor, body, settings: dict) -> _ReplayedPass | None:
@@ -492,7 +507,7 @@ class _ReplayedPass:
         body, margin = self.body(), self.settings["margin"]
 
         def select():
-            inside = _vertices_inside(self.positions, body)
+            inside = _vertices_inside(self.positions, body, margin)
             order, valid = _stuck_slots(inside, width)
             g["order"].copy_(order)
             g["valid"].copy_(valid)
@@ -511,7 +526,7 @@ class _ReplayedPass:
 
         def keep():
             self.positions.copy_(_keep_better(self.positions, g["strands"], g["order"], g["valid"], g["inside"],
-                                              body))
+                                              body, margin))
 
         saved = self.positions.clone()
         for name, fn in (("select", select), ("keep", keep),
