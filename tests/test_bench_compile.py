@@ -127,3 +127,22 @@ def test_kernel_device_times_keeps_device_rows_and_divides_by_the_calls():
     assert list(times) == ["query_kernel", "push_kernel", "Memcpy DtoH"]
     assert times["query_kernel"] == 300.0 and times["Memcpy DtoH"] == 10.0
     assert list(kernel_device_times(profile, per=3, top=1)) == ["query_kernel"]
+
+
+def test_timed_warms_up_with_a_smaller_piece_and_once_per_key():
+    """`hairwarp.runtime.timed`: the warm-up calls `warmup_fn` instead of the work where one is
+    given, and a `warmup_key` warms up once per process (a motion's later chunks run once)."""
+    from hairwarp.runtime import timed
+
+    calls = []
+    out, seconds = timed(lambda: calls.append("work") or 7, torch.device("cpu"),
+                         warmup_fn=lambda: calls.append("piece"))
+    assert out == 7 and seconds >= 0 and calls == ["piece", "work"]
+    calls.clear()
+    key = ("test key", object())
+    for _ in range(3):
+        timed(lambda: calls.append("work"), torch.device("cpu"), warmup_key=key)
+    assert calls == ["work", "work", "work", "work"]
+    calls.clear()
+    timed(lambda: calls.append("work"), torch.device("cpu"), warmup=2)
+    assert calls == ["work", "work", "work"]

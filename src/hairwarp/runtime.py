@@ -59,14 +59,32 @@ def synchronize(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def timed(fn: Callable[[], object], device: torch.device, *, warmup: int = 1) -> tuple[object, float]:
+# The warm-up keys `timed` has run in this process (`timed(warmup_key=...)`).
+_WARMED: set = set()
+
+
+def timed(fn: Callable[[], object], device: torch.device, *, warmup: int = 1,
+          warmup_fn: Callable[[], object] | None = None, warmup_key=None) -> tuple[object, float]:
     """(result, seconds) of one call of `fn()` after `warmup` untimed calls, device synchronised.
 
     For work too long to repeat (a network's drape of a batch, a whole optimization): one
     timed call after the warm-up compiled the kernels and filled the caches.
+
+    Args:
+        fn: the work.
+        device: where it runs (synchronised around the timed call).
+        warmup: untimed calls before it.
+        warmup_fn: called for the warm-up instead of `fn`: a smaller piece of the same work (a
+            motion's first frames) that compiles the same kernels at a fraction of the cost.
+        warmup_key: a hashable naming the work's kind (with its shapes where graphs are
+            captured per shape): its warm-up runs once per process, later calls with the key
+            are timed cold of nothing (a motion's chunks after the first).
     """
-    for _ in range(warmup):
-        fn()
+    if warmup_key is None or warmup_key not in _WARMED:
+        for _ in range(warmup):
+            (fn if warmup_fn is None else warmup_fn)()
+        if warmup_key is not None:
+            _WARMED.add(warmup_key)
     synchronize(device)
     start = time.perf_counter()
     out = fn()
