@@ -107,6 +107,42 @@ def test_rollout_gradient_matches_finite_differences(coupling):
         assert math.isclose(float(analytic[i]), float(fd), rel_tol=1e-5, abs_tol=1e-10)
 
 
+@pytest.mark.parametrize("config", [
+    InertialConfig(coupling="chain", damping="relative", equilibrium_speed=0.12, bending=3e4, tension_init=0.5),
+    InertialConfig(coupling="vertex", damping="absolute"),
+])
+def test_a_rollout_in_pieces_is_the_whole_rollout(config):
+    """`rollout(carry=RolloutCarry())` over a sequence cut in pieces of 1, 3 and 4 frames gives the
+    whole sequence's rollout bit for bit (states, the rate-limited equilibrium, the head's motion
+    across a cut, the coefficients of the first frame); a copied carry leaves the original's."""
+    from hairwarp.models.inertial import RolloutCarry
+
+    torch.manual_seed(0)
+    step = InertialStep(config).double()
+    rest = _hanging(3, 8)
+    angle = torch.linspace(0.0, 0.6, 8, dtype=torch.float64)
+    turn = torch.zeros(8, 3, 3, dtype=torch.float64)
+    turn[:, 0, 0], turn[:, 0, 2], turn[:, 1, 1] = torch.cos(angle), torch.sin(angle), 1.0
+    turn[:, 2, 0], turn[:, 2, 2] = -torch.sin(angle), torch.cos(angle)
+    rigid = torch.einsum("tij,mnj->tmni", turn, rest)
+    equilibrium = rigid + 0.01 * torch.randn_like(rigid) * torch.linspace(0, 1, 8, dtype=torch.float64)[:, None]
+    equilibrium[:, :, :2] = rigid[:, :, :2]
+    with torch.no_grad():
+        whole = step.rollout(equilibrium, rigid)
+        carry = RolloutCarry()
+        pieces = []
+        for a, b in ((0, 1), (1, 4), (4, 8)):
+            if a == 1:
+                spare = carry.copy()
+                step.rollout(equilibrium[a:b], rigid[a:b], carry=spare)
+                assert spare.prev is not carry.prev
+            pieces.append(step.rollout(equilibrium[a:b], rigid[a:b], carry=carry))
+    assert torch.equal(torch.cat(pieces), whole)
+    assert float((whole - rigid).abs().max()) > 1e-3
+    with pytest.raises(ValueError, match="rigid"):
+        step.rollout(equilibrium[:2, :2], rigid[:2, :2], carry=carry)
+
+
 def test_bad_inputs_name_the_argument():
     step = InertialStep()
     rigid = _hanging(2, 5, torch.float32)[None].expand(3, -1, -1, -1)
@@ -490,6 +526,28 @@ def test_the_inertial_drape_is_the_static_drape_through_the_body_pass():
     torch.testing.assert_close(inertial.positions, hw.drape(scene, method="static").positions)
     assert inertial.metrics["penetration_percent"] == 0.0
     assert hw.drape(scene, method="static", keep_out=False).metrics["penetration_percent"] > 0.1
+
+
+def test_the_inertial_method_rolls_out_chunk_by_chunk_as_one_sequence():
+    """`InertialMethod.simulate` runs a chunk of frames at a time (equilibrium, rollout going on
+    from the chunk before, body pass on the chunk's body): the same positions bit for bit as the
+    whole motion's equilibrium, rolled out at once, then passed chunk by chunk."""
+    import hairwarp as hw
+    from hairwarp.methods.inertial import InertialMethod, load_inertial_step
+    from hairwarp.methods.keep_out import keep_out_of_body_in_frames
+    from hairwarp.scene.scene import FRAME_CHUNK
+
+    scene = hw.default_scene("bob", "head_turn", duration=0.4, strand_stride=32)
+    frames = scene.frames()
+    assert frames.num_frames > FRAME_CHUNK  # two chunks at least
+    method = InertialMethod()
+    out = method.simulate(frames)
+    step = load_inertial_step(None, frames.rigid.positions.device)
+    with torch.no_grad():
+        target = method.equilibrium.simulate(frames).positions.to(frames.rigid.positions.dtype)
+        whole = keep_out_of_body_in_frames(step.rollout(target, frames.rigid.positions), frames)
+    assert torch.equal(out.positions, whole)
+    assert len(out.info["chunks"]) >= 2 and out.info["step_ms"] > 0 and out.time_ms > out.info["step_ms"]
 
 
 def test_random_head_moves_are_seeded_and_bounded():

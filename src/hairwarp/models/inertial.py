@@ -293,7 +293,7 @@ class InertialStep(nn.Module):
         return follow_the_leader(rigid, target, check=False, max_gain=self.projection_max_gain)
 
     def rollout(self, equilibrium: torch.Tensor, rigid: torch.Tensor, initial: tuple | None = None,
-                project=None) -> torch.Tensor:
+                project=None, carry: RolloutCarry | None = None) -> torch.Tensor:
         """A whole sequence, frame by frame, each step on the step's own previous states.
 
         Args:
@@ -304,6 +304,11 @@ class InertialStep(nn.Module):
             project: optional callable (t, x (M, N, 3)) -> (M, N, 3) applied to each frame's
                 result before it becomes the state the next frames read (the body pass of
                 `InertialConfig.keep_out_state`); None: the step's own result.
+            carry: a `RolloutCarry` for a sequence rolled out a piece at a time: empty, this call
+                is the sequence's first piece; filled by the call before, this call goes on
+                from it (its states, rate-limited equilibrium, head motion and coefficients,
+                `initial` ignored) and leaves it for the next. The pieces give the whole
+                sequence's rollout bit for bit.
 
         Returns:
             (T, M, N, 3) positions [m].
@@ -315,17 +320,27 @@ class InertialStep(nn.Module):
         check_tensor("equilibrium", equilibrium, shape=tuple(rigid.shape), dtypes=(rigid.dtype,), device=rigid.device)
         if rigid.shape[2] <= NUM_FIXED_VERTICES:
             raise ValueError(f"rigid: expected more than {NUM_FIXED_VERTICES} vertices per strand, got {rigid.shape[2]}")
-        if initial is None:
-            prev = prev2 = equilibrium[0]
+        carried = carry is not None and carry.prev is not None
+        if carried:
+            if tuple(carry.prev.shape) != tuple(rigid.shape[1:]):
+                raise ValueError(f"rigid: expected frames of shape {tuple(carry.prev.shape)} like the carried "
+                                 f"sequence's, got {tuple(rigid.shape[1:])}")
+            prev, prev2, offset, coefficients = carry.prev, carry.prev2, carry.offset, carry.coefficients
+            placed = torch.cat([carry.rigid_before, rigid])  # the two frames before this piece, then it
         else:
-            prev, prev2 = initial
-            for name, value in (("initial[0]", prev), ("initial[1]", prev2)):
-                check_tensor(name, value, shape=tuple(rigid.shape[1:]), dtypes=(rigid.dtype,), device=rigid.device)
-        coefficients = self.coefficients(rigid)
+            if initial is None:
+                prev = prev2 = equilibrium[0]
+            else:
+                prev, prev2 = initial
+                for name, value in (("initial[0]", prev), ("initial[1]", prev2)):
+                    check_tensor(name, value, shape=tuple(rigid.shape[1:]), dtypes=(rigid.dtype,), device=rigid.device)
+            coefficients = self.coefficients(rigid)
+            offset = equilibrium[0] - rigid[0]  # the equilibrium's offset from the rigid placement, rate-limited
+            # The head at rest before the first frame (the first frame twice before it); then how
+            # the rigid placement moved a frame ago.
+            placed = torch.cat([rigid[:1], rigid[:1], rigid])
         limit = None if self.config.equilibrium_speed is None else self.config.equilibrium_speed / self.config.fps
-        offset = equilibrium[0] - rigid[0]  # the equilibrium's offset from the rigid placement, rate-limited
-        # The head at rest before the first frame; then how the rigid placement moved a frame ago.
-        head_velocity = torch.cat([torch.zeros_like(rigid[:2]), rigid[1:-1] - rigid[:-2]])
+        head_velocity = placed[1:-1] - placed[:-2]
         if self.config.damping == "absolute":
             head_velocity = torch.zeros_like(rigid)
         out = []
@@ -340,7 +355,31 @@ class InertialStep(nn.Module):
                 x = project(t, x)
             out.append(x)
             prev2, prev = prev, x
+        if carry is not None:
+            carry.prev, carry.prev2, carry.offset, carry.coefficients = prev, prev2, offset, coefficients
+            carry.rigid_before = placed[-2:]
         return torch.stack(out)
+
+
+@dataclass
+class RolloutCarry:
+    """What `InertialStep.rollout` carries from one piece of a sequence to the next (its
+    `carry` argument): the last two states x(t-1), x(t-2), the rate-limited equilibrium's
+    offset, the last two rigid placements (the head's motion) and the step's coefficients
+    (made from the sequence's first frame). Empty (all None) before the first piece.
+    """
+
+    prev: torch.Tensor | None = None
+    prev2: torch.Tensor | None = None
+    offset: torch.Tensor | None = None
+    rigid_before: torch.Tensor | None = None
+    coefficients: tuple | None = None
+
+    def copy(self) -> RolloutCarry:
+        """A copy that a rollout can advance without advancing this one (the tensors are not
+        changed in place, so they are shared).
+        """
+        return RolloutCarry(self.prev, self.prev2, self.offset, self.rigid_before, self.coefficients)
 
 
 def limited_change(change: torch.Tensor, limit: float) -> torch.Tensor:
@@ -421,5 +460,5 @@ def fit_constants_by_length(step: InertialStep, anchors, *, iterations: int = 30
         return float((step.net(check).double() - targets[:, :outputs]).abs().max())
 
 
-__all__ = ["COUPLINGS", "DAMPINGS", "InertialConfig", "InertialStep", "NUM_VERTEX_FEATURES", "chain_operator",
-           "fit_constants_by_length", "hanging_chain_tension", "limited_change", "vertex_features"]
+__all__ = ["COUPLINGS", "DAMPINGS", "InertialConfig", "InertialStep", "NUM_VERTEX_FEATURES", "RolloutCarry",
+           "chain_operator", "fit_constants_by_length", "hanging_chain_tension", "limited_change", "vertex_features"]
