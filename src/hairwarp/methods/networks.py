@@ -370,7 +370,7 @@ class NetworkMethod(Method):
             # captured per shape and body, and each chunk has a body of its own.
             key = None if device.type == "cuda" else ("network drape", self.name, id(sim),
                                                        tuple(frames.rigid.positions.shape))
-            if getattr(sim.static.config, "contact_samples", 0) > 0:
+            if getattr(sim.static.config, "contact_samples", 0) > 0 and frames.body_mesh is not None:
                 frames.body_mesh.prepare()  # the chunk's body built before the clock starts, as a warm-up does
             positions, seconds = timed(lambda: sim.drape(frames), device, warmup_key=key)
             return MethodResult(positions=positions, time_ms=seconds * 1e3 / positions.shape[0])
