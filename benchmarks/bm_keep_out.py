@@ -2,10 +2,10 @@
 
 The pass runs after every network drape by default (`MethodOptions.keep_out`). Its input here is
 the shipped static network's raw drape (`keep_out=False`) of the scenes of tools/static_rows.py
-that the networks leave partly inside the body: long straight hair grown on the body at rest
-(the rounds stop early), a bob at head_turn t = 0.5 s and long curly hair grown on the head at
-nod t = 0.5 s (every round pushes, then the pinch turns run). Full size is 1 024 strands x 100
-vertices; on the CPU the default keeps every 8th strand.
+that the networks leave partly inside the body: long straight hair grown on the body at rest, a
+bob at head_turn t = 0.5 s (the rounds stop early at full size) and long curly hair grown on the
+head at nod t = 0.5 s (at full size the long hair's rounds all push, then the pinch turns run).
+Full size is 1 024 strands x 100 vertices; on the CPU the default keeps every 8th strand.
 
     python benchmarks/bm_keep_out.py --device cuda --out OUT
     python benchmarks/bm_keep_out.py --device cpu --out OUT          # --strand-stride 8
