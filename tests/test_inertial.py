@@ -9,8 +9,8 @@ import torch
 
 from hairwarp.metrics import motion_fidelity
 from hairwarp.models.checkpoint import load_checkpoint, save_checkpoint
-from hairwarp.models.inertial import (InertialConfig, InertialStep, chain_operator, hanging_chain_tension, limited_change,
-                                      vertex_features)
+from hairwarp.models.inertial import (InertialConfig, InertialStep, body_held_chain_relaxation, body_hold_weights,
+                                      chain_operator, hanging_chain_tension, limited_change, vertex_features)
 from hairwarp.ops import BodyMesh, follow_the_leader, hair_body_signed_distance
 from meshes import icosphere
 
@@ -908,3 +908,107 @@ def test_the_shipped_step_swings_on_after_the_head_stops_and_comes_to_rest():
     crossings = ((after[1:] * after[:-1]) < 0).sum(0)
     assert bool((crossings >= 2).all()), crossings  # through the equilibrium and back: secondary motion
     assert float(after[-60:].abs().max()) < 0.02 * largest  # and at rest within the last second
+
+
+def _held_system(seed=0, m=4, n=9, batch=2):
+    """A chain's C^-1 (M, n, n), offsets (B, M, n, 3), holds (B, M, n) with strand 1 of frame 0 free,
+    and unit normals (B, M, n, 3), in float64."""
+    gen = torch.Generator().manual_seed(seed)
+    operator = chain_operator(torch.randn(m, n, generator=gen) + 3.0, torch.rand(m, n, generator=gen) * 5.0,
+                              bending=100.0)
+    offset = torch.randn(batch, m, n, 3, generator=gen, dtype=torch.float64) * 0.01
+    weight = (torch.rand(batch, m, n, generator=gen) < 0.4).double() * 1000.0 * torch.rand(batch, m, n, generator=gen)
+    weight[0, 1] = 0.0
+    normal = torch.nn.functional.normalize(torch.randn(batch, m, n, 3, generator=gen, dtype=torch.float64), dim=-1)
+    return operator, offset, weight, normal
+
+
+def test_the_body_held_chain_solves_the_held_3n_system():
+    """`body_held_chain_relaxation` (Woodbury's identity over C^-1) against the dense float64
+    solve of (C (x) I_3 + sum_i kappa_i n_i n_i^T) u = d per strand; a strand with no held
+    vertex is the free chain's C^-1 d."""
+    operator, offset, weight, normal = _held_system()
+    u = body_held_chain_relaxation(operator, offset, weight, normal)
+    chain = torch.linalg.inv(operator)
+    n = chain.shape[-1]
+    for b in range(offset.shape[0]):
+        for m in range(offset.shape[1]):
+            system = torch.einsum("ij,ab->iajb", chain[m], torch.eye(3, dtype=torch.float64)).reshape(3 * n, 3 * n)
+            for i in range(n):
+                system[3 * i:3 * i + 3, 3 * i:3 * i + 3] += weight[b, m, i] * torch.outer(normal[b, m, i], normal[b, m, i])
+            expected = torch.linalg.solve(system, offset[b, m].reshape(-1)).reshape(n, 3)
+            torch.testing.assert_close(u[b, m], expected, rtol=1e-9, atol=1e-12)
+    torch.testing.assert_close(u[0, 1], (operator @ offset)[0, 1], rtol=0, atol=0)
+    assert float((u - operator @ offset).abs().max()) > 1e-4  # the hold changed the held strands
+
+
+def test_a_stiff_hold_stops_the_chain_along_the_normal_and_leaves_the_tangent_free():
+    operator, offset, _, normal = _held_system(seed=1, batch=1)
+    weight = torch.zeros(offset.shape[:-1], dtype=torch.float64)
+    weight[..., 3:6] = 1e7
+    u = body_held_chain_relaxation(operator, offset, weight, normal)
+    along = (u * normal).sum(-1)
+    free = operator @ offset
+    assert float(along[..., 3:6].abs().max()) < 1e-5 * float(free.abs().max())
+    tangent = u - along[..., None] * normal
+    assert float(tangent[..., 3:6, :].norm(dim=-1).min()) > 1e-5  # the held vertices still slide along the body
+
+
+def test_the_body_held_chain_gradient_matches_finite_differences():
+    operator, offset, weight, normal = _held_system(seed=2, m=2, n=5, batch=1)
+    # C^-1 is symmetric (the Cholesky's gradient reads its lower triangle): perturbed symmetrically.
+    torch.autograd.gradcheck(lambda d, p: body_held_chain_relaxation((p + p.transpose(-1, -2)) / 2, d, weight, normal),
+                             (offset.requires_grad_(), operator.requires_grad_()))
+
+
+def test_the_body_hold_is_checked_and_needs_the_equilibriums_distances():
+    with pytest.raises(ValueError, match="body_hold"):
+        InertialConfig(body_hold=-1.0)
+    with pytest.raises(ValueError, match="coupling"):
+        InertialConfig(body_hold=100.0)
+    with pytest.raises(ValueError, match="body_hold_distance"):
+        InertialConfig(coupling="chain", body_hold=100.0, body_hold_distance=0.0)
+    step = InertialStep(InertialConfig(coupling="chain", body_hold=100.0))
+    rigid = _hanging(2, 5, torch.float32)[None].expand(3, -1, -1, -1).contiguous()
+    with pytest.raises(ValueError, match="hold"):
+        step.rollout(rigid.clone(), rigid)
+    with pytest.raises(ValueError, match=r"hold\[1\]"):
+        step.rollout(rigid.clone(), rigid, hold=(torch.zeros(rigid.shape[:3]), torch.zeros(3, 2, 4, 3)))
+    distance = torch.tensor([[0.001, 0.05, -0.01, 0.019, 0.02]])
+    torch.testing.assert_close(body_hold_weights(distance, step.config), torch.tensor([[100.0, 100.0, 0.0]]))
+
+
+def test_a_hold_far_from_every_vertex_is_the_free_chain():
+    """A held step whose equilibrium lies farther than its distance from the body rolls out as the
+    same step without the hold, to the last bit; where it lies on the body, the rollout differs."""
+    rigid = _hanging(3, 8, torch.float64)
+    frames = rigid[None].repeat(6, 1, 1, 1)
+    frames[:, :, :, 0] += 0.01 * torch.linspace(0, 1, 6, dtype=torch.float64)[:, None, None]  # the head moves
+    config = dict(coupling="chain", damping="relative", gate_init=0.99, retention_init=0.95)
+    free = InertialStep(InertialConfig(**config)).double().rollout(frames.clone(), frames)
+    held = InertialStep(InertialConfig(**config, body_hold=1000.0)).double()
+    normal = torch.zeros_like(frames)
+    normal[..., 0] = 1.0  # along the head's motion: the swing is held
+    far = held.rollout(frames.clone(), frames, hold=(torch.full(frames.shape[:3], 0.05, dtype=torch.float64), normal))
+    torch.testing.assert_close(far, free, rtol=0, atol=0)
+    near = held.rollout(frames.clone(), frames, hold=(torch.zeros(frames.shape[:3], dtype=torch.float64), normal))
+    assert float((near - free).abs().max()) > 1e-6
+
+
+def test_the_method_holds_the_chain_where_the_equilibrium_lies_on_the_body(tmp_path):
+    """The method hands the rollout the equilibrium's distances and normals: a held step runs a
+    motion out of the body at its rest lengths, and moves the hair that lies on the body."""
+    import hairwarp as hw
+
+    scene = hw.default_scene("long_straight", "nod", duration=0.25, strand_stride=64, num_vertices=24)
+    paths = {}
+    for hold in (0.0, 1000.0):
+        step = InertialStep(InertialConfig(coupling="chain", damping="relative", gate_init=0.99, retention_init=0.95,
+                                           tension_init=0.5, equilibrium_speed=0.12, body_hold=hold))
+        paths[hold] = str(tmp_path / f"step_{hold:g}.pt")
+        save_checkpoint(paths[hold], step)
+    free = hw.simulate(scene, method="inertial", checkpoint=paths[0.0])
+    held = hw.simulate(scene, method="inertial", checkpoint=paths[1000.0])
+    assert max(held.metrics["per_frame"]["penetration_percent"]) == 0.0
+    assert held.metrics["length_change_percent"] < 0.01
+    assert float((held.positions - free.positions).abs().max()) > 1e-4

@@ -67,20 +67,36 @@ def _floats(text: str) -> list[float]:
     return [float(v) for v in text.split(",") if v]
 
 
-def _trajectories(scene, device, path) -> dict:
-    """{"rigid", "physics", "equilibrium"} (T, M, N, 3) float32 of a scene, cached at `path`."""
+def _trajectories(scene, device, path, hold_cap: float | None = None) -> dict:
+    """{"rigid", "physics", "equilibrium"} (T, M, N, 3) float32 of a scene, cached at `path`; with
+    `hold_cap` [m] also "hold_distance" (T, M, N) and "hold_normal" (T, M, N, 3), the equilibrium's
+    distance to the body (capped there) and the body's outward direction (`InertialConfig.body_hold`).
+    """
     from hairwarp.methods import MethodOptions, make
     from hairwarp.methods.networks import NetworkMethod
+    from hairwarp.ops import hair_body_signed_distance_and_normal
 
-    if os.path.isfile(path):
-        return torch.load(path, weights_only=True)
+    data = torch.load(path, weights_only=True) if os.path.isfile(path) else None
+    if data is not None and (hold_cap is None or float(data.get("hold_cap", torch.tensor(0.0))) >= hold_cap):
+        return data
     start = time.perf_counter()
     frames = scene.frames(device=device)
-    # The equilibrium as the inertial method takes it: the static network without the body pass.
-    equilibrium = NetworkMethod("static", MethodOptions(keep_out=False)).simulate(frames)
-    data = {"rigid": frames.rigid.positions.detach().float(),
-            "physics": make("physics").simulate(frames).positions.detach().float(),
-            "equilibrium": equilibrium.positions.detach().float()}
+    if data is None:
+        # The equilibrium as the inertial method takes it: the static network without the body pass.
+        equilibrium = NetworkMethod("static", MethodOptions(keep_out=False)).simulate(frames)
+        data = {"rigid": frames.rigid.positions.detach().float(),
+                "physics": make("physics").simulate(frames).positions.detach().float(),
+                "equilibrium": equilibrium.positions.detach().float()}
+    if hold_cap is not None:
+        distances, normals, first = [], [], 0
+        for chunk in frames.chunks():
+            x = data["equilibrium"][first:first + chunk.num_frames].to(device, chunk.rigid.positions.dtype)
+            distance, normal = hair_body_signed_distance_and_normal(x, chunk.body_mesh, max_distance=hold_cap)
+            distances.append(distance.float().cpu())
+            normals.append(normal.float().cpu())
+            first += chunk.num_frames
+        data["hold_distance"], data["hold_normal"] = torch.cat(distances), torch.cat(normals)
+        data["hold_cap"] = torch.tensor(float(hold_cap))
     data = {k: v.cpu() for k, v in data.items()}
     torch.save(data, path)
     print(f"{os.path.basename(path)}: {tuple(data['rigid'].shape)} in {time.perf_counter() - start:.1f} s", flush=True)
@@ -88,17 +104,18 @@ def _trajectories(scene, device, path) -> dict:
 
 
 def _step(gate: float, retention: float, tension: float, damping: str = "absolute", speed: float | None = None,
-          bending: float = 0.0, keep_out_state: bool = False):
+          bending: float = 0.0, body_hold: float = 0.0, body_hold_distance: float = 0.02, keep_out_state: bool = False):
     from hairwarp.models.inertial import InertialConfig, InertialStep
 
     return InertialStep(InertialConfig(coupling="chain", damping=damping, gate_init=gate, retention_init=retention,
                                        tension_init=tension, equilibrium_speed=speed, bending=bending,
+                                       body_hold=body_hold, body_hold_distance=body_hold_distance,
                                        keep_out_state=keep_out_state))
 
 
 def _key(r: dict) -> tuple:
     return (r["gate"], r["retention"], r["tension"], r.get("damping", "absolute"), r.get("equilibrium_speed"),
-            r.get("bending", 0.0))
+            r.get("bending", 0.0), r.get("body_hold", 0.0), r.get("body_hold_distance", 0.02))
 
 
 def _speeds(text: str) -> list[float | None]:
@@ -172,6 +189,9 @@ def main(argv=None) -> int:
     parser.add_argument("--equilibrium-speeds", default="none",
                         help="InertialConfig.equilibrium_speed values [m/s], 'none' for unlimited")
     parser.add_argument("--bendings", default="0", help="InertialConfig.bending values")
+    parser.add_argument("--body-holds", default="0", help="InertialConfig.body_hold values (kappa; 0: no hold)")
+    parser.add_argument("--body-hold-distances", default="0.02",
+                        help="InertialConfig.body_hold_distance values [m] (swept where body_hold > 0)")
     parser.add_argument("--no-method-rows", action="store_true",
                         help="skip running the chosen and the shipped step as the method on the held-out motions")
     parser.add_argument("--state-pushed", action="store_true",
@@ -201,39 +221,49 @@ def main(argv=None) -> int:
     cache = os.path.join(args.out, "clips")
     os.makedirs(cache, exist_ok=True)
     tag = f"s{args.strand_stride}"
+    holds, hold_distances = _floats(args.body_holds), _floats(args.body_hold_distances)
+    hold_cap = max(hold_distances) if any(holds) else None
     train = {}
     for i, style in enumerate(args.styles.split(",")):
         for j in range(args.clips_per_style):
             spec = ClipSpec(style, "head_moves", 100 * i + j, 0.0, 1.5)
             train[spec.key] = _trajectories(clip_scene(spec, args.strand_stride, 100), device,
-                                            os.path.join(cache, f"train_{spec.key}_{tag}.pt"))
+                                            os.path.join(cache, f"train_{spec.key}_{tag}.pt"), hold_cap)
     labels = args.scenes.split(",") if args.scenes else [e[0] for e in EVALUATION]
     held_scenes, held = {}, {}
     for label, style, pose, start, duration in EVALUATION:
         if label in labels:
             held_scenes[label] = _evaluation_scene(label, style, pose, start, duration, args.strand_stride, args.out)
-            held[label] = _trajectories(held_scenes[label], device, os.path.join(cache, f"held_{label}_{tag}.pt"))
+            held[label] = _trajectories(held_scenes[label], device, os.path.join(cache, f"held_{label}_{tag}.pt"),
+                                        hold_cap)
 
     def on_device(clip):
         return {k: v.to(device) for k, v in clip.items()}
 
     baseline = {name: _scores(on_device(c)["equilibrium"], on_device(c)) for name, c in {**train, **held}.items()}
     rigid_rows = {n: _scores(on_device(c)["rigid"], on_device(c)) for n, c in {**train, **held}.items()}
-    grid = list(itertools.product(_floats(args.gates), _floats(args.retentions), _floats(args.tensions),
-                                  args.dampings.split(","), _speeds(args.equilibrium_speeds), _floats(args.bendings)))
+    # A hold of 0 is one setting whatever its distance.
+    hold_settings = [(k, d) for k in holds for d in (hold_distances if k else hold_distances[:1])]
+    grid = [(*head, *hold) for head, hold in itertools.product(
+        itertools.product(_floats(args.gates), _floats(args.retentions), _floats(args.tensions),
+                          args.dampings.split(","), _speeds(args.equilibrium_speeds), _floats(args.bendings)),
+        hold_settings)]
     results = []
     from tqdm.auto import tqdm
 
     with torch.no_grad():
-        for gate, retention, tension, damping, speed, bending in tqdm(grid, desc="settings", dynamic_ncols=True):
-            step = _step(gate, retention, tension, damping, speed, bending).to(device)
+        for setting in tqdm(grid, desc="settings", dynamic_ncols=True):
+            gate, retention, tension, damping, speed, bending, body_hold, hold_distance = setting
+            step = _step(*setting).to(device)
             rows = {}
             for name, clip in {**train, **held}.items():
                 clip = on_device(clip)
-                rows[name] = _scores(step.rollout(clip["equilibrium"], clip["rigid"]), clip)
+                hold = (clip["hold_distance"], clip["hold_normal"]) if body_hold else None
+                rows[name] = _scores(step.rollout(clip["equilibrium"], clip["rigid"], hold=hold), clip)
             objective = sum(rows[n]["loss"] / baseline[n]["loss"] for n in train) / len(train)
             results.append({"gate": gate, "retention": retention, "tension": tension, "damping": damping,
-                            "equilibrium_speed": speed, "bending": bending, "train_objective": objective, "rows": rows})
+                            "equilibrium_speed": speed, "bending": bending, "body_hold": body_hold,
+                            "body_hold_distance": hold_distance, "train_objective": objective, "rows": rows})
     for r in results:
         r["train_swing_goals_met"] = sum(_goals_met(r["rows"][n], rigid_rows[n]) for n in train)
     if args.choose == "goals":
@@ -243,7 +273,10 @@ def main(argv=None) -> int:
     chosen = results[0]
     shipped_config = _shipped_config()
     shipped_key = (shipped_config.gate_init, shipped_config.retention_init, shipped_config.tension_init,
-                   shipped_config.damping, shipped_config.equilibrium_speed, shipped_config.bending)
+                   shipped_config.damping, shipped_config.equilibrium_speed, shipped_config.bending,
+                   shipped_config.body_hold, shipped_config.body_hold_distance)
+    if not shipped_config.body_hold:
+        shipped_key = (*shipped_key[:-1], hold_distances[0])  # a hold of 0 is one setting (above)
     shipped = next((r for r in results if _key(r) == shipped_key), None)
     save_checkpoint(os.path.join(args.out, "chosen_inertial.pt"), _step(*_key(chosen)).float(),
                     extra={"chosen_by": f"tools/inertial_sweep.py --choose {args.choose}",
@@ -346,10 +379,11 @@ def _markdown(record: dict, shipped: dict | None) -> str:
              "loss (lower is better). Held out: mean distance to the physics [mm] over the mean of the rigid "
              "placement's, mean swing correlation, mean amplitude ratio, worst strands (p99 of the strand "
              "distance, worst frame) over the rigid placement's, averaged over the motions.", "",
-             "| G | beta | tension | damping | equilibrium speed [m/s] | bending | train goals met | train objective | "
+             "| G | beta | tension | damping | equilibrium speed [m/s] | bending | body hold (kappa @ m) | "
+             "train goals met | train objective | "
              "train corr | train amp | "
              "train p99 / rigid | held-out dist / rigid | held-out corr | held-out amp | held-out p99 / rigid |",
-             "|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     rigid_mean = _summary({n: record["rigid"][n] for n in held}, "mean_distance_mm") if held else None
     shown = record["settings"][:12] + ([shipped] if shipped and shipped not in record["settings"][:12] else [])
     for r in shown:
@@ -358,6 +392,7 @@ def _markdown(record: dict, shipped: dict | None) -> str:
         dist = _summary(ho, "mean_distance_mm") if held else None
         lines.append(f"| {r['gate']:g} | {r['retention']:g} | {r['tension']:g} | {r.get('damping', 'absolute')} | "
                      f"{_fmt(r.get('equilibrium_speed'), 'g')} | {r.get('bending', 0.0):g} | "
+                     f"{_hold_text(r)} | "
                      f"{r['train_swing_goals_met']} / {3 * len(train)} | "
                      f"{r['train_objective']:.3f} | "
                      f"{_fmt(_summary(tr, 'swing_correlation'))} | {_fmt(_summary(tr, 'swing_amplitude_ratio'))} | "
@@ -387,6 +422,10 @@ def _markdown(record: dict, shipped: dict | None) -> str:
                          f"{r['length_change_percent_max']:.3f}")
         lines.append(f"| {label} | {rigid:.1f} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
+
+
+def _hold_text(r: dict) -> str:
+    return f"{r['body_hold']:g} @ {r['body_hold_distance']:g}" if r.get("body_hold") else "-"
 
 
 def _p99_ratio(r: dict, record: dict, names: list[str]) -> float | None:

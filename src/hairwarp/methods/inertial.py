@@ -38,8 +38,9 @@ import torch
 
 from hairwarp.methods.base import Method, MethodOptions, MethodResult, drape_in_chunks
 from hairwarp.methods.keep_out import KEEP_OUT_MARGIN, keep_out_of_body
-from hairwarp.models.inertial import RolloutCarry
 from hairwarp.methods.networks import NetworkMethod, shipped_checkpoint
+from hairwarp.models.inertial import RolloutCarry
+from hairwarp.ops import hair_body_signed_distance_and_normal
 from hairwarp.runtime import timed
 
 INERTIAL_CHECKPOINT = "hairformer_inertial.pt"
@@ -124,10 +125,16 @@ class InertialMethod(Method):
 
         def run(chunk, target, carry):
             rigid = chunk.rigid.positions
+            hold = None
+            if step.config.body_hold:
+                # Where the equilibrium lies on the body, and the body's outward direction there:
+                # the chain is held along it (`InertialConfig.body_hold`); queries capped at the distance.
+                hold = hair_body_signed_distance_and_normal(target, chunk.body_mesh,
+                                                            max_distance=step.config.body_hold_distance)
             if step.config.keep_out_state:
                 # The pass inside the rollout: each frame pushed before the next step reads it.
-                return step.rollout(target, rigid, project=_FrameBodyPass(chunk), carry=carry)
-            return keep_out_of_body(step.rollout(target, rigid, carry=carry), rigid, chunk.body_mesh)
+                return step.rollout(target, rigid, project=_FrameBodyPass(chunk), carry=carry, hold=hold)
+            return keep_out_of_body(step.rollout(target, rigid, carry=carry, hold=hold), rigid, chunk.body_mesh)
 
         def piece(chunk) -> MethodResult:
             equilibrium = self.equilibrium.drape(chunk)

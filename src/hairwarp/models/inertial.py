@@ -38,6 +38,17 @@ free vertex to the scalp), so p = E + (I + D + L_w)^-1 d. With w = 0 this is the
 w is a hanging strand's (h^2 g (L - s) / l^2, `hanging_chain_tension`) times a learned factor.
 The operator is one (N-2) x (N-2) inverse per strand, made once per sequence (`coefficients`).
 
+`body_hold` holds the chain along the body's outward normal where the frame's equilibrium lies
+within `body_hold_distance` of the body: the relaxation of the offsets d = y - E becomes, per
+strand, (C (x) I_3 + sum_i kappa n_i n_i^T) d' = d, C = I + D + L_w + b A^T A the chain's matrix,
+n_i the outward direction of the body at free vertex i of the equilibrium and the sum over the
+vertices within the distance. The static network's drape lies on the body where the physics' hair
+rests on it; a free chain swings those strands into and out of the body (which the body pass then
+flattens) where the physics' slide along it. Along the normal only, the tangent left free: pinned
+in every direction the strands on the shoulders stop swinging sideways where the physics' still do
+(docs/network_diagnosis.md, T8). Solved with C's inverse and one n x n system per held strand
+(Woodbury's identity, `body_held_chain_relaxation`).
+
 `equilibrium_speed` limits how fast E(t) - P_rigid(t), the equilibrium's offset from the rigid
 placement, may change per strand: the static network's drape can jump between frames where the
 hair cannot, and the step would swing every jump (`InertialConfig.equilibrium_speed`).
@@ -96,6 +107,12 @@ class InertialConfig(_DictConfig):
             the strand with the root clamped (vertices 0 and 1 offset 0), so that a strand swings
             more as a lever and less as a hanging chain. 0: no bending term. With 100 vertices it
             acts from about 1e4 (docs/network_diagnosis.md, "Twentieth session", T5).
+        body_hold: kappa >= 0, the stiffness (dimensionless, as D) holding a chain's free vertex along
+            the body's outward normal where the frame's equilibrium lies within `body_hold_distance`
+            of the body (module docstring); 0: no hold. Needs `coupling="chain"`, and the
+            equilibrium's distances and normals handed to `rollout(hold=...)`.
+        body_hold_distance: delta [m] > 0, how near the body the equilibrium's vertex must lie to
+            be held.
         keep_out_state: the method's body pass acts on the step's state: each frame is pushed
             out of the body before the next frame's step reads it (`rollout(project=...)`), so a
             strand that swings into the shoulder stops there as the physics' does. False: the
@@ -112,6 +129,8 @@ class InertialConfig(_DictConfig):
     equilibrium_speed: float | None = None
     keep_out_state: bool = False
     bending: float = 0.0
+    body_hold: float = 0.0
+    body_hold_distance: float = 0.02
 
     def __post_init__(self):
         if not isinstance(self.hidden_dim, int) or isinstance(self.hidden_dim, bool) or self.hidden_dim <= 0:
@@ -135,6 +154,16 @@ class InertialConfig(_DictConfig):
         if (not isinstance(self.bending, (int, float)) or isinstance(self.bending, bool) or not self.bending >= 0
                 or math.isinf(self.bending)):
             raise ValueError(f"InertialConfig.bending: expected a number >= 0, got {self.bending!r}")
+        if (not isinstance(self.body_hold, (int, float)) or isinstance(self.body_hold, bool) or not self.body_hold >= 0
+                or math.isinf(self.body_hold)):
+            raise ValueError(f"InertialConfig.body_hold: expected a number >= 0, got {self.body_hold!r}")
+        if self.body_hold and self.coupling != "chain":
+            raise ValueError(f"InertialConfig.body_hold: holds a chain; expected coupling='chain' with it, got "
+                             f"coupling={self.coupling!r}")
+        distance = self.body_hold_distance
+        if (not isinstance(distance, (int, float)) or isinstance(distance, bool) or not distance > 0
+                or math.isinf(distance)):
+            raise ValueError(f"InertialConfig.body_hold_distance: expected a number > 0 [m], got {distance!r}")
         if not isinstance(self.keep_out_state, bool):
             raise ValueError(f"InertialConfig.keep_out_state: expected a bool, got {self.keep_out_state!r}")
 
@@ -208,6 +237,55 @@ def chain_operator(gate_logit: torch.Tensor, tension: torch.Tensor, bending: flo
     return torch.cholesky_inverse(torch.linalg.cholesky(matrix))
 
 
+def body_hold_weights(distance: torch.Tensor, config: InertialConfig) -> torch.Tensor:
+    """The hold kappa at every free vertex whose equilibrium lies within `body_hold_distance` of the body, else 0.
+
+    Args:
+        distance: (..., M, N) the equilibrium's signed distance to the body [m] (negative inside).
+        config: the step's `InertialConfig` (`body_hold`, `body_hold_distance`).
+
+    Returns:
+        (..., M, N - 2) weights of the free vertices, `distance`'s dtype.
+    """
+    near = distance[..., NUM_FIXED_VERTICES:] < config.body_hold_distance
+    return near.to(distance.dtype) * float(config.body_hold)
+
+
+def body_held_chain_relaxation(operator: torch.Tensor, offset: torch.Tensor, weight: torch.Tensor,
+                               normal: torch.Tensor) -> torch.Tensor:
+    """The chain's relaxed offsets with vertices held along a direction: per strand, the solution u of
+    (C (x) I_3 + sum_i weight_i n_i n_i^T) u = offset, given C^-1 (module docstring, `body_hold`).
+
+    Woodbury's identity with P = C^-1 and U the columns e_i (x) n_i: u = P d - P U s, where
+    s = W^1/2 S^-1 W^1/2 U^T P d and S = I + W^1/2 (P o N N^T) W^1/2 (o the elementwise product,
+    N N^T the normals' dot products): one n x n Cholesky solve per strand with a held vertex
+    (float64) beside the 3n x 3n system, and none for the others (u = P d, the free chain).
+
+    Args:
+        operator: (M, n, n) C^-1 of every strand (`chain_operator`).
+        offset: (B, M, n, 3) d, the free vertices' offsets [m].
+        weight: (B, M, n) >= 0, the hold of each free vertex (0: free; `body_hold_weights`).
+        normal: (B, M, n, 3) the unit direction each vertex is held along.
+
+    Returns:
+        (B, M, n, 3) u [m], `offset`'s dtype; differentiable w.r.t. offset and operator.
+    """
+    relaxed = operator @ offset
+    held = (weight > 0).any(dim=-1)  # (B, M) strands with a held vertex
+    if not bool(held.any()):
+        return relaxed
+    batch, strand = held.nonzero(as_tuple=True)
+    p = operator[strand].double()  # (K, n, n)
+    n_held = normal[batch, strand].double()  # (K, n, 3)
+    root = weight[batch, strand].double().clamp_min(0.0).sqrt()  # (K, n)
+    system = (root[:, :, None] * root[:, None, :]) * p * (n_held @ n_held.transpose(-1, -2))
+    system = system + torch.eye(system.shape[-1], dtype=system.dtype, device=system.device)
+    projected = root * (n_held * relaxed[batch, strand].double()).sum(dim=-1)  # W^1/2 U^T P d, (K, n)
+    solved = torch.cholesky_solve(projected[..., None], torch.linalg.cholesky(system))[..., 0]
+    correction = p @ ((root * solved)[..., None] * n_held)  # P U s, (K, n, 3)
+    return relaxed.index_put((batch, strand), relaxed[batch, strand] - correction.to(relaxed.dtype))
+
+
 class InertialStep(nn.Module):
     """The learned inertial step (module docstring): (equilibrium, rigid, x(t-1), x(t-2)) -> x(t).
 
@@ -266,7 +344,8 @@ class InertialStep(nn.Module):
         return operator.to(rigid.dtype), retention
 
     def step(self, equilibrium: torch.Tensor, rigid: torch.Tensor, prev: torch.Tensor, prev2: torch.Tensor,
-             head_velocity: torch.Tensor, coefficients: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+             head_velocity: torch.Tensor, coefficients: tuple[torch.Tensor, torch.Tensor] | None = None,
+             hold: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
         """One frame: x(t) from the frame's equilibrium and rigid placement and the last two states.
 
         Args:
@@ -277,6 +356,9 @@ class InertialStep(nn.Module):
                 `damping="relative"`, zeros for "absolute".
             coefficients: `coefficients(rigid)`, to reuse over a sequence (the chain's inverse is
                 made there).
+            hold: (distance (B, M, N) [m], normal (B, M, N, 3)) of the frame's equilibrium to the
+                body (`hair_body_signed_distance_and_normal`), read where `InertialConfig.body_hold`
+                > 0; None: no hold.
 
         Returns:
             (B, M, N, 3) x(t) [m], differentiable w.r.t. the inputs and the MLP.
@@ -288,12 +370,19 @@ class InertialStep(nn.Module):
         else:
             # The chain: every free vertex's offset from the equilibrium relaxed along its strand.
             offset = (predicted - equilibrium)[:, :, NUM_FIXED_VERTICES:]
-            free = equilibrium[:, :, NUM_FIXED_VERTICES:] + pull @ offset
+            if hold is not None and self.config.body_hold:
+                distance, normal = hold
+                relaxed = body_held_chain_relaxation(pull, offset, body_hold_weights(distance, self.config),
+                                                     normal[:, :, NUM_FIXED_VERTICES:])
+            else:
+                relaxed = pull @ offset
+            free = equilibrium[:, :, NUM_FIXED_VERTICES:] + relaxed
             target = torch.cat([equilibrium[:, :, :NUM_FIXED_VERTICES], free], dim=2)
         return follow_the_leader(rigid, target, check=False, max_gain=self.projection_max_gain)
 
     def rollout(self, equilibrium: torch.Tensor, rigid: torch.Tensor, initial: tuple | None = None,
-                project=None, carry: RolloutCarry | None = None) -> torch.Tensor:
+                project=None, carry: RolloutCarry | None = None,
+                hold: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
         """A whole sequence, frame by frame, each step on the step's own previous states.
 
         Args:
@@ -309,17 +398,31 @@ class InertialStep(nn.Module):
                 from it (its states, rate-limited equilibrium, head motion and coefficients,
                 `initial` ignored) and leaves it for the next. The pieces give the whole
                 sequence's rollout bit for bit.
+            hold: (distance (T, M, N) [m], normal (T, M, N, 3)): every frame's equilibrium's
+                signed distance to the body and the body's outward direction there
+                (`hair_body_signed_distance_and_normal`, capped at `body_hold_distance` or not),
+                required where `InertialConfig.body_hold` > 0 and unused otherwise.
 
         Returns:
             (T, M, N, 3) positions [m].
 
         Raises:
-            ValueError: on shapes that differ, an empty sequence, NaN or Inf.
+            ValueError: on shapes that differ, an empty sequence, NaN or Inf, or a step that holds
+                the chain along the body without `hold`.
         """
         check_tensor("rigid", rigid, shape=[None, None, None, 3], allow_empty=False)
         check_tensor("equilibrium", equilibrium, shape=tuple(rigid.shape), dtypes=(rigid.dtype,), device=rigid.device)
         if rigid.shape[2] <= NUM_FIXED_VERTICES:
             raise ValueError(f"rigid: expected more than {NUM_FIXED_VERTICES} vertices per strand, got {rigid.shape[2]}")
+        if self.config.body_hold:
+            if hold is None:
+                raise ValueError("hold: this step holds the chain along the body (InertialConfig.body_hold > 0); "
+                                 "expected every frame's equilibrium distance (T, M, N) and normal (T, M, N, 3) to "
+                                 "the body (hairwarp.ops.hair_body_signed_distance_and_normal)")
+            check_tensor("hold[0]", hold[0], shape=tuple(rigid.shape[:3]), device=rigid.device)
+            check_tensor("hold[1]", hold[1], shape=tuple(rigid.shape), device=rigid.device)
+        else:
+            hold = None
         carried = carry is not None and carry.prev is not None
         if carried:
             if tuple(carry.prev.shape) != tuple(rigid.shape[1:]):
@@ -349,8 +452,9 @@ class InertialStep(nn.Module):
             if limit is not None:
                 offset = offset + limited_change(equilibrium[t] - rigid[t] - offset, limit)
                 target = rigid[t] + offset
+            held = None if hold is None else (hold[0][t:t + 1], hold[1][t:t + 1])
             x = self.step(target[None], rigid[t:t + 1], prev[None], prev2[None], head_velocity[t:t + 1],
-                          coefficients)[0]
+                          coefficients, hold=held)[0]
             if project is not None:
                 x = project(t, x)
             out.append(x)
@@ -461,4 +565,5 @@ def fit_constants_by_length(step: InertialStep, anchors, *, iterations: int = 30
 
 
 __all__ = ["COUPLINGS", "DAMPINGS", "InertialConfig", "InertialStep", "NUM_VERTEX_FEATURES", "RolloutCarry",
-           "chain_operator", "fit_constants_by_length", "hanging_chain_tension", "limited_change", "vertex_features"]
+           "body_held_chain_relaxation", "body_hold_weights", "chain_operator", "fit_constants_by_length",
+           "hanging_chain_tension", "limited_change", "vertex_features"]
