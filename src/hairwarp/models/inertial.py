@@ -47,7 +47,10 @@ rests on it; a free chain swings those strands into and out of the body (which t
 flattens) where the physics' slide along it. Along the normal only, the tangent left free: pinned
 in every direction the strands on the shoulders stop swinging sideways where the physics' still do
 (docs/network_diagnosis.md, T8). Solved with C's inverse and one n x n system per held strand
-(Woodbury's identity, `body_held_chain_relaxation`).
+(Woodbury's identity, `body_held_chain_relaxation`). Off by default: at full size it brings long
+hair resting on the body nearer the physics (the demo's scene) and takes swing away everywhere
+else, since it damps the lift-off from the body that the physics' one-sided contact allows
+(docs/network_diagnosis.md, T9: 14 -> 7 of 24 training goals at 100 @ 2 cm).
 
 `equilibrium_speed` limits how fast E(t) - P_rigid(t), the equilibrium's offset from the rigid
 placement, may change per strand: the static network's drape can jump between frames where the
