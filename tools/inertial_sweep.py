@@ -447,9 +447,9 @@ def _plot(results: list[dict], path: str, machine: str, size) -> None:
     dampings = sorted({r.get("damping", "absolute") for r in results})
     fig, axes = plt.subplots(len(dampings), len(tensions), figsize=(4.2 * len(tensions), 3.6 * len(dampings)),
                              squeeze=False)
-    by: dict[tuple, float] = {}  # the best objective over the equilibrium speeds
+    by: dict[tuple, float] = {}  # the best objective over the equilibrium speeds, bendings and holds
     for r in results:
-        by[_key(r)[:4]] = min(by.get(_key(r)[:4], float("inf")), r["train_objective"])  # and bendings
+        by[_key(r)[:4]] = min(by.get(_key(r)[:4], float("inf")), r["train_objective"])
     for ax, (damping, tension) in zip(axes.flat, itertools.product(dampings, tensions)):
         grid = [[by.get((g, b, tension, damping), float("nan")) for g in gates] for b in retentions]
         image = ax.imshow(grid, origin="lower", cmap="viridis")
@@ -457,11 +457,12 @@ def _plot(results: list[dict], path: str, machine: str, size) -> None:
         ax.set_yticks(range(len(retentions)), [f"{b:g}" for b in retentions])
         for (i, j), v in ((ij, grid[ij[0]][ij[1]]) for ij in itertools.product(range(len(retentions)), range(len(gates)))):
             ax.text(j, i, f"{v:.2f}", ha="center", va="center", color="w", fontsize=7)
-        ax.set_title(f"{damping} damping, tension x{tension:g}\ntrain objective (best over speed, bending)", fontsize=9)
+        ax.set_title(f"{damping} damping, tension x{tension:g}\ntrain objective (best over speed, bending, hold)",
+                     fontsize=9)
         ax.set(xlabel="G", ylabel="beta")
         fig.colorbar(image, ax=ax, fraction=0.046)
-    fig.text(0.01, 0.01, f"tools/inertial_sweep.py, {machine}, strands x vertices {size}; lower is better", fontsize=7)
-    fig.tight_layout()
+    fig.text(0.01, 0.01, f"tools/inertial_sweep.py, {machine},\nstrands x vertices {size}; lower is better", fontsize=7)
+    fig.tight_layout(rect=(0, 0.05, 1, 1))
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
