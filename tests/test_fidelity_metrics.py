@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from hairwarp.evaluation.charts import swing_plot
-from hairwarp.metrics import mean_tip_offset, motion_fidelity, static_fidelity, tip_swing
+from hairwarp.metrics import largest_step_from_rigid, mean_tip_offset, motion_fidelity, static_fidelity, tip_swing
 
 # float32 inputs, float64 reductions: the differences of ~0.1 m coordinates carry ~1e-8 m of rounding.
 _ATOL_MM = 1e-4
@@ -105,6 +105,28 @@ def test_motion_fidelity_sees_the_few_strands_that_fly_out(rng):
     assert out["mean_distance_mm"] == pytest.approx(200.0 / M / T, rel=1e-4)
     assert out["strand_distance_p99_mm"] > 150.0
     assert motion_fidelity(_t(physics), _t(physics), _t(rigid))["strand_distance_p99_mm"] == 0.0
+
+
+def test_the_largest_step_from_the_rigid_placement_sees_a_strand_flung_in_one_frame(rng):
+    """numpy float64: max over frames, strands and moving vertices of the change of the offset
+    from the rigid placement; 0 for the rigid placement, and one strand thrown 0.2 m for a frame
+    shows as ~200 mm where the swing's steps are a few millimetres."""
+    rigid, physics = _motion(rng)
+    offset = (physics - rigid)[:, :, 2:]
+    expected = np.linalg.norm(offset[1:] - offset[:-1], axis=-1).max() * 1e3
+    out = motion_fidelity(_t(physics), _t(physics), _t(rigid))
+    assert out["largest_step_mm"] == out["physics_largest_step_mm"]
+    assert out["largest_step_mm"] == pytest.approx(expected, rel=_RTOL, abs=_ATOL_MM)
+    assert expected < 30.0
+    flung = physics.copy()
+    flung[T // 2, 0, 2:] += np.array([0.2, 0.0, 0.0])
+    assert motion_fidelity(_t(flung), _t(physics), _t(rigid))["largest_step_mm"] > 180.0
+    assert largest_step_from_rigid(_t(rigid), _t(rigid)) == 0.0
+    assert largest_step_from_rigid(_t(physics[:1]), _t(rigid[:1])) == 0.0
+    with pytest.raises(ValueError, match="^rigid:"):
+        largest_step_from_rigid(_t(physics), _t(rigid[:, :, :3]))
+    with pytest.raises(ValueError, match="^x:"):
+        largest_step_from_rigid(_t(physics[:, :, :2]), _t(rigid[:, :, :2]))
 
 
 def test_motion_fidelity_physics_against_itself(rng):

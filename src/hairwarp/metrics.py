@@ -333,6 +333,31 @@ def _rms(v: torch.Tensor) -> float:
     return float(v.double().square().sum(dim=-1).mean().sqrt())
 
 
+def largest_step_from_rigid(x: torch.Tensor, rigid: torch.Tensor) -> float:
+    """The farthest any moving vertex travels in one frame beyond the rigid placement's own move [m].
+
+    max over t >= 1, strands and vertices 2..N-1 of |(x(t) - P(t)) - (x(t-1) - P(t-1))|: hair
+    carried by the head moves 0; a swing a few millimetres a frame; a strand flung out of a
+    pinch between two body parts tens of centimetres a frame (docs/physics.md, "Twenty-third
+    session"), which the mean distances hide.
+
+    Args:
+        x: (T, M, N, 3) hair positions over T frames [m].
+        rigid: (T, M, N, 3) the rigid placement of the same frames [m].
+
+    Returns:
+        the distance [m]; 0.0 for a single frame.
+    """
+    check_tensor("x", x, shape=[None, None, None, 3], allow_empty=False)
+    check_tensor("rigid", rigid, shape=tuple(x.shape), device=x.device)
+    if x.shape[-2] <= NUM_FIXED_VERTICES:
+        raise ValueError(f"x: expected more than {NUM_FIXED_VERTICES} vertices per strand, got {x.shape[-2]}")
+    if x.shape[0] < 2:
+        return 0.0
+    relative = (x - rigid)[:, :, NUM_FIXED_VERTICES:].double()
+    return float((relative[1:] - relative[:-1]).norm(dim=-1).max())
+
+
 def motion_fidelity(x: torch.Tensor, physics: torch.Tensor, rigid: torch.Tensor) -> dict:
     """How a method's motion compares with the physics simulation of the same motion.
 
@@ -351,7 +376,9 @@ def motion_fidelity(x: torch.Tensor, physics: torch.Tensor, rigid: torch.Tensor)
         "swing_mm", "physics_swing_mm": RMS over frames and strands of |`tip_swing`| of `x` and
         of `physics` [mm]; "swing_amplitude_ratio": swing_mm / physics_swing_mm (None when the
         physics barely swings); "swing_correlation": Pearson correlation of the two swings over
-        all (T, M, 3) components (None when either is ~constant, e.g. for the rigid placement).
+        all (T, M, 3) components (None when either is ~constant, e.g. for the rigid placement);
+        "largest_step_mm", "physics_largest_step_mm": `largest_step_from_rigid` of `x` and of
+        `physics` [mm] (a strand flung out in one frame).
 
     Raises:
         ValueError: shapes that differ, an empty `x` or strands of no moving vertex.
@@ -376,7 +403,9 @@ def motion_fidelity(x: torch.Tensor, physics: torch.Tensor, rigid: torch.Tensor)
             "swing_mm": swing * _MM,
             "physics_swing_mm": physics_swing * _MM,
             "swing_amplitude_ratio": swing / physics_swing if physics_swing > _SWING_FLOOR else None,
-            "swing_correlation": corr}
+            "swing_correlation": corr,
+            "largest_step_mm": largest_step_from_rigid(x, rigid) * _MM,
+            "physics_largest_step_mm": largest_step_from_rigid(physics, rigid) * _MM}
 
 
 def drape_fidelity(x: torch.Tensor, optimum: torch.Tensor, inputs, config=None) -> dict:
