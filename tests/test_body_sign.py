@@ -233,6 +233,40 @@ def test_overlapping_boxes_are_signed_and_measured_as_their_union(rng, dtype):
     _check_union_of_boxes(rng, body, v, ft, dtype, atol)
 
 
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_a_body_split_over_the_poses_it_moves_through_is_signed_as_their_union_there(rng, dtype):
+    """Built apart (nothing crossing) and moved by `update` into a pose where its parts cross, a
+    body knows the crossing only if the split saw that pose (`split_poses`): then it is signed as
+    the union there and measured exactly outside it; without, a point inside one part near the
+    other's face is "outside" (the physics flung hair pinched between a swinging arm and the chest)."""
+    apart, f = overlapping_boxes(shift=2.0)
+    crossed, _ = overlapping_boxes()
+    ft = torch.as_tensor(f)
+    points = torch.as_tensor(UNION_POINTS, dtype=dtype)[None]
+    moved = BodyMesh(torch.as_tensor(apart, dtype=dtype), ft)
+    assert moved.self_intersections["pieces"] == 0
+    moved.update(torch.as_tensor(crossed, dtype=dtype))
+    d_moved = hair_body_signed_distance(points, moved)[0]
+    assert float(d_moved[0]) > 0 and float(d_moved[1]) > 0  # signed wrong: the crossing was never cut
+    body = BodyMesh(torch.as_tensor(apart, dtype=dtype), ft, split_poses=torch.as_tensor(crossed, dtype=dtype)[None])
+    assert body.self_intersections["crossing_faces"] > 0 and body.self_intersections["pieces"] > 0
+    apart_d = hair_body_signed_distance(points, body)[0]
+    plain_apart = hair_body_signed_distance(points, BodyMesh(torch.as_tensor(apart, dtype=dtype), ft))[0]
+    atol = 1e-12 if dtype == torch.float64 else 1e-6
+    np.testing.assert_allclose(apart_d.double().numpy(), plain_apart.double().numpy(), atol=atol)  # its own pose
+    body.update(torch.as_tensor(crossed, dtype=dtype))
+    d = hair_body_signed_distance(points, body)[0].double().numpy()
+    # Signed as the union; inside it the pieces left in (not inside in the apart pose) are
+    # nearer than the union's boundary, as in any body split over several poses.
+    np.testing.assert_array_equal(np.sign(d), np.sign(UNION_DISTANCES))
+    outside = UNION_DISTANCES > 0
+    np.testing.assert_allclose(d[outside], UNION_DISTANCES[outside], atol=atol)
+    assert bool((np.abs(d[~outside]) <= np.abs(UNION_DISTANCES[~outside]) + atol).all())
+    _check_union_of_boxes(rng, body, crossed, ft, dtype, atol)
+    with pytest.raises(ValueError, match="split_poses"):
+        BodyMesh(torch.as_tensor(apart, dtype=dtype), ft, split_poses=torch.zeros(1, 5, 3, dtype=dtype))
+
+
 def _check_union_of_boxes(rng, body, v, ft, dtype, atol):
     """Random points around `overlapping_boxes()`: the sign is the float64 winding number's
     wherever the point is off the surface, and outside the union the distance is the exact one

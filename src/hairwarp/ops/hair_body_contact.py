@@ -491,6 +491,13 @@ class BodyMesh:
             closest face lies inside the other is signed "outside". Poses share the topology: a
             piece is left out only where it lies inside in every pose; `update` moves the pieces
             with the mesh but does not look for new crossings.
+        split_poses: optional (K, V, 3) more poses of the same mesh [m] that the split also
+            cuts where they pass through themselves (not held or queried): a body built once
+            and moved by `update` through these poses (a motion's) knows every crossing they
+            make. A walk's arm swing crosses the chest in poses its first frame does not, and a
+            body split at the first frame alone signed hair pinched there wrongly (the physics
+            flung it at 8 m/s; docs/physics.md, "Twenty-third session"). Ignored without
+            `split_self_intersections`.
 
     Raises:
         ValueError: naming the argument, for bad shapes, dtypes, devices, NaN/Inf, empty or
@@ -499,7 +506,7 @@ class BodyMesh:
     """
 
     def __init__(self, vertices: torch.Tensor, faces: torch.Tensor, *, require_watertight: bool = True,
-                 bvh: str = "sah", split_self_intersections: bool = True):
+                 bvh: str = "sah", split_self_intersections: bool = True, split_poses: torch.Tensor | None = None):
         if bvh not in BVH_CONSTRUCTORS:
             raise ValueError(f"bvh: expected one of {list(BVH_CONSTRUCTORS)}, got {bvh!r}")
         check_tensor("vertices", vertices, allow_empty=False)
@@ -519,8 +526,17 @@ class BodyMesh:
         faces = faces.to(torch.int32).contiguous()
         split = None
         if require_watertight and split_self_intersections:
+            poses = v
+            if split_poses is not None:
+                check_tensor("split_poses", split_poses, shape=(None, v.shape[1], 3), device=vertices.device)
+                poses = torch.cat([v, split_poses.detach().to(v.dtype)])
             with _warp.launch_scope(vertices.device):
-                split = _split_self_intersections(v, faces)
+                split = _split_self_intersections(poses, faces)
+            if split is not None and poses is not v:
+                # The topology covers every pose; the vertices and winding meshes kept are the body's own.
+                held = v.shape[0]
+                augmented, *rest, (points32, meshes) = split
+                split = (augmented[:held], *rest, (points32[:held], meshes[:held]))
         if split is None:
             self._setup(v, faces, batched, bool(require_watertight), None, None, faces.long(), None)
             self._surface, self._self_intersections = None, {"crossing_faces": 0, "inside_faces": 0, "pieces": 0,

@@ -239,6 +239,40 @@ class Scene:
             }
         return self._cache[key]
 
+    def _frame_indices(self, indices) -> torch.Tensor:
+        if indices is None:
+            indices = torch.arange(self.num_frames)
+        indices = torch.as_tensor(indices, dtype=torch.long).reshape(-1)
+        if indices.numel() == 0:
+            raise ValueError("indices: expected at least one frame")
+        if int(indices.min()) < 0 or int(indices.max()) >= self.num_frames:
+            raise ValueError(f"indices: frames must lie in [0, {self.num_frames}), got {indices.tolist()}")
+        return indices
+
+    def posed_body(self, indices=None, *, device="cpu", dtype=torch.float32):
+        """The body posed at frames `indices` (default: all): a `PosedBody` with vertices (B, V, 3)
+        [m], no hair placed (`frames` places it).
+
+        Raises:
+            ValueError: no frame, a frame outside the motion, or a mesh body whose frames are not
+                the motion's.
+        """
+        device = torch.device(device)
+        indices = self._frame_indices(indices)
+        poses = self.motion.poses[indices].to(device=device, dtype=dtype)
+        trans = self.motion.trans[indices].to(device=device, dtype=dtype)
+        betas = self.motion.betas.to(device=device, dtype=dtype).expand(len(indices), -1)
+        # A model with fewer shape coefficients than the motion carries takes the first ones (as
+        # SMPL readers do; `hairwarp.builder` says so once); one with more reads the rest as zero.
+        if self.body.has_smpl_pose:
+            return self.body.pose(betas=betas[:, : self.body.num_betas], poses=poses, trans=trans)
+        # a mesh body plays its own frames (the motion only counts them and gives the rate)
+        if self.body.num_frames != self.num_frames:
+            raise ValueError(f"body: the mesh has {self.body.num_frames} frames, the motion {self.num_frames}")
+        posed = self.body.pose(frames=indices)
+        return type(posed)(vertices=posed.vertices.to(device=device, dtype=dtype), joints=None,
+                           head_transform=posed.head_transform.to(device=device, dtype=dtype))
+
     def frames(self, indices=None, *, device="cpu", dtype=torch.float32, crop: bool = True,
                split_self_intersections: bool = True, build_body: bool = True) -> SceneFrames:
         """Pose the body and place the hair rigidly (Eq. 1) for a batch of frames.
@@ -262,27 +296,9 @@ class Scene:
             SceneFrames.
         """
         device = torch.device(device)
-        if indices is None:
-            indices = torch.arange(self.num_frames)
-        indices = torch.as_tensor(indices, dtype=torch.long).reshape(-1)
-        if indices.numel() == 0:
-            raise ValueError("indices: expected at least one frame")
-        if int(indices.min()) < 0 or int(indices.max()) >= self.num_frames:
-            raise ValueError(f"indices: frames must lie in [0, {self.num_frames}), got {indices.tolist()}")
+        indices = self._frame_indices(indices)
         cache = self._on(device, dtype)
-        poses = self.motion.poses[indices].to(device=device, dtype=dtype)
-        trans = self.motion.trans[indices].to(device=device, dtype=dtype)
-        betas = self.motion.betas.to(device=device, dtype=dtype).expand(len(indices), -1)
-        # A model with fewer shape coefficients than the motion carries takes the first ones (as
-        # SMPL readers do; `hairwarp.builder` says so once); one with more reads the rest as zero.
-        if self.body.has_smpl_pose:
-            posed = self.body.pose(betas=betas[:, : self.body.num_betas], poses=poses, trans=trans)
-        else:  # a mesh body plays its own frames (the motion only counts them and gives the rate)
-            if self.body.num_frames != self.num_frames:
-                raise ValueError(f"body: the mesh has {self.body.num_frames} frames, the motion {self.num_frames}")
-            posed = self.body.pose(frames=indices)
-            posed = type(posed)(vertices=posed.vertices.to(device=device, dtype=dtype), joints=None,
-                                head_transform=posed.head_transform.to(device=device, dtype=dtype))
+        posed = self.posed_body(indices, device=device, dtype=dtype)
         if cache["search"] is None:
             cache["search"] = root_search(self.body, cache["strands"][:, 0])
         rigid = rigid_placement(cache["strands"], posed, self.body, scalp=self.scalp,
@@ -303,7 +319,10 @@ class Scene:
                 return body.crop_for_hair(roots, cache["strand_lengths"], bvh="sah") if crop else body
 
         body = _LazyBody(recipe, posed.vertices, rigid.positions[:, :, 0], inputs)
+        poses = self.motion.poses[indices].to(device=device, dtype=dtype)
+        betas = self.motion.betas.to(device=device, dtype=dtype).expand(len(indices), -1)
         return SceneFrames(indices, posed, rigid, betas, poses, scene=self, _body=body)
+
 
 def static_motion(poses: torch.Tensor | None = None, betas: torch.Tensor | None = None, name: str = "rest") -> Motion:
     """A one-frame 'motion' holding a single pose (rest pose by default)."""

@@ -722,6 +722,13 @@ def drape_at_rest(static: PhysicsSolver, dynamic: PhysicsSolver | None, start: t
 
 
 # Frames posed at once (the body and rigid placement of a motion's frames, without body meshes).
+# The poses a motion's body is split at (`BodyMesh(split_poses=...)`): every SPLIT_POSE_STRIDE-th
+# frame and the last, at most SPLIT_POSES_MAX of them (evenly thinned). Crossings come and go with
+# the limbs' swing over tenths of a second; 0 splits at the first frame alone (the body of a walk
+# then missed the arm crossing the chest, and the physics flung the hair pinched there at up to
+# 8.8 m/s; docs/physics.md, "Twenty-third session"). The search costs ~55 ms a pose on a 2-core CPU.
+SPLIT_POSE_STRIDE = 4
+SPLIT_POSES_MAX = 64
 _POSE_CHUNK = 32
 
 
@@ -778,7 +785,17 @@ def simulate_physics(scene, frame_indices=None, *, device="cpu", energy_config: 
 
     rigid0, normals0, body0 = frame(0)
     faces = scene.body.faces.to(device=device, dtype=torch.int32)
-    body = BodyMesh(body0, faces, bvh="lbvh", split_self_intersections=split_self_intersections)
+    split_poses = None
+    if split_self_intersections and len(indices) > 1 and SPLIT_POSE_STRIDE > 0:
+        # The body moves in place (`set_frame`): its cuts must cover the crossings of every pose
+        # it moves through, not of the first alone (a walk's arm crosses the chest later).
+        sampled = indices[SPLIT_POSE_STRIDE::SPLIT_POSE_STRIDE]
+        if not sampled or sampled[-1] != indices[-1]:
+            sampled.append(indices[-1])
+        step = max(1, math.ceil(len(sampled) / SPLIT_POSES_MAX))
+        split_poses = scene.posed_body(sampled[::step], device=device, dtype=body0.dtype).vertices
+    body = BodyMesh(body0, faces, bvh="lbvh", split_self_intersections=split_self_intersections,
+                    split_poses=split_poses)
     rest = scene.rest_lengths.to(device=device, dtype=torch.float32)
     synchronize(device)
     setup = time.perf_counter() - setup_start
