@@ -741,7 +741,8 @@ def simulate_physics(scene, frame_indices=None, *, device="cpu", energy_config: 
     (settled with the pose held for up to `PhysicsConfig.settle_time`); the hair rests there
     before the motion starts (x_{-1} = x_{-2} = x_0). Frames are posed in
     chunks of 32 as they are needed (memory flat in the motion's length); the body is built
-    once, at the first frame (its self-intersections cut there), and moved in place.
+    once, at the first frame, and moved in place, its self-intersections cut where any of every
+    `SPLIT_POSE_STRIDE`-th pose passes through itself (`BodyMesh(split_poses=...)`).
 
     Args:
         scene: a `hairwarp.scene.Scene`.
@@ -751,7 +752,7 @@ def simulate_physics(scene, frame_indices=None, *, device="cpu", energy_config: 
             `EnergyConfig()` at the scene's frame spacing).
         config: `PhysicsConfig` (default `PhysicsConfig()`).
         initial: (1, M, N, 3) or (M, N, 3) state at the first frame [m].
-        split_self_intersections: cut the body where it passes through itself (at frame 0).
+        split_self_intersections: cut the body where it passes through itself (over the motion's poses).
         progress: show a progress bar over frames.
 
     Returns:
