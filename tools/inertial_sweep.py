@@ -39,6 +39,11 @@ is a chain step whose constants follow the strand length through those anchors
 (`hairwarp.models.inertial.fit_constants_by_length`); `--lengthwise-from OUT/inertial_sweep.json`
 writes it from an earlier run without the clips.
 
+`--body-holds` and `--body-hold-distances` sweep the hold along the body's normal
+(`InertialConfig.body_hold`, `body_hold_distance`; a hold of 0 is one setting); the clips then
+also cache the equilibrium's distance and normal to the body, capped at the largest distance
+(the twenty-third session's run: docs/network_diagnosis.md, T9).
+
 Writes OUT/inertial_sweep.json, OUT/inertial_sweep.md, OUT/chosen_inertial.pt (the chosen
 constants as a step checkpoint), OUT/lengthwise_inertial.pt and OUT/inertial_sweep.png (the
 objective over G x beta); with `--state-pushed` also OUT/chosen_state_pushed_inertial.pt (the
