@@ -141,7 +141,9 @@ def test_simulate_and_drape_against_the_physics(tmp_path, capsys):
     assert record["against"] == "physics"
     assert record["fidelity"]["physics"]["mean_distance_mm"] == pytest.approx(0.0, abs=1e-6)
     assert record["fidelity"]["rigid"]["swing_mm"] == pytest.approx(0.0, abs=1e-6)
-    assert "swing correlation" in stdout
+    assert record["fidelity"]["rigid"]["largest_step_mm"] == pytest.approx(0.0, abs=1e-6)
+    assert record["fidelity"]["physics"]["largest_step_mm"] == record["fidelity"]["physics"]["physics_largest_step_mm"]
+    assert "swing correlation" in stdout and "largest move a frame [mm]" in stdout
     out = tmp_path / "drape"
     code, stdout, _ = _run(["drape", *TINY, "--method", "rigid", "--against", "physics", "--out", str(out)], capsys)
     assert code == 0 and (out / "drape_side_by_side.png").read_bytes()[:4] == b"\x89PNG"

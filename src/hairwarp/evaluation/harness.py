@@ -133,7 +133,8 @@ def _run_static(scene, frames, methods: dict, config, record_every: int, progres
 # Fields of `metrics.static_fidelity` and `metrics.motion_fidelity` in the harness's rows.
 _STATIC_FIDELITY = ("energy_ratio", "mean_distance_mm", "p95_distance_mm", "tip_height_difference_mm")
 _MOTION_FIDELITY = ("mean_distance_mm", "max_distance_mm", "per_frame_distance_mm", "strand_distance_p99_mm",
-                    "swing_mm", "physics_swing_mm", "swing_amplitude_ratio", "swing_correlation")
+                    "swing_mm", "physics_swing_mm", "swing_amplitude_ratio", "swing_correlation",
+                    "largest_step_mm", "physics_largest_step_mm")
 
 
 def _physics_of(sims: dict) -> tuple[str | None, torch.Tensor | None]:
@@ -349,8 +350,8 @@ def markdown_tables(record: dict) -> str:
         else:
             lines.append("| method | ms/frame | penetration % (mean / worst frame) | length change % | "
                          "distance to physics mean / worst frame [mm] | worst strands (p99, worst frame) [mm] | "
-                         "tip swing [mm] (physics) | swing ratio | swing correlation |")
-            lines.append("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+                         "tip swing [mm] (physics) | swing ratio | swing correlation | largest move a frame [mm] |")
+            lines.append("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
             for r in entry["results"]:
                 pen = f"{_fmt(r['penetration_percent'], '.2f')} / {_fmt(r['penetration_percent_max_frame'], '.2f')}"
                 dist = f"{_fmt(r.get('mean_distance_mm'), '.1f')} / {_fmt(r.get('max_distance_mm'), '.1f')}"
@@ -358,7 +359,8 @@ def markdown_tables(record: dict) -> str:
                 lines.append(f"| {r['method']} | {_fmt(r['time_ms'], '.1f')} | {pen} | "
                              f"{_fmt(r['length_change_percent'], '.3f')} | {dist} | "
                              f"{_fmt(r.get('strand_distance_p99_mm'), '.1f')} | {swing} | "
-                             f"{_fmt(r.get('swing_amplitude_ratio'), '.2f')} | {_fmt(r.get('swing_correlation'), '+.2f')} |")
+                             f"{_fmt(r.get('swing_amplitude_ratio'), '.2f')} | {_fmt(r.get('swing_correlation'), '+.2f')} | "
+                             f"{_fmt(r.get('largest_step_mm'), '.1f')} |")
             if entry.get("swing_plot"):
                 lines.append("")
                 lines.append(f"Swing plot: `{entry['swing_plot']}`")
