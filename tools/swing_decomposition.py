@@ -37,15 +37,16 @@ MAX_LAG = 15
 
 
 def _correlation(a: torch.Tensor, b: torch.Tensor) -> float | None:
-    a, b = a.flatten().double(), b.flatten().double()
-    a, b = a - a.mean(), b - b.mean()
-    scale = float(a.square().mean().sqrt() * b.square().mean().sqrt())
-    return float((a * b).mean()) / scale if scale > 0 else None
+    from hairwarp.metrics import swing_correlation
+
+    return swing_correlation(a, b)
 
 
 def _rms_mm(a: torch.Tensor) -> float:
     """RMS over frames and strands of the swing's length [mm] (`motion_fidelity`'s swing_mm)."""
-    return float(a.double().square().sum(dim=-1).mean().sqrt()) * 1e3
+    from hairwarp.metrics import swing_rms
+
+    return swing_rms(a) * 1e3
 
 
 def _pair(step: torch.Tensor, physics: torch.Tensor) -> dict:

@@ -333,6 +333,23 @@ def _rms(v: torch.Tensor) -> float:
     return float(v.double().square().sum(dim=-1).mean().sqrt())
 
 
+def swing_rms(v: torch.Tensor) -> float:
+    """RMS over the leading dimensions of the length of the last one's vectors (a swing's, (T, M, 3)) [its unit]."""
+    return _rms(v)
+
+
+def swing_correlation(a: torch.Tensor, b: torch.Tensor) -> float | None:
+    """Pearson correlation of two swings over all their components; None when either is ~constant
+    (standard deviation at most `_SWING_FLOOR`, 1e-6 m).
+    """
+    a, b = a.double().flatten(), b.double().flatten()
+    a, b = a - a.mean(), b - b.mean()
+    sa, sb = float(a.square().mean().sqrt()), float(b.square().mean().sqrt())
+    if sa > _SWING_FLOOR and sb > _SWING_FLOOR:
+        return max(-1.0, min(1.0, float((a * b).mean()) / (sa * sb)))
+    return None
+
+
 def largest_step_from_rigid(x: torch.Tensor, rigid: torch.Tensor) -> float:
     """The farthest any moving vertex travels in one frame beyond the rigid placement's own move [m].
 
@@ -390,12 +407,7 @@ def motion_fidelity(x: torch.Tensor, physics: torch.Tensor, rigid: torch.Tensor)
     per_frame = per_strand.mean(dim=1)
     strand_p99 = max(_quantile(row, 0.99) for row in per_strand)
     swing, physics_swing = _rms(s_x), _rms(s_p)
-    a, b = s_x.flatten(), s_p.flatten()
-    a, b = a - a.mean(), b - b.mean()
-    sa, sb = float(a.square().mean().sqrt()), float(b.square().mean().sqrt())
-    corr = None
-    if sa > _SWING_FLOOR and sb > _SWING_FLOOR:
-        corr = max(-1.0, min(1.0, float((a * b).mean()) / (sa * sb)))
+    corr = swing_correlation(s_x, s_p)
     return {"mean_distance_mm": float(per_frame.mean()),
             "max_distance_mm": float(per_frame.max()),
             "per_frame_distance_mm": per_frame.tolist(),
