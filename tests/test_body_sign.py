@@ -396,6 +396,30 @@ def test_a_body_builds_at_its_first_query_once_and_a_crop_takes_its_winding_mesh
     assert len(built) == 1 and all(torch.equal(r, reference) for r in results)
 
 
+def test_a_scenes_moving_body_moved_to_a_frame_signs_the_hair_as_that_frames_own_body(rng):
+    """`Scene.moving_body`: one body built at the first frame, split over the motion's poses and
+    moved by `update`, gives the hair near it the distances of the body built for the frame itself
+    (`SceneFrames.body_mesh`, cropped), at the first frame and at the last; it is one mesh."""
+    import hairwarp as hw
+
+    scene = hw.default_scene("long_straight", "head_turn", duration=0.3, strand_stride=64, num_vertices=24)
+    frames = scene.frames()
+    moving = scene.moving_body()
+    assert moving.batch_size == 1 and moving.num_vertices >= scene.body.num_vertices
+    for t in (0, frames.num_frames - 1):
+        moving.update(frames.posed.vertices[t:t + 1])
+        own = frames.select([t]).body_mesh
+        hair = frames.rigid.positions[t:t + 1]
+        points = hair + torch.as_tensor(rng.normal(scale=0.01, size=tuple(hair.shape)), dtype=hair.dtype)
+        expected = hair_body_signed_distance(points, own)
+        got = hair_body_signed_distance(points, moving)
+        near = expected.abs() < 0.05
+        assert int(near.sum()) > 100 and bool((expected[near] < 0).any())  # the check sees the body, inside too
+        torch.testing.assert_close(got[near], expected[near], rtol=0, atol=1e-6)
+    with pytest.raises(ValueError, match="indices"):
+        scene.moving_body([frames.num_frames + 5])
+
+
 @pytest.mark.parametrize("cut", [False, True])
 def test_update_moves_what_queries_read_in_place(rng, cut):
     """After `update` every array a query reads (trees, vertices, pseudo-normals, winding

@@ -423,11 +423,11 @@ def test_keep_out_replayed_from_cuda_graphs_equals_the_eager_launches():
                 eager = keep_out.keep_out_of_body(x, x.clone(), body, **case)
             finally:
                 keep_out.KEEP_OUT_GRAPHS = True
-            for k in range(keep_out._EAGER_CALLS + 2):
+            for k in range(keep_out.KEEP_OUT_EAGER_CALLS + 2):
                 torch.testing.assert_close(keep_out.keep_out_of_body(x, x.clone(), body, **case), eager, rtol=0, atol=0,
                                            msg=lambda m: f"{name} {case}: {m}")
                 replayed = [v for v in body.__dict__["_replayed_keep_out"].values() if isinstance(v, keep_out._ReplayedPass)]
-                assert len(replayed) == (k >= keep_out._EAGER_CALLS)
+                assert len(replayed) == (k >= keep_out.KEEP_OUT_EAGER_CALLS)
         vertices = body.vertices.clone() if hasattr(body, "vertices") else None
         if vertices is not None:
             body.update(vertices + torch.tensor([0.0, 0.002, 0.0], device="cuda"))
@@ -436,7 +436,7 @@ def test_keep_out_replayed_from_cuda_graphs_equals_the_eager_launches():
                 eager = keep_out.keep_out_of_body(x, x.clone(), body)
             finally:
                 keep_out.KEEP_OUT_GRAPHS = True
-            for _ in range(keep_out._EAGER_CALLS + 1):
+            for _ in range(keep_out.KEEP_OUT_EAGER_CALLS + 1):
                 torch.testing.assert_close(keep_out.keep_out_of_body(x, x.clone(), body), eager, rtol=0, atol=0)
 
 
@@ -528,24 +528,41 @@ def test_the_inertial_drape_is_the_static_drape_through_the_body_pass():
     assert hw.drape(scene, method="static", keep_out=False).metrics["penetration_percent"] > 0.1
 
 
-def test_the_inertial_method_rolls_out_chunk_by_chunk_as_one_sequence():
+@pytest.mark.parametrize("body_pass", ["shipped", "after"])
+def test_the_inertial_method_rolls_out_chunk_by_chunk_as_one_sequence(body_pass, tmp_path):
     """`InertialMethod.simulate` runs a chunk of frames at a time (equilibrium, rollout going on
-    from the chunk before, body pass on the chunk's body): the same positions bit for bit as the
-    whole motion's equilibrium, rolled out at once, then passed chunk by chunk."""
+    from the chunk before, body pass): the same positions bit for bit as the whole motion at once.
+    The shipped step (`keep_out_equilibrium`, `keep_out_state`): the equilibrium passed chunk by
+    chunk, then rolled out at once with each frame's state passed on the motion's moving body. A
+    step with neither: the whole equilibrium rolled out at once, then passed chunk by chunk."""
+    from dataclasses import replace
+
     import hairwarp as hw
-    from hairwarp.methods.inertial import InertialMethod, load_inertial_step
+    from hairwarp.methods import MethodOptions
+    from hairwarp.methods.inertial import InertialMethod, _FrameBodyPass, _moving_body, load_inertial_step
     from hairwarp.methods.keep_out import keep_out_of_body_in_frames
     from hairwarp.scene.scene import FRAME_CHUNK
 
     scene = hw.default_scene("bob", "head_turn", duration=0.4, strand_stride=32)
     frames = scene.frames()
     assert frames.num_frames > FRAME_CHUNK  # two chunks at least
-    method = InertialMethod()
-    out = method.simulate(frames)
     step = load_inertial_step(None, frames.rigid.positions.device)
+    assert step.config.keep_out_state and step.config.keep_out_equilibrium
+    checkpoint = None
+    if body_pass == "after":
+        step = InertialStep(replace(step.config, keep_out_state=False, keep_out_equilibrium=False))
+        checkpoint = str(tmp_path / "after.pt")
+        save_checkpoint(checkpoint, step)
+    method = InertialMethod(MethodOptions(checkpoint=checkpoint))
+    out = method.simulate(frames)
+    rigid = frames.rigid.positions
     with torch.no_grad():
-        target = method.equilibrium.simulate(frames).positions.to(frames.rigid.positions.dtype)
-        whole = keep_out_of_body_in_frames(step.rollout(target, frames.rigid.positions), frames)
+        target = method.equilibrium.simulate(frames).positions.to(rigid.dtype)
+        if body_pass == "after":
+            whole = keep_out_of_body_in_frames(step.rollout(target, rigid), frames)
+        else:
+            whole = step.rollout(keep_out_of_body_in_frames(target, frames), rigid,
+                                 project=_FrameBodyPass(frames, _moving_body(frames)))
     assert torch.equal(out.positions, whole)
     assert len(out.info["chunks"]) >= 2 and out.info["step_ms"] > 0 and out.time_ms > out.info["step_ms"]
 
@@ -854,6 +871,52 @@ def test_the_method_keeps_the_state_out_of_the_body_when_its_step_asks(tmp_path)
     assert float((inside.positions - after.positions).abs().max()) > 1e-4
     with pytest.raises(ValueError, match="keep_out_state"):
         InertialConfig(keep_out_state=1)
+
+
+def test_the_state_pushed_on_the_moving_body_is_the_state_pushed_on_each_frames_own_body():
+    """The method's state pass moves one body through the motion (`Scene.moving_body`) where each
+    frame had a body of its own built: the same rollout to 1e-5 m, out of the body."""
+    import hairwarp as hw
+    from hairwarp.methods.inertial import _FrameBodyPass, _moving_body
+
+    scene = hw.default_scene("long_straight", "nod", duration=0.25, strand_stride=64, num_vertices=24)
+    frames = scene.frames()
+    rigid = frames.rigid.positions
+    step = InertialStep(InertialConfig(coupling="chain", damping="relative", gate_init=0.99, retention_init=0.95,
+                                       tension_init=0.5))
+    # An equilibrium sagging 3 cm into the shoulders: the pass has work in every frame.
+    sag = torch.zeros_like(rigid)
+    sag[..., 2:, 1] = -0.03 * torch.linspace(0.0, 1.0, rigid.shape[2] - 2)
+    with torch.no_grad():
+        own = step.rollout(rigid + sag, rigid, project=_FrameBodyPass(frames))
+        moved = step.rollout(rigid + sag, rigid, project=_FrameBodyPass(frames, _moving_body(frames)))
+        free = step.rollout(rigid + sag, rigid)
+    torch.testing.assert_close(moved, own, rtol=0, atol=1e-5)
+    assert float((free - own).abs().max()) > 1e-3  # the pass did move the state
+    assert float(hair_body_signed_distance(moved[:, :, 2:], frames.body_mesh).min()) > -1e-4
+
+
+def test_the_step_pulled_to_the_kept_out_equilibrium_starts_at_the_static_drape(tmp_path):
+    """`InertialConfig.keep_out_equilibrium`: the rollout is pulled to the static network's drape
+    through the body pass; at rest on the first frame the method returns what `drape` (the step at
+    rest) returns for that frame, and the option is checked as a bool."""
+    import hairwarp as hw
+    from hairwarp.methods import MethodOptions
+    from hairwarp.methods.inertial import InertialMethod
+
+    scene = hw.default_scene("long_straight", "nod", duration=0.25, strand_stride=64, num_vertices=24)
+    frames = scene.frames()
+    step = InertialStep(InertialConfig(coupling="chain", damping="relative", gate_init=0.99, retention_init=0.95,
+                                       tension_init=0.5, equilibrium_speed=0.12, keep_out_state=True,
+                                       keep_out_equilibrium=True))
+    path = str(tmp_path / "step.pt")
+    save_checkpoint(path, step)
+    method = InertialMethod(MethodOptions(checkpoint=path))
+    motion = method.simulate(frames).positions
+    rest = method.drape(frames.select([0])).positions
+    torch.testing.assert_close(motion[:1], rest, rtol=0, atol=1e-5)
+    with pytest.raises(ValueError, match="keep_out_equilibrium"):
+        InertialConfig(keep_out_equilibrium="yes")
 
 
 def test_the_chain_operators_bending_is_the_clamped_second_difference_penalty():

@@ -47,7 +47,8 @@ also cache the equilibrium's distance and normal to the body, capped at the larg
 Writes OUT/inertial_sweep.json, OUT/inertial_sweep.md, OUT/chosen_inertial.pt (the chosen
 constants as a step checkpoint), OUT/lengthwise_inertial.pt and OUT/inertial_sweep.png (the
 objective over G x beta); with `--state-pushed` also OUT/chosen_state_pushed_inertial.pt (the
-chosen constants with `InertialConfig.keep_out_state`), run as a third method row.
+chosen constants with `InertialConfig.keep_out_state` and `keep_out_equilibrium`), run as a third
+method row.
 
     python3 tools/inertial_sweep.py --lengthwise-from docs/network_diagnosis/inertial_sweep_session19_h100.json --out OUT
 """
@@ -109,13 +110,14 @@ def _trajectories(scene, device, path, hold_cap: float | None = None) -> dict:
 
 
 def _step(gate: float, retention: float, tension: float, damping: str = "absolute", speed: float | None = None,
-          bending: float = 0.0, body_hold: float = 0.0, body_hold_distance: float = 0.02, keep_out_state: bool = False):
+          bending: float = 0.0, body_hold: float = 0.0, body_hold_distance: float = 0.02, keep_out_state: bool = False,
+          keep_out_equilibrium: bool = False):
     from hairwarp.models.inertial import InertialConfig, InertialStep
 
     return InertialStep(InertialConfig(coupling="chain", damping=damping, gate_init=gate, retention_init=retention,
                                        tension_init=tension, equilibrium_speed=speed, bending=bending,
                                        body_hold=body_hold, body_hold_distance=body_hold_distance,
-                                       keep_out_state=keep_out_state))
+                                       keep_out_state=keep_out_state, keep_out_equilibrium=keep_out_equilibrium))
 
 
 def _key(r: dict) -> tuple:
@@ -143,7 +145,8 @@ def _scores(x, clip) -> dict:
     fid = motion_fidelity(x, clip["physics"], clip["rigid"])
     return {"loss": _loss(x, clip), "mean_distance_mm": fid["mean_distance_mm"],
             "strand_distance_p99_mm": fid["strand_distance_p99_mm"],
-            "swing_correlation": fid["swing_correlation"], "swing_amplitude_ratio": fid["swing_amplitude_ratio"]}
+            "swing_correlation": fid["swing_correlation"], "swing_amplitude_ratio": fid["swing_amplitude_ratio"],
+            "largest_step_mm": fid["largest_step_mm"]}
 
 
 def _offset_rates(clip) -> dict:
@@ -200,8 +203,8 @@ def main(argv=None) -> int:
     parser.add_argument("--no-method-rows", action="store_true",
                         help="skip running the chosen and the shipped step as the method on the held-out motions")
     parser.add_argument("--state-pushed", action="store_true",
-                        help="also run the chosen step with InertialConfig.keep_out_state (the body pass acting on "
-                             "the step's state) as a method row")
+                        help="also run the chosen step with InertialConfig.keep_out_state and keep_out_equilibrium "
+                             "(the body pass acting on the step's state and its equilibrium) as a method row")
     parser.add_argument("--choose", default="goals", choices=("goals", "loss"),
                         help="how the training clips choose the setting (module docstring)")
     parser.add_argument("--lengthwise-from", default=None, metavar="JSON",
@@ -290,8 +293,9 @@ def main(argv=None) -> int:
 
     if args.state_pushed:
         save_checkpoint(os.path.join(args.out, "chosen_state_pushed_inertial.pt"),
-                        _step(*_key(chosen), keep_out_state=True).float(),
-                        extra={"chosen_by": f"tools/inertial_sweep.py --choose {args.choose}, keep_out_state on"})
+                        _step(*_key(chosen), keep_out_state=True, keep_out_equilibrium=True).float(),
+                        extra={"chosen_by": f"tools/inertial_sweep.py --choose {args.choose}, keep_out_state and "
+                                            "keep_out_equilibrium on"})
 
     _save_lengthwise(results, list(train), baseline, args, rigid_rows)
 
@@ -310,7 +314,8 @@ def main(argv=None) -> int:
                 **_scores(result.positions.float(), clip),
                 "penetration_percent_mean": sum(metrics["penetration_percent"]) / len(metrics["penetration_percent"]),
                 "penetration_percent_max": max(metrics["penetration_percent"]),
-                "length_change_percent_max": max(metrics["length_change_percent"])}
+                "length_change_percent_max": max(metrics["length_change_percent"]),
+                "step_ms": result.info.get("step_ms")}
     machine = torch.cuda.get_device_name() if device.type == "cuda" else "CPU"
     size = tuple(next(iter(held.values()))["rigid"].shape[1:3]) if held else None
     record = {"command": " ".join(["python3", "tools/inertial_sweep.py", *(argv or sys.argv[1:])]), "device": machine,
@@ -413,7 +418,8 @@ def _markdown(record: dict, shipped: dict | None) -> str:
     if not record["method_rows"]:
         return "\n".join(lines) + "\n"
     lines += ["", "Held-out motions through the method (body pass included): mean distance [mm] (x rigid), "
-              "correlation, amplitude, inside % mean / max, length change % max", "",
+              "correlation, amplitude, worst strands p99 [mm], largest move a frame [mm], inside % mean / max, "
+              "length change % max, step time [ms a frame]", "",
               "| scene | rigid [mm] | " + " | ".join(record["method_rows"]) + " |",
               "|---|---:|" + "---|" * len(record["method_rows"])]
     for label in held:
@@ -423,8 +429,9 @@ def _markdown(record: dict, shipped: dict | None) -> str:
             r = record["method_rows"][name][label]
             cells.append(f"{r['mean_distance_mm']:.1f} ({r['mean_distance_mm'] / rigid:.2f}x), "
                          f"{_fmt(r['swing_correlation'], '.3f')}, {_fmt(r['swing_amplitude_ratio'])}, "
+                         f"{r['strand_distance_p99_mm']:.1f}, {_fmt(r.get('largest_step_mm'), '.1f')}, "
                          f"{r['penetration_percent_mean']:.3f} / {r['penetration_percent_max']:.3f}, "
-                         f"{r['length_change_percent_max']:.3f}")
+                         f"{r['length_change_percent_max']:.3f}, {_fmt(r.get('step_ms'), '.1f')}")
         lines.append(f"| {label} | {rigid:.1f} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 

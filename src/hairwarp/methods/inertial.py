@@ -4,10 +4,15 @@ inertial step (`hairwarp.models.inertial`), so that the hair keeps a state of it
 - On a motion: E(t) = the static network's drape of frame t; x(t) = the step from x(t-1), x(t-2),
   starting at rest on the first frame's drape. The time per frame is the static network's plus
   the step's.
-- Then each frame is kept out of the body (`keep_out_of_body`: vertices inside or within half
-  of `KEEP_OUT_MARGIN` of the surface pushed out to it along the distance's gradient, the rest
-  lengths restored by follow-the-leader), a chunk of frames at a time (`SceneFrames.chunks`). The step's
-  state is not pushed: the pass is what is shown, the state swings on.
+- The body pass (`keep_out_of_body`: vertices inside or within half of `KEEP_OUT_MARGIN` of
+  the surface pushed out to it along the distance's gradient, the rest lengths restored by
+  follow-the-leader) acts where the shipped step asks (`InertialConfig.keep_out_equilibrium`,
+  `keep_out_state`, both on): on each chunk's equilibrium before the rollout reads it, and on
+  each frame's state before the next frame's step reads it, on one body moved through the
+  motion (`Scene.moving_body`). The hair then never swings deep into the body, where the pass
+  had to push it out anew every frame and flung strands up to 17 cm a frame at full size
+  (docs/network_diagnosis.md, T12). A step with neither passes the rollout's output, a chunk of
+  frames at a time (`SceneFrames.chunks`).
 - On independent poses (a drape): the step at rest is its equilibrium, so this is the static
   network's drape.
 
@@ -23,7 +28,10 @@ than the rigid placement's) on eight full-size training clips (`tools/inertial_s
 by rollouts never moved the step at full size). On the held-out motions at full size it meets 13
 of the 15 swing goals (correlation, amplitude, distance) where the twentieth session's constants
 met 11, the nineteenth session's 9 and the first ones 6 (docs/network_diagnosis.md, "Twenty-first
-session"). The static network is the shipped one. The step is trained
+session"). With the body pass on its state and equilibrium, on the six held-out motions re-run
+against the physics of the twenty-third session's body it meets 12 of the 18 (the pass after the
+rollout 13: the curly walk's amplitude is lost), and its largest move a frame falls from 33-137 mm
+to 12-73 mm (T12). The static network is the shipped one. The step is trained
 at one frame rate (`InertialConfig.fps`, 60 1/s): a motion at another rate is refused with the
 resampling to use.
 """
@@ -37,7 +45,7 @@ from dataclasses import replace
 import torch
 
 from hairwarp.methods.base import Method, MethodOptions, MethodResult, drape_in_chunks
-from hairwarp.methods.keep_out import KEEP_OUT_MARGIN, keep_out_of_body
+from hairwarp.methods.keep_out import KEEP_OUT_EAGER_CALLS, KEEP_OUT_MARGIN, keep_out_of_body
 from hairwarp.methods.networks import NetworkMethod, shipped_checkpoint
 from hairwarp.models.inertial import RolloutCarry
 from hairwarp.ops import hair_body_signed_distance_and_normal
@@ -122,9 +130,15 @@ class InertialMethod(Method):
         # on the 2-core CPU 18 -> 11 s, the same positions, twenty-second session).
         carry = RolloutCarry()
         warmed = []
+        # The state's pass moves one body through the whole motion (built here, not timed, as the
+        # chunks' bodies are not): a body built per chunk cost the H200 60-120 ms a frame.
+        moving = _moving_body(frames) if step.config.keep_out_state else None
 
         def run(chunk, target, carry):
             rigid = chunk.rigid.positions
+            if step.config.keep_out_equilibrium:
+                # Pulled to the drape as the static method shows it, not to vertices inside the body.
+                target = keep_out_of_body(target, rigid, chunk.body_mesh)
             hold = None
             if step.config.body_hold:
                 # Where the equilibrium lies on the body, and the body's outward direction there:
@@ -133,7 +147,7 @@ class InertialMethod(Method):
                                                             max_distance=step.config.body_hold_distance)
             if step.config.keep_out_state:
                 # The pass inside the rollout: each frame pushed before the next step reads it.
-                return step.rollout(target, rigid, project=_FrameBodyPass(chunk), carry=carry, hold=hold)
+                return step.rollout(target, rigid, project=_FrameBodyPass(chunk, moving), carry=carry, hold=hold)
             return keep_out_of_body(step.rollout(target, rigid, carry=carry, hold=hold), rigid, chunk.body_mesh)
 
         def piece(chunk) -> MethodResult:
@@ -143,9 +157,14 @@ class InertialMethod(Method):
             # The first chunk warms up on its first frame (its own body) and a copy of the carry:
             # the same kernels. Every chunk run twice cost the 2-core CPU 2x the time, and a
             # motion whose body is built already (the demo's, after the physics) is one chunk.
+            # With the state's pass, the warm-up runs as many frames as the pass takes before it
+            # replays from CUDA graphs (`KEEP_OUT_EAGER_CALLS`): the one capture a motion's body
+            # costs is set-up, as a network's compilation is, not a frame's time.
+            first = min(chunk.num_frames, KEEP_OUT_EAGER_CALLS + 1 if moving is not None else 1)
             with torch.no_grad():
                 positions, seconds = timed(lambda: run(chunk, target, carry), device, warmup=0 if warmed else 1,
-                                           warmup_fn=lambda: run(chunk.select(slice(0, 1)), target[:1], carry.copy()))
+                                           warmup_fn=lambda: run(chunk.select(slice(0, first)), target[:first],
+                                                                 carry.copy()))
             warmed.append(True)
             step_ms = seconds * 1e3 / chunk.num_frames
             return MethodResult(positions=positions.detach(), time_ms=step_ms + (equilibrium.time_ms or 0.0),
@@ -160,17 +179,32 @@ class InertialMethod(Method):
         return out
 
 
+def _moving_body(frames):
+    """`Scene.moving_body` of `frames` (built and its trees prepared), or None for frames of no scene."""
+    if frames.scene is None:
+        return None
+    body = frames.scene.moving_body(frames.frame_indices, device=frames.rigid.positions.device,
+                                    dtype=frames.posed.vertices.dtype)
+    return body.prepare()
+
+
 class _FrameBodyPass:
-    """`keep_out_of_body` of frame t's state (`InertialStep.rollout(project=...)`), with frame t's
-    own body, built when the frame runs and dropped after (one frame's body held at a time).
+    """`keep_out_of_body` of frame t's state (`InertialStep.rollout(project=...)`) on `body` (the
+    motion's `Scene.moving_body`) moved to frame t in place: the state pushed frame by frame on
+    the chunk's own bodies (one per frame, `SceneFrames.select`) cost a body built a frame, ~110
+    ms of ~200 on the 2-core CPU (256 x 100, the demo's scene). With no body (frames of no scene)
+    each frame gets its own.
     """
 
-    def __init__(self, frames):
-        self._frames = frames
+    def __init__(self, frames, body=None):
+        self._frames, self._body = frames, body
 
     def __call__(self, t: int, x: torch.Tensor) -> torch.Tensor:
-        frame = self._frames.select(slice(t, t + 1))
-        return keep_out_of_body(x[None], frame.rigid.positions, frame.body_mesh)[0]
+        rigid = self._frames.rigid.positions[t:t + 1]
+        if self._body is None:
+            return keep_out_of_body(x[None], rigid, self._frames.select(slice(t, t + 1)).body_mesh)[0]
+        self._body.update(self._frames.posed.vertices[t:t + 1])
+        return keep_out_of_body(x[None], rigid, self._body)[0]
 
 
 __all__ = ["INERTIAL_CHECKPOINT", "InertialMethod", "KEEP_OUT_MARGIN", "keep_out_of_body", "load_inertial_step"]

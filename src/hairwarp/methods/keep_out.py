@@ -366,9 +366,9 @@ def _turn_out_of_pinches(x: torch.Tensor, rigid: torch.Tensor, body, *, margin: 
 
 
 # Whether a pass at batch 1 on CUDA replays its launches from CUDA graphs (`_ReplayedPass`) after
-# `_EAGER_CALLS` eager calls on the same body, shape and settings; False: every call is eager.
+# `KEEP_OUT_EAGER_CALLS` eager calls on the same body, shape and settings; False: every call is eager.
 KEEP_OUT_GRAPHS = True
-_EAGER_CALLS = 2
+KEEP_OUT_EAGER_CALLS = 2
 # Turn slots a replayed pass starts with; a frame with more stuck strands captures more.
 _REPLAYED_TURN_SLOTS = 16
 # Pinch-turn rounds per replay of a replayed pass, a host read after each. More rounds a replay
@@ -382,7 +382,7 @@ _TURN_ROUNDS_PER_REPLAY = 1
 def _replayed_pass(x: torch.Tensor, rigid: torch.Tensor, body, settings: dict) -> _ReplayedPass | None:
     """The body's `_ReplayedPass` for `x`'s shape and these settings, or None where the pass
     runs eagerly: off CUDA, a batch of frames, `KEEP_OUT_GRAPHS` off, inside another capture, or
-    the first `_EAGER_CALLS` calls with this key. A body passed once, or twice by a method that
+    the first `KEEP_OUT_EAGER_CALLS` calls with this key. A body passed once, or twice by a method that
     times its second call after a warm-up (`hairwarp.runtime.timed`), is not worth a capture
     (its warm-ups and the capture cost more than the launches they save); a body passed again
     and again (a drape per frame of a live pose, a benchmark) is.
@@ -398,7 +398,7 @@ def _replayed_pass(x: torch.Tensor, rigid: torch.Tensor, body, settings: dict) -
         held[key] = 0
     if isinstance(held[key], int):
         held[key] += 1
-        if held[key] <= _EAGER_CALLS:
+        if held[key] <= KEEP_OUT_EAGER_CALLS:
             return None
         held[key] = _ReplayedPass(x, rigid, body, settings)
     return held[key]

@@ -120,6 +120,11 @@ class InertialConfig(_DictConfig):
             out of the body before the next frame's step reads it (`rollout(project=...)`), so a
             strand that swings into the shoulder stops there as the physics' does. False: the
             pass acts on the rollout's output and the state swings on through the body.
+        keep_out_equilibrium: the method's body pass acts on the equilibrium too, before the
+            rollout reads it: the step is pulled to the static network's drape as the static
+            method shows it (the step at rest is then what `drape` returns), not to vertices
+            inside the body that the pass must push out of every frame anew. False: the
+            network's drape as it comes.
     """
 
     hidden_dim: int = 32
@@ -131,6 +136,7 @@ class InertialConfig(_DictConfig):
     tension_init: float = 1.0
     equilibrium_speed: float | None = None
     keep_out_state: bool = False
+    keep_out_equilibrium: bool = False
     bending: float = 0.0
     body_hold: float = 0.0
     body_hold_distance: float = 0.02
@@ -167,8 +173,9 @@ class InertialConfig(_DictConfig):
         if (not isinstance(distance, (int, float)) or isinstance(distance, bool) or not distance > 0
                 or math.isinf(distance)):
             raise ValueError(f"InertialConfig.body_hold_distance: expected a number > 0 [m], got {distance!r}")
-        if not isinstance(self.keep_out_state, bool):
-            raise ValueError(f"InertialConfig.keep_out_state: expected a bool, got {self.keep_out_state!r}")
+        for name in ("keep_out_state", "keep_out_equilibrium"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"InertialConfig.{name}: expected a bool, got {getattr(self, name)!r}")
 
 
 def vertex_features(rigid: torch.Tensor) -> torch.Tensor:

@@ -253,44 +253,68 @@ class _SplitSurface:
                 (None: that body itself), to find the pieces.
             vertex: (B, V', 3) the body's vertex pseudo-normals; edge: (B, F', 3, 3) its BVH faces'.
         """
-        device = vertex.device
         if self.first_piece_face is None:
             raise RuntimeError("piece_pseudo_normals: first_piece_face is not set")
-        source_vertex, source_edge = _pseudo_normals(source, self.faces, *_edge_inverse(self.faces), None)
+        if getattr(self, "_source_edges", None) is None:
+            self._source_edges = _edge_inverse(self.faces)  # topology: once (a host read)
+        source_vertex, source_edge = _pseudo_normals(source, self.faces, *self._source_edges, None)
         corners = source[:, self.faces]  # (B, F, 3, 3)
         face_normal = torch.cross(corners[:, :, 1] - corners[:, :, 0], corners[:, :, 2] - corners[:, :, 0], dim=-1)
         face_normal = torch.nn.functional.normalize(face_normal, dim=-1)
-
-        def feature_normal(piece: torch.Tensor, zero: torch.Tensor) -> torch.Tensor:
-            # zero: (n, 3) bool, the parent's barycentric weights that are 0 at the feature.
-            parent = self.parent[piece]
-            normal = face_normal[:, parent]
-            on_edge = zero.sum(dim=1) == 1
-            k = zero.long().argmax(dim=1)  # the corner opposite the edge: edge (k + 1) % 3
-            if bool(on_edge.any()):
-                normal[:, on_edge] = source_edge[:, parent[on_edge], (k[on_edge] + 1) % 3]
-            at_corner = zero.sum(dim=1) == 2
-            if bool(at_corner.any()):
-                corner = (~zero[at_corner]).long().argmax(dim=1)
-                normal[:, at_corner] = source_vertex[:, self.faces[parent[at_corner], corner]]
-            return normal
-
-        ids = torch.arange(vertex.shape[1], device=device) if vertex_map is None else vertex_map
-        corner_of = ids - self.num_vertices
-        rows = (corner_of >= 0).nonzero().reshape(-1)
-        if rows.numel():
-            piece, corner = corner_of[rows] // 3, corner_of[rows] % 3
-            vertex[:, rows] = feature_normal(piece, self.weights[piece, corner] == 0)
-        faces = torch.arange(edge.shape[1], device=device) if face_map is None else face_map
-        piece_of = faces - self.first_piece_face
-        rows = (piece_of >= 0).nonzero().reshape(-1)
-        if rows.numel():
-            piece = piece_of[rows]
+        # Every normal a piece's corner or edge can take, in one table: the parent's face normal
+        # (F), the uncut mesh's edge normals (3 F) and vertex normals (V).
+        table = torch.cat([face_normal, source_edge.reshape(source.shape[0], -1, 3), source_vertex], dim=1)
+        plan = self._normal_plan(vertex_map, face_map, vertex.shape[1], edge.shape[1], vertex.device)
+        if plan["vertex_rows"].numel():
+            vertex[:, plan["vertex_rows"]] = table[:, plan["vertex_source"]]
+        if plan["edge_rows"].numel():
             for e in range(3):
-                # Edge e joins the piece's corners e and e + 1: on the parent's boundary where
-                # both have the same zero weight.
-                zero = (self.weights[piece, e] == 0) & (self.weights[piece, (e + 1) % 3] == 0)
-                edge[:, rows, e] = feature_normal(piece, zero)
+                edge[:, plan["edge_rows"], e] = table[:, plan["edge_source"][e]]
+
+    def _normal_plan(self, vertex_map: torch.Tensor | None, face_map: torch.Tensor | None, num_vertices: int,
+                     num_faces: int, device: torch.device) -> dict:
+        """Which normal of `piece_pseudo_normals`' table each piece corner and piece edge of a
+        body takes: topology alone, so found once per body layout (host reads there) and then
+        gathered at every `BodyMesh.update` with no host read (an H200 spent ~5 ms an update on
+        the reads when found anew each time, twenty-fourth session).
+        """
+        key = (None if vertex_map is None else vertex_map.data_ptr(), None if face_map is None else face_map.data_ptr(),
+               num_vertices, num_faces)
+        plans = self.__dict__.setdefault("_normal_plans", {})
+        if key in plans:
+            return plans[key]
+        num_source_faces = self.faces.shape[0]
+
+        def feature_source(piece: torch.Tensor, zero: torch.Tensor) -> torch.Tensor:
+            # zero: (n, 3) bool, the parent's barycentric weights that are 0 at the feature:
+            # none, the parent's face normal; one (k), its edge (k + 1) % 3; two, the corner left.
+            parent = self.parent[piece]
+            source = parent.clone()
+            on_edge = zero.sum(dim=1) == 1
+            k = zero.long().argmax(dim=1)
+            source[on_edge] = num_source_faces + 3 * parent[on_edge] + (k[on_edge] + 1) % 3
+            at_corner = zero.sum(dim=1) == 2
+            corner = (~zero).long().argmax(dim=1)
+            source[at_corner] = 4 * num_source_faces + self.faces[parent[at_corner], corner[at_corner]]
+            return source
+
+        ids = torch.arange(num_vertices, device=device) if vertex_map is None else vertex_map
+        corner_of = ids - self.num_vertices
+        vertex_rows = (corner_of >= 0).nonzero().reshape(-1)
+        piece, corner = corner_of[vertex_rows] // 3, corner_of[vertex_rows] % 3
+        vertex_source = feature_source(piece, self.weights[piece, corner] == 0)
+        faces = torch.arange(num_faces, device=device) if face_map is None else face_map
+        piece_of = faces - self.first_piece_face
+        edge_rows = (piece_of >= 0).nonzero().reshape(-1)
+        piece = piece_of[edge_rows]
+        # Edge e joins the piece's corners e and e + 1: on the parent's boundary where both have
+        # the same zero weight.
+        edge_source = [feature_source(piece, (self.weights[piece, e] == 0) & (self.weights[piece, (e + 1) % 3] == 0))
+                       for e in range(3)]
+        # The maps are held with their plan: no other layout can take their addresses (the key).
+        plans[key] = {"vertex_rows": vertex_rows, "vertex_source": vertex_source, "edge_rows": edge_rows,
+                      "edge_source": edge_source, "maps": (vertex_map, face_map)}
+        return plans[key]
 
 
 def _winding_inside(mesh: wp.Mesh, points: torch.Tensor) -> torch.Tensor:

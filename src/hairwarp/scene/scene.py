@@ -33,6 +33,15 @@ from hairwarp.scene.scalp import Scalp, build_scalp
 # frames is one chunk, evaluated exactly as before.
 FRAME_CHUNK = 16
 
+# The poses a body moved in place through a motion is split at (`Scene.moving_body`,
+# `BodyMesh(split_poses=...)`): every SPLIT_POSE_STRIDE-th frame and the last, at most
+# SPLIT_POSES_MAX of them (evenly thinned). Crossings come and go with the limbs' swing over
+# tenths of a second; 0 splits at the first frame alone (the body of a walk then missed the arm
+# crossing the chest, and the physics flung the hair pinched there at up to 8.8 m/s;
+# docs/physics.md, "Twenty-third session"). The search costs ~55 ms a pose on a 2-core CPU.
+SPLIT_POSE_STRIDE = 4
+SPLIT_POSES_MAX = 64
+
 
 class _LazyBody:
     """The `BodyMesh` of a batch of frames, built at its first use by `recipe(vertices, roots)`
@@ -272,6 +281,44 @@ class Scene:
         posed = self.body.pose(frames=indices)
         return type(posed)(vertices=posed.vertices.to(device=device, dtype=dtype), joints=None,
                            head_transform=posed.head_transform.to(device=device, dtype=dtype))
+
+    def moving_body(self, indices=None, *, device="cpu", dtype=torch.float32, bvh: str = "sah",
+                    split_self_intersections: bool = True):
+        """One `BodyMesh` for frames `indices` (default: all), built at the first of them, to be
+        moved frame by frame with `BodyMesh.update(posed_body(i).vertices)` (a refit, no
+        rebuild): what a method stepping through a motion queries, where a batched body holds
+        every frame at once. Not cropped (no crop of one pose is sure to hold the triangles
+        another pose brings within reach). Cut where the body passes through itself at the first
+        frame or at any of every `SPLIT_POSE_STRIDE`-th frame and the last (`BodyMesh(split_poses=...)`):
+        `update` moves the cuts and finds no new crossing.
+
+        Args:
+            indices: frame indices the body will move through (int, sequence or tensor).
+            device, dtype: of the vertices.
+            bvh: "sah" or "lbvh" (`BodyMesh`).
+            split_self_intersections: cut the body where it passes through itself (False: the
+                uncut surface).
+
+        Returns:
+            a `hairwarp.ops.BodyMesh` of batch 1 ((1, V, 3) vertices), posed at the first frame.
+        """
+        import math
+
+        from hairwarp.ops import BodyMesh
+
+        device = torch.device(device)
+        indices = self._frame_indices(indices).tolist()
+        first = self.posed_body(indices[:1], device=device, dtype=dtype).vertices
+        split_poses = None
+        if split_self_intersections and len(indices) > 1 and SPLIT_POSE_STRIDE > 0:
+            sampled = indices[SPLIT_POSE_STRIDE::SPLIT_POSE_STRIDE]
+            if not sampled or sampled[-1] != indices[-1]:
+                sampled.append(indices[-1])
+            step = max(1, math.ceil(len(sampled) / SPLIT_POSES_MAX))
+            split_poses = self.posed_body(sampled[::step], device=device, dtype=dtype).vertices
+        faces = self.body.faces.to(device=device, dtype=torch.int32)
+        return BodyMesh(first, faces, bvh=bvh, split_self_intersections=split_self_intersections,
+                        split_poses=split_poses)
 
     def frames(self, indices=None, *, device="cpu", dtype=torch.float32, crop: bool = True,
                split_self_intersections: bool = True, build_body: bool = True) -> SceneFrames:

@@ -722,13 +722,6 @@ def drape_at_rest(static: PhysicsSolver, dynamic: PhysicsSolver | None, start: t
 
 
 # Frames posed at once (the body and rigid placement of a motion's frames, without body meshes).
-# The poses a motion's body is split at (`BodyMesh(split_poses=...)`): every SPLIT_POSE_STRIDE-th
-# frame and the last, at most SPLIT_POSES_MAX of them (evenly thinned). Crossings come and go with
-# the limbs' swing over tenths of a second; 0 splits at the first frame alone (the body of a walk
-# then missed the arm crossing the chest, and the physics flung the hair pinched there at up to
-# 8.8 m/s; docs/physics.md, "Twenty-third session"). The search costs ~55 ms a pose on a 2-core CPU.
-SPLIT_POSE_STRIDE = 4
-SPLIT_POSES_MAX = 64
 _POSE_CHUNK = 32
 
 
@@ -742,7 +735,7 @@ def simulate_physics(scene, frame_indices=None, *, device="cpu", energy_config: 
     before the motion starts (x_{-1} = x_{-2} = x_0). Frames are posed in
     chunks of 32 as they are needed (memory flat in the motion's length); the body is built
     once, at the first frame, and moved in place, its self-intersections cut where any of every
-    `SPLIT_POSE_STRIDE`-th pose passes through itself (`BodyMesh(split_poses=...)`).
+    `SPLIT_POSE_STRIDE`-th pose passes through itself (`Scene.moving_body`).
 
     Args:
         scene: a `hairwarp.scene.Scene`.
@@ -759,8 +752,6 @@ def simulate_physics(scene, frame_indices=None, *, device="cpu", energy_config: 
         PhysicsResult with positions (T, 1, M, N, 3).
     """
     from tqdm.auto import tqdm
-
-    from hairwarp.ops import BodyMesh
 
     device = torch.device(device)
     config = config or PhysicsConfig()
@@ -785,18 +776,11 @@ def simulate_physics(scene, frame_indices=None, *, device="cpu", energy_config: 
         return f.rigid.positions[i:i + 1], f.rigid.normals[i:i + 1], f.posed.vertices[i:i + 1]
 
     rigid0, normals0, body0 = frame(0)
-    faces = scene.body.faces.to(device=device, dtype=torch.int32)
-    split_poses = None
-    if split_self_intersections and len(indices) > 1 and SPLIT_POSE_STRIDE > 0:
-        # The body moves in place (`set_frame`): its cuts must cover the crossings of every pose
-        # it moves through, not of the first alone (a walk's arm crosses the chest later).
-        sampled = indices[SPLIT_POSE_STRIDE::SPLIT_POSE_STRIDE]
-        if not sampled or sampled[-1] != indices[-1]:
-            sampled.append(indices[-1])
-        step = max(1, math.ceil(len(sampled) / SPLIT_POSES_MAX))
-        split_poses = scene.posed_body(sampled[::step], device=device, dtype=body0.dtype).vertices
-    body = BodyMesh(body0, faces, bvh="lbvh", split_self_intersections=split_self_intersections,
-                    split_poses=split_poses)
+    # The body moves in place (`set_frame`): its cuts must cover the crossings of every pose it
+    # moves through, not of the first alone (a walk's arm crosses the chest later).
+    body = scene.moving_body(indices, device=device, dtype=body0.dtype, bvh="lbvh",
+                             split_self_intersections=split_self_intersections)
+    body.update(body0)  # posed with its chunk, as every later frame is (a batch rounds apart by ~6e-8 m)
     rest = scene.rest_lengths.to(device=device, dtype=torch.float32)
     synchronize(device)
     setup = time.perf_counter() - setup_start
