@@ -180,9 +180,7 @@ class InertialMethod(Method):
 
 
 def _moving_body(frames):
-    """`Scene.moving_body` of `frames` (built and its trees prepared), or None for frames of no scene."""
-    if frames.scene is None:
-        return None
+    """`Scene.moving_body` of `frames`, its trees built (not timed)."""
     body = frames.scene.moving_body(frames.frame_indices, device=frames.rigid.positions.device,
                                     dtype=frames.posed.vertices.dtype)
     return body.prepare()
@@ -191,20 +189,16 @@ def _moving_body(frames):
 class _FrameBodyPass:
     """`keep_out_of_body` of frame t's state (`InertialStep.rollout(project=...)`) on `body` (the
     motion's `Scene.moving_body`) moved to frame t in place: the state pushed frame by frame on
-    the chunk's own bodies (one per frame, `SceneFrames.select`) cost a body built a frame, ~110
-    ms of ~200 on the 2-core CPU (256 x 100, the demo's scene). With no body (frames of no scene)
-    each frame gets its own.
+    bodies of each frame's own (`SceneFrames.select`) cost a body built a frame, ~110 ms of ~200
+    on the 2-core CPU (256 x 100, the demo's scene).
     """
 
-    def __init__(self, frames, body=None):
+    def __init__(self, frames, body):
         self._frames, self._body = frames, body
 
     def __call__(self, t: int, x: torch.Tensor) -> torch.Tensor:
-        rigid = self._frames.rigid.positions[t:t + 1]
-        if self._body is None:
-            return keep_out_of_body(x[None], rigid, self._frames.select(slice(t, t + 1)).body_mesh)[0]
         self._body.update(self._frames.posed.vertices[t:t + 1])
-        return keep_out_of_body(x[None], rigid, self._body)[0]
+        return keep_out_of_body(x[None], self._frames.rigid.positions[t:t + 1], self._body)[0]
 
 
 __all__ = ["INERTIAL_CHECKPOINT", "InertialMethod", "KEEP_OUT_MARGIN", "keep_out_of_body", "load_inertial_step"]

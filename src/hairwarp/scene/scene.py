@@ -14,6 +14,7 @@ memory stays flat in the motion's length.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 
@@ -302,8 +303,6 @@ class Scene:
         Returns:
             a `hairwarp.ops.BodyMesh` of batch 1 ((1, V, 3) vertices), posed at the first frame.
         """
-        import math
-
         from hairwarp.ops import BodyMesh
 
         device = torch.device(device)
