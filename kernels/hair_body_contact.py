@@ -1314,9 +1314,13 @@ def winding_inside_kernel(
 def winding_layers(mesh: wp.uint64, point: wp.vec3):
     """How many layers of a self-intersecting closed mesh hold `point`: 0, 1 or 2 (2 or more),
     the median of three rays' winding numbers (`ray_winding_number`; negative: a miscount).
+    Where the first two agree they are the median, and the third ray is not cast (the pieces'
+    sides, `seam_piece_sides_kernel`, cast 12 rays a piece at every `BodyMesh.update`).
     """
     n0 = ray_winding_number(mesh, point, RAY_DIRECTION_0)
     n1 = ray_winding_number(mesh, point, RAY_DIRECTION_1)
+    if n0 == n1:
+        return wp.min(n0, 2)
     n2 = ray_winding_number(mesh, point, RAY_DIRECTION_2)
     return wp.min(wp.max(wp.min(n0, n1), wp.min(wp.max(n0, n1), n2)), 2)
 

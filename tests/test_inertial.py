@@ -9,7 +9,8 @@ import torch
 
 from hairwarp.metrics import motion_fidelity
 from hairwarp.models.checkpoint import load_checkpoint, save_checkpoint
-from hairwarp.models.inertial import (InertialConfig, InertialStep, body_held_chain_relaxation, body_hold_weights,
+from hairwarp.models.inertial import (KEEP_OUT_VELOCITIES, InertialConfig, InertialStep, body_held_chain_relaxation,
+                                      body_hold_weights,
                                       chain_operator, hanging_chain_tension, limited_change, vertex_features)
 from hairwarp.ops import BodyMesh, follow_the_leader, hair_body_signed_distance
 from meshes import icosphere
@@ -850,6 +851,62 @@ def test_a_projection_in_the_rollout_acts_on_the_state_the_next_frames_read():
     assert float(free[..., 1].min()) < floor - 0.001  # the free strands swing below the floor
     assert float(floored[..., 1].min()) >= floor
     assert float((floored - clamp(None, free)).abs().max()) > 1e-3  # the state, not the output, was clamped
+
+
+def test_the_velocity_a_pushed_frame_hands_on_is_the_one_the_config_names():
+    """`InertialConfig.keep_out_velocity`: with a floor as the pass, "pushed" reads the next
+    velocity from the pushed states, "raw" from the step's own move, "tangential" from the
+    step's own move less what ran against the push; each frame's x(t-2) checked against that
+    rule in float64 numpy, frame by frame; without a push all three are one rollout."""
+    rest = _hanging(3, 8)
+    t = torch.arange(30, dtype=torch.float64)
+    rigid = rest[None] + torch.stack([0.05 * torch.sin(t / 4), 0.03 * torch.sin(t / 3), 0 * t], -1)[:, None, None, :]
+    floor = -0.12
+
+    def clamp(_, x):
+        return torch.cat([x[..., :1], x[..., 1:2].clamp_min(floor), x[..., 2:]], dim=-1)
+
+    runs = {}
+    for mode in KEEP_OUT_VELOCITIES:
+        step = InertialStep(InertialConfig(coupling="chain", damping="relative", retention_init=0.98,
+                                           keep_out_velocity=mode)).double()
+        calls = []
+
+        def record(t, x, calls=calls):
+            calls.append(x.clone())
+            return clamp(t, x)
+
+        with torch.no_grad():
+            runs[mode] = step.rollout(rigid.clone(), rigid, project=record)
+            free = step.rollout(rigid.clone(), rigid, project=lambda _, x: x)
+            if mode == "pushed":
+                reference = free
+            torch.testing.assert_close(free, reference, rtol=0, atol=0)
+            # Replay frame by frame from the recorded raw results: x(t-2) by the rule, in numpy.
+            out = runs[mode].numpy()
+            raw = torch.stack(calls).numpy()
+            prev = prev2 = rigid[0].numpy()
+            for k in range(1, rigid.shape[0]):
+                velocity, push = raw[k - 1] - prev, out[k - 1] - raw[k - 1]
+                if mode == "pushed":
+                    before = prev
+                else:
+                    length = np.linalg.norm(push, axis=-1, keepdims=True)
+                    normal = np.where(length > 0, push / np.maximum(length, 1e-300), 0.0)
+                    into = np.minimum((velocity * normal).sum(-1, keepdims=True), 0.0)
+                    kept = velocity if mode == "raw" else velocity - into * normal
+                    before = out[k - 1] - kept
+                prev2, prev = before, out[k - 1]
+                # the rollout's head velocity: how the rigid placement moved a frame before
+                head = (rigid[k - 1] - rigid[k - 2])[None] if k > 1 else torch.zeros_like(rigid[:1])
+                expected = step.step(rigid[k:k + 1].clone(), rigid[k:k + 1], torch.from_numpy(prev)[None],
+                                     torch.from_numpy(prev2)[None], head, step.coefficients(rigid))[0]
+                np.testing.assert_allclose(raw[k], expected.numpy(), rtol=0, atol=1e-12)
+    assert float(runs["pushed"][..., 1].min()) >= floor
+    for mode in ("raw", "tangential"):
+        assert float((runs[mode] - runs["pushed"]).abs().max()) > 1e-4
+    with pytest.raises(ValueError, match="keep_out_velocity"):
+        InertialConfig(keep_out_velocity="elastic")
 
 
 def test_the_method_keeps_the_state_out_of_the_body_when_its_step_asks(tmp_path):

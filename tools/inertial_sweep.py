@@ -48,7 +48,9 @@ Writes OUT/inertial_sweep.json, OUT/inertial_sweep.md, OUT/chosen_inertial.pt (t
 constants as a step checkpoint), OUT/lengthwise_inertial.pt and OUT/inertial_sweep.png (the
 objective over G x beta); with `--state-pushed` also OUT/chosen_state_pushed_inertial.pt (the
 chosen constants with `InertialConfig.keep_out_state` and `keep_out_equilibrium`), run as a third
-method row.
+method row, and one more checkpoint and row per other `--keep-out-velocities` value
+(OUT/chosen_state_pushed_V_inertial.pt, `InertialConfig.keep_out_velocity`). `--rows` picks the
+method rows to run.
 
     python3 tools/inertial_sweep.py --lengthwise-from docs/network_diagnosis/inertial_sweep_session19_h100.json --out OUT
 """
@@ -111,13 +113,14 @@ def _trajectories(scene, device, path, hold_cap: float | None = None) -> dict:
 
 def _step(gate: float, retention: float, tension: float, damping: str = "absolute", speed: float | None = None,
           bending: float = 0.0, body_hold: float = 0.0, body_hold_distance: float = 0.02, keep_out_state: bool = False,
-          keep_out_equilibrium: bool = False):
+          keep_out_equilibrium: bool = False, keep_out_velocity: str = "pushed"):
     from hairwarp.models.inertial import InertialConfig, InertialStep
 
     return InertialStep(InertialConfig(coupling="chain", damping=damping, gate_init=gate, retention_init=retention,
                                        tension_init=tension, equilibrium_speed=speed, bending=bending,
                                        body_hold=body_hold, body_hold_distance=body_hold_distance,
-                                       keep_out_state=keep_out_state, keep_out_equilibrium=keep_out_equilibrium))
+                                       keep_out_state=keep_out_state, keep_out_equilibrium=keep_out_equilibrium,
+                                       keep_out_velocity=keep_out_velocity))
 
 
 def _key(r: dict) -> tuple:
@@ -205,6 +208,10 @@ def main(argv=None) -> int:
     parser.add_argument("--state-pushed", action="store_true",
                         help="also run the chosen step with InertialConfig.keep_out_state and keep_out_equilibrium "
                              "(the body pass acting on the step's state and its equilibrium) as a method row")
+    parser.add_argument("--keep-out-velocities", default="pushed",
+                        help="with --state-pushed: InertialConfig.keep_out_velocity values, a method row each")
+    parser.add_argument("--rows", default=None,
+                        help="the method rows to run, comma-separated (default: shipped, chosen and the state-pushed ones)")
     parser.add_argument("--choose", default="goals", choices=("goals", "loss"),
                         help="how the training clips choose the setting (module docstring)")
     parser.add_argument("--lengthwise-from", default=None, metavar="JSON",
@@ -291,19 +298,26 @@ def main(argv=None) -> int:
                            "train_objective": chosen["train_objective"],
                            "train_swing_goals_met": chosen["train_swing_goals_met"]})
 
+    pushed_rows = {}
     if args.state_pushed:
-        save_checkpoint(os.path.join(args.out, "chosen_state_pushed_inertial.pt"),
-                        _step(*_key(chosen), keep_out_state=True, keep_out_equilibrium=True).float(),
-                        extra={"chosen_by": f"tools/inertial_sweep.py --choose {args.choose}, keep_out_state and "
-                                            "keep_out_equilibrium on"})
+        for velocity in args.keep_out_velocities.split(","):
+            name = "chosen_state_pushed" + ("" if velocity == "pushed" else f"_{velocity}")
+            pushed_rows[name] = os.path.join(args.out, f"{name}_inertial.pt")
+            save_checkpoint(pushed_rows[name],
+                            _step(*_key(chosen), keep_out_state=True, keep_out_equilibrium=True,
+                                  keep_out_velocity=velocity).float(),
+                            extra={"chosen_by": f"tools/inertial_sweep.py --choose {args.choose}, keep_out_state and "
+                                                f"keep_out_equilibrium on, keep_out_velocity {velocity}"})
 
     _save_lengthwise(results, list(train), baseline, args, rigid_rows)
 
     # The chosen step and the shipped one as the method runs them (the body pass included).
     method_rows = {}
-    runs = () if args.no_method_rows else (("shipped", None), ("chosen", os.path.join(args.out, "chosen_inertial.pt")))
-    if args.state_pushed and not args.no_method_rows:
-        runs += (("chosen_state_pushed", os.path.join(args.out, "chosen_state_pushed_inertial.pt")),)
+    runs = () if args.no_method_rows else (("shipped", None), ("chosen", os.path.join(args.out, "chosen_inertial.pt")),
+                                           *pushed_rows.items())
+    if args.rows is not None:
+        wanted = args.rows.split(",")
+        runs = tuple(r for r in runs if r[0] in wanted)
     for name, checkpoint in runs:
         for label, scene in held_scenes.items():
             frames = scene.frames(device=device)

@@ -79,6 +79,8 @@ NUM_VERTEX_FEATURES = 3
 DAMPINGS = ("relative", "absolute")
 # How the pull toward the equilibrium couples the vertices (`InertialConfig.coupling`).
 COUPLINGS = ("vertex", "chain")
+# The velocity a frame pushed out of the body hands on (`InertialConfig.keep_out_velocity`).
+KEEP_OUT_VELOCITIES = ("pushed", "raw", "tangential")
 
 
 @dataclass(frozen=True)
@@ -125,6 +127,12 @@ class InertialConfig(_DictConfig):
             method shows it (the step at rest is then what `drape` returns), not to vertices
             inside the body that the pass must push out of every frame anew. False: the
             network's drape as it comes.
+        keep_out_velocity: with `keep_out_state`, the velocity the next step reads from a pushed
+            frame: "pushed", the pushed state's (x(t) - x(t-1) of the states as pushed: the push
+            is added to it); "raw", the step's own, as it was before the push (the positions kept
+            out, the swing's momentum not touched by the pass); "tangential", the step's own less
+            its component into the body along each vertex's push (the contact takes the normal
+            velocity, the strand slides on).
     """
 
     hidden_dim: int = 32
@@ -137,6 +145,7 @@ class InertialConfig(_DictConfig):
     equilibrium_speed: float | None = None
     keep_out_state: bool = False
     keep_out_equilibrium: bool = False
+    keep_out_velocity: str = "pushed"
     bending: float = 0.0
     body_hold: float = 0.0
     body_hold_distance: float = 0.02
@@ -176,6 +185,9 @@ class InertialConfig(_DictConfig):
         for name in ("keep_out_state", "keep_out_equilibrium"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"InertialConfig.{name}: expected a bool, got {getattr(self, name)!r}")
+        if self.keep_out_velocity not in KEEP_OUT_VELOCITIES:
+            raise ValueError(f"InertialConfig.keep_out_velocity: expected one of {list(KEEP_OUT_VELOCITIES)}, got "
+                             f"{self.keep_out_velocity!r}")
 
 
 def vertex_features(rigid: torch.Tensor) -> torch.Tensor:
@@ -465,10 +477,16 @@ class InertialStep(nn.Module):
             held = None if hold is None else (hold[0][t:t + 1], hold[1][t:t + 1])
             x = self.step(target[None], rigid[t:t + 1], prev[None], prev2[None], head_velocity[t:t + 1],
                           coefficients, hold=held)[0]
+            before = prev
             if project is not None:
-                x = project(t, x)
+                pushed = project(t, x)
+                if self.config.keep_out_velocity != "pushed":
+                    # The next step reads its velocity as prev - prev2: prev2 is set so that it is
+                    # the step's own (less what ran into the body), not the push added to it.
+                    before = pushed - pushed_velocity(x - prev, pushed - x, self.config.keep_out_velocity)
+                x = pushed
             out.append(x)
-            prev2, prev = prev, x
+            prev2, prev = before, x
         if carry is not None:
             carry.prev, carry.prev2, carry.offset, carry.coefficients = prev, prev2, offset, coefficients
             carry.rigid_before = placed[-2:]
@@ -494,6 +512,26 @@ class RolloutCarry:
         changed in place, so they are shared).
         """
         return RolloutCarry(self.prev, self.prev2, self.offset, self.rigid_before, self.coefficients)
+
+
+def pushed_velocity(velocity: torch.Tensor, push: torch.Tensor, mode: str) -> torch.Tensor:
+    """The velocity a pushed frame hands on (`InertialConfig.keep_out_velocity`).
+
+    Args:
+        velocity: (..., 3) the step's own velocity x(t) - x(t-1) before the push [m/frame].
+        push: (..., 3) the body pass's move of each vertex [m].
+        mode: "raw" (the velocity as it is) or "tangential" (less its component against the push,
+            where the vertex moved into the body: n = push / |push|, v - min(v . n, 0) n).
+
+    Returns:
+        (..., 3) the velocity [m/frame].
+    """
+    if mode == "raw":
+        return velocity
+    length = push.norm(dim=-1, keepdim=True)
+    normal = torch.where(length > 0, push / length.clamp_min(1e-30), torch.zeros_like(push))
+    into = (velocity * normal).sum(dim=-1, keepdim=True).clamp(max=0.0)
+    return velocity - into * normal
 
 
 def limited_change(change: torch.Tensor, limit: float) -> torch.Tensor:
