@@ -909,39 +909,6 @@ def test_the_velocity_a_pushed_frame_hands_on_is_the_one_the_config_names():
         InertialConfig(keep_out_velocity="elastic")
 
 
-def test_the_head_velocity_fading_along_the_strand_spans_relative_and_absolute_damping():
-    """`InertialConfig.head_follow_length`: the head's velocity that beta damps relative to fades
-    as exp(-s / length) along the strand: a length far beyond the strands is the relative
-    damping, one far below their first segment the absolute damping, and one between differs
-    from both, most at the tips."""
-    rest = _hanging(3, 12)
-    t = torch.arange(30, dtype=torch.float64)
-    turn = 0.6 * torch.sin(t / 5)  # a head turning about the vertical axis through the roots [rad]
-    c, s = torch.cos(turn), torch.sin(turn)
-    rotation = torch.stack([torch.stack([c, 0 * c, s], -1), torch.stack([0 * c, 1 + 0 * c, 0 * c], -1),
-                            torch.stack([-s, 0 * c, c], -1)], -2)  # (T, 3, 3)
-    rigid = torch.einsum("tij,mnj->tmni", rotation, rest)
-    base = dict(coupling="chain", retention_init=0.98)
-    runs = {}
-    for name, config in (("relative", InertialConfig(damping="relative", **base)),
-                         ("absolute", InertialConfig(damping="absolute", **base)),
-                         ("long", InertialConfig(damping="relative", head_follow_length=1e9, **base)),
-                         ("short", InertialConfig(damping="relative", head_follow_length=1e-9, **base)),
-                         ("between", InertialConfig(damping="relative", head_follow_length=0.05, **base))):
-        torch.manual_seed(0)
-        step = InertialStep(config).double()
-        with torch.no_grad():
-            runs[name] = step.rollout(rigid.clone(), rigid)
-    torch.testing.assert_close(runs["long"], runs["relative"], rtol=0, atol=1e-10)  # exp(-s / 1e9) = 1 - O(1e-10)
-    torch.testing.assert_close(runs["short"], runs["absolute"], rtol=0, atol=1e-12)
-    for other in ("relative", "absolute"):
-        gap = (runs["between"] - runs[other]).norm(dim=-1)
-        assert float(gap[:, :, -1].max()) > 1e-4
-        assert float(gap[:, :, -1].max()) > float(gap[:, :, 3].max())
-    with pytest.raises(ValueError, match="head_follow_length"):
-        InertialConfig(head_follow_length=0.0)
-
-
 def test_the_method_keeps_the_state_out_of_the_body_when_its_step_asks(tmp_path):
     """`InertialConfig.keep_out_state`: the method's body pass inside the rollout; every frame is
     out of the body, at its rest lengths, and the result differs from the pass after the rollout."""

@@ -133,12 +133,6 @@ class InertialConfig(_DictConfig):
             out, the swing's momentum not touched by the pass); "tangential", the step's own less
             its component into the body along each vertex's push (the contact takes the normal
             velocity, the strand slides on).
-        head_follow_length: with `damping="relative"`, the head's velocity u that beta damps
-            relative to fades along the strand as exp(-s / length), s the arc length from the
-            root [m] (`PhysicsConfig.head_follow_length` fades the physics' warm start the same
-            way): hair near the root moves with the head, the tips keep their own velocity.
-            None: u at every vertex is the rigid placement's own velocity (the tips of long hair
-            under a turning head are then carried along the arc a rigid helmet would sweep).
     """
 
     hidden_dim: int = 32
@@ -152,7 +146,6 @@ class InertialConfig(_DictConfig):
     keep_out_state: bool = False
     keep_out_equilibrium: bool = False
     keep_out_velocity: str = "pushed"
-    head_follow_length: float | None = None
     bending: float = 0.0
     body_hold: float = 0.0
     body_hold_distance: float = 0.02
@@ -192,10 +185,6 @@ class InertialConfig(_DictConfig):
         for name in ("keep_out_state", "keep_out_equilibrium"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"InertialConfig.{name}: expected a bool, got {getattr(self, name)!r}")
-        length = self.head_follow_length
-        if length is not None and (not isinstance(length, (int, float)) or isinstance(length, bool)
-                                   or not length > 0 or math.isinf(length)):
-            raise ValueError(f"InertialConfig.head_follow_length: expected None or a number > 0 [m], got {length!r}")
         if self.keep_out_velocity not in KEEP_OUT_VELOCITIES:
             raise ValueError(f"InertialConfig.keep_out_velocity: expected one of {list(KEEP_OUT_VELOCITIES)}, got "
                              f"{self.keep_out_velocity!r}")
@@ -479,9 +468,6 @@ class InertialStep(nn.Module):
         head_velocity = placed[1:-1] - placed[:-2]
         if self.config.damping == "absolute":
             head_velocity = torch.zeros_like(rigid)
-        elif self.config.head_follow_length is not None:
-            _, arc = _rest_arc_lengths(rigid)
-            head_velocity = head_velocity * torch.exp(-arc / self.config.head_follow_length)[..., None]
         out = []
         for t in range(rigid.shape[0]):
             target = equilibrium[t]
