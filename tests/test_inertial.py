@@ -258,6 +258,27 @@ def test_constants_fitted_by_length_follow_the_anchors():
         fit_constants_by_length(step, [(0.3, 1.0, 0.9, 1.0)])
 
 
+def test_pinch_turns_stop_when_no_strand_is_freed_further():
+    """`_TurnProgress`: the turns go on while a round turned some strand and the first vertices
+    inside moved further along the strands within `KEEP_OUT_TURN_PATIENCE` rounds; once stopped
+    they stay stopped, and a reset starts them again."""
+    from hairwarp.methods.keep_out import KEEP_OUT_TURN_PATIENCE, _TurnProgress
+
+    progress = _TurnProgress(torch.device("cpu"))
+    progress.reset()
+    go_on = []
+    for turned, reach in [(3, 10), (3, 12), (2, 12), (2, 13), (2, 13), (2, 11), (2, 20), (1, 30)]:
+        progress.update(torch.tensor(turned), torch.tensor(reach))
+        go_on.append(bool(progress.go_on))
+    assert KEEP_OUT_TURN_PATIENCE == 2
+    # 10, 12 and 13 are new highs (12 again: one round without); 13 again and 11 are two rounds
+    # without one: stopped, and a later high does not restart it
+    assert go_on == [True, True, True, True, True, False, False, False]
+    progress.reset()
+    progress.update(torch.tensor(0), torch.tensor(5))
+    assert not bool(progress.go_on)  # a round that turned nothing stops the turns
+
+
 def test_pinch_turns_never_leave_a_strand_with_more_vertices_inside():
     """`_turn_out_of_pinches` on strands hanging in every direction through two overlapping spheres:
     a strand the turns do not free of some of its vertices inside keeps its place bit for bit, so

@@ -28,6 +28,10 @@ KEEP_OUT_TRIGGER = 0.5
 KEEP_OUT_FINAL_DEPTH = 1.0
 # Rounds of turning strands out of pinches between body parts (`_turn_out_of_pinches`).
 KEEP_OUT_TURNS = 12
+# The turns stop after this many rounds in a row that take no strand's first vertex inside
+# further along it than so far (`_TurnProgress`). On a body of 49 overlapping primitives every frame ran all 12
+# rounds and the state's pass took 272 ms a frame there (docs/contact.md, twenty-fifth session).
+KEEP_OUT_TURN_PATIENCE = 2
 # Distances are queried exactly up to this [m], or twice the margin where that is more; farther
 # vertices are left alone (`_query_cap`).
 _KEEP_OUT_QUERY = 2.0e-3
@@ -282,17 +286,47 @@ def _at_vertex(strands: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     return strands.gather(2, index[..., None, None].expand(-1, -1, 1, 3))[..., 0, :]
 
 
+class _TurnProgress:
+    """Whether the pinch turns go on, kept on the device (no host read, so a CUDA graph replays it).
+
+    A round frees a strand's first vertex inside, so the turns progress along the strands: the
+    measure is the sum over the turned strands of the index of their first vertex inside (the
+    strand's length where none is) at a round's start. Kept: the largest so far, and how many
+    rounds in a row found none larger. A round goes on while the one before turned some strand
+    and fewer than `KEEP_OUT_TURN_PATIENCE` rounds in a row made no progress (a strand held
+    where no turn clears it turns in place round after round); a round that does not go on
+    changes nothing, so a replay of several rounds stops where the eager rounds do. The count
+    of vertices inside is no such measure: freeing a strand's first vertex can take later ones
+    in, and two spheres' lens needs rounds that do.
+    """
+
+    def __init__(self, device: torch.device):
+        self.go_on = torch.ones((), dtype=torch.bool, device=device)
+        self.furthest = torch.zeros((), dtype=torch.long, device=device)
+        self.stale = torch.zeros((), dtype=torch.long, device=device)
+
+    def reset(self) -> None:
+        self.go_on.fill_(True)
+        self.furthest.fill_(-1)
+        self.stale.zero_()
+
+    def update(self, turned: torch.Tensor, reach: torch.Tensor) -> None:
+        """After a round that turned `turned` strands, `reach` the measure at its start."""
+        further = reach > self.furthest
+        self.furthest.copy_(torch.maximum(self.furthest, reach))
+        self.stale.copy_(torch.where(further, torch.zeros_like(self.stale), self.stale + 1))
+        self.go_on.copy_(self.go_on & (turned > 0) & (self.stale < KEEP_OUT_TURN_PATIENCE))
+
+
 def _pinch_turn_round(strands: torch.Tensor, rest: torch.Tensor, valid: torch.Tensor, body, *, margin: float,
-                      axes: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+                      axes: torch.Tensor, weights: torch.Tensor, progress: _TurnProgress) -> None:
     """One round of `_turn_out_of_pinches` on (B, S, N, 3) `strands` in place: in each valid slot
     the first moving vertex inside the body is turned about its predecessor, its segment's
     length (from `rest`) kept, to the direction nearest its own that clears the body by half the
     margin (its own blended with the 26 `axes` at the `weights`, and the axes alone; if none
     clears, the one that goes least deep), then every slot is projected onto its rest lengths
-    (follow-the-leader) if any turned. Fixed shapes and no host read: a CUDA graph replays it.
-
-    Returns:
-        () int64 on the device: the number of strands turned (0: nothing was inside; unchanged).
+    (follow-the-leader) if any turned. Nothing changes where `progress` says the turns stopped;
+    the round updates it. Fixed shapes and no host read: a CUDA graph replays it.
     """
     from hairwarp.config import NUM_FIXED_VERTICES
     from hairwarp.ops import follow_the_leader
@@ -302,7 +336,7 @@ def _pinch_turn_round(strands: torch.Tensor, rest: torch.Tensor, valid: torch.Te
     stuck[..., :NUM_FIXED_VERTICES] = False
     index = torch.arange(n, device=strands.device)
     first = torch.where(stuck, index, torch.full_like(index, n)).min(-1).values  # (B, S)
-    turned = first < n
+    turned = (first < n) & progress.go_on
     i = first.clamp(NUM_FIXED_VERTICES, n - 1)
     before, at = _at_vertex(strands, i - 1), _at_vertex(strands, i)
     length = (_at_vertex(rest, i) - _at_vertex(rest, i - 1)).norm(dim=-1, keepdim=True)
@@ -318,7 +352,7 @@ def _pinch_turn_round(strands: torch.Tensor, rest: torch.Tensor, valid: torch.Te
     moved = torch.where(turned[..., None, None], moved, strands)
     count = turned.sum()
     strands.copy_(torch.where(count > 0, follow_the_leader(rest, moved, check=False), strands))
-    return count
+    progress.update(count, first.sum())
 
 
 def _keep_better(x: torch.Tensor, strands: torch.Tensor, order: torch.Tensor, valid: torch.Tensor,
@@ -340,8 +374,9 @@ def _turn_out_of_pinches(x: torch.Tensor, rigid: torch.Tensor, body, *, margin: 
     predecessor, its segment's length kept, to the direction nearest its own that clears the body
     by half the margin (its own blended with the 26 axis and diagonal directions at five weights,
     and those 26 alone), the rest of the strand following (follow-the-leader); up to `rounds`
-    times (`_pinch_turn_round`), stopping at a round that finds none. Only the strands with a
-    vertex inside are queried: a few in a groom.
+    times (`_pinch_turn_round`), stopping at a round that finds none or after
+    `KEEP_OUT_TURN_PATIENCE` rounds in a row that free no strand further (`_TurnProgress`). Only the
+    strands with a vertex inside are queried: a few in a groom.
 
     Where two body parts meet, the signed distance's gradient leads out of one part into the
     other, so pushing along it leaves a vertex inside; turning the segment finds the way out.
@@ -359,8 +394,11 @@ def _turn_out_of_pinches(x: torch.Tensor, rigid: torch.Tensor, body, *, margin: 
     strands, rest = _strand_rows(x, order), _strand_rows(rigid, order)
     axes = _axes(x)
     weights = torch.tensor(_TURN_WEIGHTS, dtype=x.dtype, device=x.device)
+    progress = _TurnProgress(x.device)
+    progress.reset()
     for _ in range(rounds):
-        if int(_pinch_turn_round(strands, rest, valid, body, margin=margin, axes=axes, weights=weights)) == 0:
+        _pinch_turn_round(strands, rest, valid, body, margin=margin, axes=axes, weights=weights, progress=progress)
+        if not bool(progress.go_on):
             break
     return _keep_better(x, strands, order, valid, inside.gather(1, order), body, margin)
 
@@ -460,11 +498,11 @@ class _ReplayedPass:
                 turns = self._turn_graphs(self.width)
                 turns["select"]()
             if stuck > 0:
-                # Groups of rounds, a read after each: a round after one that turned nothing
-                # finds what it found and turns nothing too, so the eager rounds' stop is kept.
+                # Groups of rounds, a read after each: a round after the turns stopped changes
+                # nothing (`_TurnProgress`), so the eager rounds' stop is kept.
                 for group in self._turn_groups():
                     turns[group]()
-                    if int(turns["turned"]) == 0:
+                    if not bool(turns["progress"].go_on):
                         break
                 turns["keep"]()
         self.crease()
@@ -512,7 +550,7 @@ class _ReplayedPass:
              "strands": torch.zeros((*shape, n, 3), dtype=dtype, device=device),
              "rest": torch.zeros((*shape, n, 3), dtype=dtype, device=device),
              "stuck": torch.zeros((), dtype=torch.long, device=device),
-             "turned": torch.zeros((), dtype=torch.long, device=device)}
+             "progress": _TurnProgress(device)}
         body, margin = self.body(), self.settings["margin"]
 
         def select():
@@ -524,13 +562,13 @@ class _ReplayedPass:
             g["strands"].copy_(_strand_rows(self.positions, order))
             g["rest"].copy_(_strand_rows(self.rigid, order))
             g["stuck"].copy_((inside > 0).sum())
+            g["progress"].reset()
 
         def turn_rounds(count):
             def run():
                 for _ in range(count):
-                    turned = _pinch_turn_round(g["strands"], g["rest"], g["valid"], body, margin=margin,
-                                               axes=self.axes, weights=self.weights)
-                g["turned"].copy_(turned)
+                    _pinch_turn_round(g["strands"], g["rest"], g["valid"], body, margin=margin, axes=self.axes,
+                                      weights=self.weights, progress=g["progress"])
             return run
 
         def keep():
@@ -559,5 +597,6 @@ def keep_out_of_body_in_frames(x: torch.Tensor, frames, **settings) -> torch.Ten
     return x
 
 
-__all__ = ["KEEP_OUT_FINAL_DEPTH", "KEEP_OUT_MARGIN", "KEEP_OUT_PASSES", "KEEP_OUT_TRIGGER", "KEEP_OUT_TURNS",
+__all__ = ["KEEP_OUT_FINAL_DEPTH", "KEEP_OUT_MARGIN", "KEEP_OUT_PASSES", "KEEP_OUT_TRIGGER", "KEEP_OUT_TURN_PATIENCE",
+           "KEEP_OUT_TURNS",
            "keep_out_of_body", "keep_out_of_body_in_frames", "pushed_out_of_body"]
