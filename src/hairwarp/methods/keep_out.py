@@ -290,8 +290,8 @@ class _TurnProgress:
     """Whether the pinch turns go on, kept on the device (no host read, so a CUDA graph replays it).
 
     A round frees a strand's first vertex inside, so the turns progress along the strands: the
-    measure is the sum over the turned strands of the index of their first vertex inside (the
-    strand's length where none is) at a round's start. Kept: the largest so far, and how many
+    measure is the sum over the turn slots of the index of their strand's first vertex inside
+    (the strand's length where none is) at a round's start. Kept: the largest so far, and how many
     rounds in a row found none larger. A round goes on while the one before turned some strand
     and fewer than `KEEP_OUT_TURN_PATIENCE` rounds in a row made no progress (a strand held
     where no turn clears it turns in place round after round); a round that does not go on
@@ -304,8 +304,10 @@ class _TurnProgress:
         self.go_on = torch.ones((), dtype=torch.bool, device=device)
         self.furthest = torch.zeros((), dtype=torch.long, device=device)
         self.stale = torch.zeros((), dtype=torch.long, device=device)
+        self.reset()
 
     def reset(self) -> None:
+        """The turns' start (in place: a captured graph keeps reading these tensors)."""
         self.go_on.fill_(True)
         self.furthest.fill_(-1)
         self.stale.zero_()
@@ -395,7 +397,6 @@ def _turn_out_of_pinches(x: torch.Tensor, rigid: torch.Tensor, body, *, margin: 
     axes = _axes(x)
     weights = torch.tensor(_TURN_WEIGHTS, dtype=x.dtype, device=x.device)
     progress = _TurnProgress(x.device)
-    progress.reset()
     for _ in range(rounds):
         _pinch_turn_round(strands, rest, valid, body, margin=margin, axes=axes, weights=weights, progress=progress)
         if not bool(progress.go_on):
