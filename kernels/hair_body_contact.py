@@ -159,7 +159,7 @@ def body_signed_distance_face(
             (see the section at the end of this module): the closest point on one may lie
             just inside the other part (`num faces` when there are none).
         seam_sides: per face of each mesh (B F), for the pieces on the crossing, the other
-            part's side (`seam_piece_sides_kernel`); not read below `first_piece`.
+            part's side (`seam_piece_crossings_kernel`); not read below `first_piece`.
         vertex_offset: index of this mesh's first vertex in `vertices` (batched bodies).
         edge_offset: index of this mesh's first face edge in `edge_normals` (3 F per mesh).
         p: query point (vec3 or vec3d).
@@ -1311,17 +1311,14 @@ def winding_inside_kernel(
 
 
 @wp.func
-def winding_layers(mesh: wp.uint64, point: wp.vec3):
-    """How many layers of a self-intersecting closed mesh hold `point`: 0, 1 or 2 (2 or more),
-    the median of three rays' winding numbers (`ray_winding_number`; negative: a miscount).
-    Where the first two agree they are the median, and the third ray is not cast (the pieces'
-    sides, `seam_piece_sides_kernel`, cast 12 rays a piece at every `BodyMesh.update`).
+def median_layers(n0: int, n1: int, n2: int):
+    """How many layers of a self-intersecting closed mesh hold a point, from three rays' winding
+    numbers there (`ray_winding_number`; negative: a miscount): their median, capped at 2 (2 or
+    more). Where the first two agree they are the median, and `n2` is not read (the third ray is
+    cast only where they disagree: `seam_piece_third_rays_kernel`).
     """
-    n0 = ray_winding_number(mesh, point, RAY_DIRECTION_0)
-    n1 = ray_winding_number(mesh, point, RAY_DIRECTION_1)
     if n0 == n1:
         return wp.min(n0, 2)
-    n2 = ray_winding_number(mesh, point, RAY_DIRECTION_2)
     return wp.min(wp.max(wp.min(n0, n1), wp.min(wp.max(n0, n1), n2)), 2)
 
 
@@ -1332,8 +1329,19 @@ def point_triangle_distance_sq(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
     return dist2
 
 
+# The pieces' sides, where the other part lies across each piece on a self-intersection's crossing
+# (`BodyMesh.update` finds them at every pose): three launches, so that the winding rays, each a
+# walk of BVH descents, run one to a thread (one thread per piece casting up to twelve of them one
+# after another took 2 ms a pose on one H200: docs/physics.md, "Twenty-sixth session").
+# `seam_piece_crossings_kernel` finds the faces that cross each piece and the points whose winding
+# number checks the verdict (`samples`, `need`); `seam_piece_rays_kernel` and
+# `seam_piece_third_rays_kernel` cast the rays; `seam_piece_sides_from_rays_kernel` reads them.
+# Sample k = 0: the piece's centre, outside; k = 1..3: near corner k - 1.
+SEAM_SAMPLES = wp.constant(4)
+
+
 @wp.kernel
-def seam_piece_sides_kernel(
+def seam_piece_crossings_kernel(
     # In:
     points: wp.array(dtype=wp.vec3),
     faces: wp.array(dtype=wp.int32),
@@ -1342,11 +1350,13 @@ def seam_piece_sides_kernel(
     source_mesh: wp.uint64,
     source_points: wp.array(dtype=wp.vec3),
     source_faces: wp.array(dtype=wp.int32),
-    offset: float,
+    offset: wp.array(dtype=float),
     row: int,
     unknown_pieces: wp.array(dtype=wp.int32),
     # Out:
     sides_out: wp.array(dtype=wp.vec4),
+    samples_out: wp.array2d(dtype=wp.vec3),
+    need_out: wp.array2d(dtype=wp.int32),
 ):
     """One thread per piece on a self-intersection's crossing (BVH faces from `first_piece` on,
     corners in `points`), one pose: where the other part lies across the piece, for
@@ -1359,13 +1369,18 @@ def seam_piece_sides_kernel(
       it where the crossing leaves G): (s_a, s_b, s_c, 0), the corners' signed distances to it,
       outward positive;
     - more: (0, 0, 0, 1), the winding number's at query time.
-    Checked against the winding number at the centre and near the corners, `offset` [m]
-    outside along the piece's normal (corners within 4 offsets of G's plane skipped): one layer
-    inside the other part, none outside. Where they disagree (the other part grazes an edge or
-    a corner of the piece, or a third part holds it) the piece is left to the winding number
-    too, as are those marked in `unknown` (a corner on a face left out inside, found on the host).
+    To be checked against the winding number (`seam_piece_sides_from_rays_kernel`) at the centre
+    (none) or near the corners (one; corners within 4 offsets of G's plane skipped), `offset[0]`
+    [m] outside along the piece's normal: one layer inside the other part, none outside. Where
+    they disagree (the other part grazes an edge or a corner of the piece, or a third part holds
+    it) the piece is left to the winding number too, as are those marked in `unknown` (a corner
+    on a face left out inside, found on the host). Writes the provisional side ((1, 1, 1, 0) for
+    none), the final one for more, and the points to check with their `need_out` flags.
     """
-    f = first_piece + wp.tid()
+    t = wp.tid()
+    f = first_piece + t
+    for k in range(SEAM_SAMPLES):
+        need_out[t, k] = 0
     a = points[faces[3 * f + 0]]
     b = points[faces[3 * f + 1]]
     c = points[faces[3 * f + 2]]
@@ -1397,37 +1412,118 @@ def seam_piece_sides_kernel(
         if triangles_cross(a, b, c, d, e, h):
             count += 1
             other = g
-    unknown = wp.vec4(0.0, 0.0, 0.0, 1.0)
     if count > 1 or unknown_pieces[f] != 0:
-        sides_out[row + f] = unknown
+        sides_out[row + f] = wp.vec4(0.0, 0.0, 0.0, 1.0)
         return
-    outward = wp.normalize(wp.cross(b - a, c - a)) * offset
+    outward = wp.normalize(wp.cross(b - a, c - a)) * offset[0]
     centre = (a + b + c) / 3.0
+    s = wp.vec3(1.0, 1.0, 1.0)
     if count == 0:
-        layers = winding_layers(source_mesh, centre + outward)
-        s = wp.vec3(1.0, 1.0, 1.0)
-        if layers == 1:
-            s = wp.vec3(-1.0, -1.0, -1.0)
-        elif layers != 0:
-            sides_out[row + f] = unknown
-            return
+        # Which side is the centre's verdict; the corners check it as they check a plane's.
+        samples_out[t, 0] = centre + outward
+        need_out[t, 0] = 1
     else:
         d = source_points[source_faces[3 * other + 0]]
         n = wp.normalize(wp.cross(source_points[source_faces[3 * other + 1]] - d,
                                   source_points[source_faces[3 * other + 2]] - d))
         s = wp.vec3(wp.dot(a - d, n), wp.dot(b - d, n), wp.dot(c - d, n))
+    sides_out[row + f] = wp.vec4(s[0], s[1], s[2], 0.0)
     for k in range(3):
         corner = a
         if k == 1:
             corner = b
         if k == 2:
             corner = c
-        if wp.abs(s[k]) > 4.0 * offset:
+        if wp.abs(s[k]) > 4.0 * offset[0]:
             # A twentieth of the way in from the corner, a quarter offset out: where the skin
             # folds over the parent's edge into a slit, a point straight out from the corner
             # would cross the slit into the parent's own part.
-            layers = winding_layers(source_mesh, corner + 0.05 * (centre - corner) + 0.25 * outward)
-            if layers != int(s[k] < 0.0):
-                sides_out[row + f] = unknown
+            samples_out[t, k + 1] = corner + 0.05 * (centre - corner) + 0.25 * outward
+            need_out[t, k + 1] = 1
+
+
+@wp.kernel
+def seam_piece_rays_kernel(
+    # In:
+    source_mesh: wp.uint64,
+    samples: wp.array2d(dtype=wp.vec3),
+    need: wp.array2d(dtype=wp.int32),
+    lanes: int,
+    # Out:
+    winding_out: wp.array3d(dtype=wp.int32),
+):
+    """The winding numbers at each needed sample (`seam_piece_crossings_kernel`) along
+    `RAY_DIRECTION_0` and `RAY_DIRECTION_1`, launched (pieces, samples, `lanes`): 2, one ray a
+    thread (a GPU; `seam_piece_third_rays_kernel` then casts the third where they disagree); 1,
+    a thread casting both, and the third where they disagree (the CPU, whose threads run one
+    after another: no thread and no launch more than the work).
+    """
+    t, k, r = wp.tid()
+    if need[t, k] == 0:
+        return
+    p = samples[t, k]
+    if lanes == 2:
+        direction = RAY_DIRECTION_0
+        if r == 1:
+            direction = RAY_DIRECTION_1
+        winding_out[t, k, r] = ray_winding_number(source_mesh, p, direction)
+        return
+    n0 = ray_winding_number(source_mesh, p, RAY_DIRECTION_0)
+    n1 = ray_winding_number(source_mesh, p, RAY_DIRECTION_1)
+    winding_out[t, k, 0] = n0
+    winding_out[t, k, 1] = n1
+    if n0 != n1:
+        winding_out[t, k, 2] = ray_winding_number(source_mesh, p, RAY_DIRECTION_2)
+
+
+@wp.kernel
+def seam_piece_third_rays_kernel(
+    # In:
+    source_mesh: wp.uint64,
+    samples: wp.array2d(dtype=wp.vec3),
+    need: wp.array2d(dtype=wp.int32),
+    # In and out:
+    winding: wp.array3d(dtype=wp.int32),
+):
+    """One thread per (piece, sample): the third ray (`RAY_DIRECTION_2`) where the first two
+    disagree (`median_layers`).
+    """
+    t, k = wp.tid()
+    if need[t, k] != 0 and winding[t, k, 0] != winding[t, k, 1]:
+        winding[t, k, 2] = ray_winding_number(source_mesh, samples[t, k], RAY_DIRECTION_2)
+
+
+@wp.kernel
+def seam_piece_sides_from_rays_kernel(
+    # In:
+    first_piece: int,
+    row: int,
+    need: wp.array2d(dtype=wp.int32),
+    winding: wp.array3d(dtype=wp.int32),
+    # In and out:
+    sides: wp.array(dtype=wp.vec4),
+):
+    """One thread per piece: the provisional side of `seam_piece_crossings_kernel` checked
+    against the layers at its samples (`median_layers`): with no crossing face, one layer at the
+    centre is inside the other parts (-1, -1, -1, 0), none outside (kept), more the winding
+    number's (0, 0, 0, 1); then a corner whose layers (1 inside, 0 outside) disagree with its
+    side's sign leaves the piece to the winding number.
+    """
+    t = wp.tid()
+    f = first_piece + t
+    unknown = wp.vec4(0.0, 0.0, 0.0, 1.0)
+    side = sides[row + f]
+    if need[t, 0] != 0:
+        layers = median_layers(winding[t, 0, 0], winding[t, 0, 1], winding[t, 0, 2])
+        if layers == 1:
+            side = wp.vec4(-1.0, -1.0, -1.0, 0.0)
+        elif layers != 0:
+            sides[row + f] = unknown
+            return
+        sides[row + f] = side
+    for k in range(3):
+        if need[t, k + 1] != 0:
+            layers = median_layers(winding[t, k + 1, 0], winding[t, k + 1, 1], winding[t, k + 1, 2])
+            if layers != int(side[k] < 0.0):
+                sides[row + f] = unknown
                 return
-    sides_out[row + f] = wp.vec4(s[0], s[1], s[2], 0.0)

@@ -420,6 +420,28 @@ def test_a_scenes_moving_body_moved_to_a_frame_signs_the_hair_as_that_frames_own
         scene.moving_body([frames.num_frames + 5])
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="the one-ray-a-thread launches need a CUDA device")
+def test_the_pieces_sides_on_cuda_are_the_cpus():
+    """The pieces' sides (`seam_piece_crossings_kernel` and the rays after it): on a GPU one ray a
+    thread and the third ray in a launch of its own, on the CPU a thread a sample; the same
+    verdicts (which pieces the winding number signs) and the same corners' distances, on the
+    default body moved through a motion's poses."""
+    import hairwarp as hw
+
+    scene = hw.default_scene("long_straight", "head_turn", duration=1.0, strand_stride=64, num_vertices=24)
+    frames = scene.frames()
+    bodies = {device: scene.moving_body(device=device) for device in ("cpu", "cuda")}
+    assert bodies["cpu"].num_faces > bodies["cpu"]._first_piece  # the body has pieces to sign
+    for t in (0, frames.num_frames // 2, frames.num_frames - 1):
+        sides = {}
+        for device, body in bodies.items():
+            body.update(frames.posed.vertices[t:t + 1].to(device))
+            body._query_ready()
+            sides[device] = body._seam_sides.cpu()
+        assert torch.equal(sides["cpu"][:, 3], sides["cuda"][:, 3])
+        torch.testing.assert_close(sides["cuda"], sides["cpu"], rtol=0, atol=1e-6)
+
+
 @pytest.mark.parametrize("cut", [False, True])
 def test_update_moves_what_queries_read_in_place(rng, cut):
     """After `update` every array a query reads (trees, vertices, pseudo-normals, winding

@@ -775,9 +775,9 @@ class BodyMesh:
 
     def _setup_seam_sides(self) -> None:
         """Per pose, where the other part lies across each piece on a self-intersection's
-        crossing (`kernels.hair_body_contact.seam_piece_sides_kernel`): (B F, 4) float32, read
-        from `first_piece` on; `_winding_piece_count` counts those left to the winding number (its pass
-        runs when there are any). Reads that count back to the host (building, not querying).
+        crossing (`kernels.hair_body_contact.seam_piece_crossings_kernel` and the rays after it): (B F, 4) float32, read
+        from `first_piece` on; `_winding_unknown` marks those left to the winding number
+        (`_winding_pass`). Reads nothing back from the device.
         """
         device = self.device
         seam = self.num_faces - self._first_piece
@@ -793,25 +793,71 @@ class BodyMesh:
             piece = (faces - self._surface.first_piece_face).clamp_min(0)
             unknown = _warp.as_warp((self._surface.touches_inside[piece] & (faces >= self._surface.first_piece_face))
                                     .to(torch.int32).contiguous())
+            # Per pose the offset out of the pieces (`_WINDING_OFFSET` times the pose's bounding-box
+            # diagonal), kept on the device: an update reads nothing back for it.
+            source = self._winding_points
+            offsets = (torch.linalg.vector_norm(source.amax(1) - source.amin(1), dim=-1).double()
+                       * _WINDING_OFFSET).float()
+            samples, need, winding = self._seam_buffers(seam)
+            wp_device = _warp.warp_device(device)
             with _warp.launch_scope(device):
                 for b, mesh in enumerate(self._winding_meshes):
-                    source = self._winding_points[b]
-                    diagonal = float(torch.linalg.vector_norm(source.amax(0) - source.amin(0)))
                     _warp.launch(
-                        kernels.seam_piece_sides_kernel, dim=seam,
+                        kernels.seam_piece_crossings_kernel, dim=seam,
                         inputs=[_warp.as_warp(self._points32[b], vec3=True), self._faces_wp,
                                 _warp.as_warp(self._face_parent), self._first_piece, mesh.id,
-                                _warp.as_warp(source, vec3=True), source_faces, _WINDING_OFFSET * diagonal,
+                                _warp.as_warp(source[b], vec3=True), source_faces, _warp.as_warp(offsets[b:b + 1]),
                                 b * self.num_faces, unknown],
-                        outputs=[self._seam_sides_wp], device=_warp.warp_device(device))
-            unknown = (self._seam_sides[:, 3] != 0).view(self.batch_size, self.num_faces).any(dim=0)
-            self._winding_piece_count = int(unknown.sum())
+                        outputs=[self._seam_sides_wp, samples, need], device=wp_device)
+                    lanes = 1 if device.type == "cpu" else 2
+                    _warp.launch(kernels.seam_piece_rays_kernel, dim=(seam, kernels.SEAM_SAMPLES, lanes),
+                                 inputs=[mesh.id, samples, need, lanes], outputs=[winding], device=wp_device)
+                    if lanes == 2:
+                        _warp.launch(kernels.seam_piece_third_rays_kernel, dim=(seam, kernels.SEAM_SAMPLES),
+                                     inputs=[mesh.id, samples, need], outputs=[winding], device=wp_device)
+                    _warp.launch(kernels.seam_piece_sides_from_rays_kernel, dim=seam,
+                                 inputs=[self._first_piece, b * self.num_faces, need, winding],
+                                 outputs=[self._seam_sides_wp], device=wp_device)
+            self._winding_unknown = (self._seam_sides[:, 3] != 0).view(self.batch_size, self.num_faces).any(dim=0)
+            # Counted when asked (`_winding_pieces`): on a GPU the count is a wait for the device
+            # at every update, and the queries' winding pass runs wherever there are pieces.
+            self._winding_piece_count = None
+
+    def _seam_buffers(self, seam: int):
+        """The pieces' sides' work buffers for `seam` pieces (kept while the count stays): the
+        samples (seam, 4) vec3, their flags (seam, 4) int32 and their rays' winding numbers
+        (seam, 4, 3) int32 (`kernels.hair_body_contact.seam_piece_crossings_kernel`).
+        """
+        buffers = getattr(self, "_seam_work", None)
+        if buffers is None or buffers[1].shape[0] != seam:
+            device = _warp.warp_device(self.device)
+            samples = kernels.SEAM_SAMPLES
+            buffers = (wp.zeros((seam, samples), dtype=wp.vec3, device=device),
+                       wp.zeros((seam, samples), dtype=wp.int32, device=device),
+                       wp.zeros((seam, samples, 3), dtype=wp.int32, device=device))
+            self._seam_work = buffers
+        return buffers
 
     @property
     def _winding_pieces(self) -> int:
-        """Pieces signed by the winding number at query time in some pose (0: no fix-up pass)."""
+        """Pieces signed by the winding number at query time in some pose (reads the device)."""
         self._query_ready()
+        if self._winding_piece_count is None:
+            self._winding_piece_count = int(self._winding_unknown.sum())
         return self._winding_piece_count
+
+    @property
+    def _winding_pass(self) -> bool:
+        """Whether the queries run their winding pass (`signed_distance_winding_kernel`, ...): on
+        the CPU where a piece is signed by the winding number (`_winding_pieces`), on a GPU
+        wherever there are pieces (the pass's threads return at once where no query's closest face
+        is such a piece): an update then reads nothing back from the device for it, and a graph
+        captured before an update runs the pass an update may come to need.
+        """
+        self._query_ready()
+        if self.num_faces == self._first_piece:
+            return False
+        return self._winding_pieces > 0 if self.device.type == "cpu" else True
 
     def _normals_as(self, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
         """(B V, 3) vertex and (3 B F, 3) face-edge pseudo-normals in `dtype`, contiguous."""
@@ -1152,7 +1198,7 @@ def _signed_distance_forward(points: torch.Tensor, body: BodyMesh, points_per_ba
         # Points whose closest face is a piece on a self-intersection's crossing whose side of the
         # other part is not known, signed by the winding number in a launch of their own
         # (`kernels.hair_body_contact.winding_signed`).
-        if body._winding_pieces:
+        if body._winding_pass:
             _warp.launch(kernels.signed_distance_winding_kernel, dim=count,
                          inputs=mesh + counts + [cap, zero_dist, winding], outputs=outputs + [side], device=device)
 
@@ -1391,7 +1437,7 @@ def _capped_hair_signed_distance(x: torch.Tensor, body: BodyMesh, max_distance: 
     _warp.launch(kernels.hair_capped_signed_distance_kernel, dim=count,
                  inputs=[hair] + mesh + [m, n] + counts + scalars + [active_strands], outputs=results + [winding],
                  device=device)
-    if body._winding_pieces:
+    if body._winding_pass:
         # Points whose closest face is a piece on a self-intersection's crossing whose side of the
         # other part is not known, signed by the winding number before pass 2 reads the sides.
         _warp.launch(kernels.signed_distance_winding_kernel, dim=count,
@@ -1474,7 +1520,7 @@ def _energy_forward(x, body, xi, dhat, bp, weight, variant_id, strategy, cache=N
             # signed by the winding number in a launch of their own before pass 2 reads the sides (pass 2's deep
             # vertices are inside by the chain of misses).
             winding = _warp.as_warp(torch.empty(count, dtype=torch.int32, device=x.device))
-            pieces = body._winding_pieces > 0
+            pieces = body._winding_pass
             if cache is None:
                 cached = [0, _warp.as_warp(torch.zeros(1, 3, dtype=torch.float32, device=x.device), vec3=True),
                           _warp.as_warp(torch.zeros(1, dtype=torch.float32, device=x.device))]
