@@ -1330,9 +1330,10 @@ def point_triangle_distance_sq(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
 
 
 # The pieces' sides, where the other part lies across each piece on a self-intersection's crossing
-# (`BodyMesh.update` finds them at every pose): three launches, so that the winding rays, each a
-# walk of BVH descents, run one to a thread (one thread per piece casting up to twelve of them one
-# after another took 2 ms a pose on one H200: docs/physics.md, "Twenty-sixth session").
+# (`BodyMesh.update` finds them at every pose): four launches (three on the CPU), so that on a GPU
+# the winding rays, each a walk of BVH descents, run one to a thread (one thread per piece casting
+# up to twelve of them one after another took 2 ms a pose on one H200: docs/physics.md,
+# "Twenty-sixth session").
 # `seam_piece_crossings_kernel` finds the faces that cross each piece and the points whose winding
 # number checks the verdict (`samples`, `need`); `seam_piece_rays_kernel` and
 # `seam_piece_third_rays_kernel` cast the rays; `seam_piece_sides_from_rays_kernel` reads them.

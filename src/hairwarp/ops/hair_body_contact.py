@@ -775,9 +775,9 @@ class BodyMesh:
 
     def _setup_seam_sides(self) -> None:
         """Per pose, where the other part lies across each piece on a self-intersection's
-        crossing (`kernels.hair_body_contact.seam_piece_crossings_kernel` and the rays after it): (B F, 4) float32, read
-        from `first_piece` on; `_winding_unknown` marks those left to the winding number
-        (`_winding_pass`). Reads nothing back from the device.
+        crossing (`kernels.hair_body_contact.seam_piece_crossings_kernel` and the rays after
+        it): (B F, 4) float32, read from `first_piece` on; `_winding_unknown` marks those left to
+        the winding number (`_winding_pass`). Reads nothing back from the device.
         """
         device = self.device
         seam = self.num_faces - self._first_piece
@@ -800,6 +800,7 @@ class BodyMesh:
                        * _WINDING_OFFSET).float()
             samples, need, winding = self._seam_buffers(seam)
             wp_device = _warp.warp_device(device)
+            lanes = 1 if device.type == "cpu" else 2  # rays a sample, one a thread (`seam_piece_rays_kernel`)
             with _warp.launch_scope(device):
                 for b, mesh in enumerate(self._winding_meshes):
                     _warp.launch(
@@ -809,7 +810,6 @@ class BodyMesh:
                                 _warp.as_warp(source[b], vec3=True), source_faces, _warp.as_warp(offsets[b:b + 1]),
                                 b * self.num_faces, unknown],
                         outputs=[self._seam_sides_wp, samples, need], device=wp_device)
-                    lanes = 1 if device.type == "cpu" else 2
                     _warp.launch(kernels.seam_piece_rays_kernel, dim=(seam, kernels.SEAM_SAMPLES, lanes),
                                  inputs=[mesh.id, samples, need, lanes], outputs=[winding], device=wp_device)
                     if lanes == 2:
