@@ -999,6 +999,53 @@ def test_the_step_pulled_to_the_kept_out_equilibrium_starts_at_the_static_drape(
         InertialConfig(keep_out_equilibrium="yes")
 
 
+def test_the_settle_starts_the_motion_on_the_physics_steps_and_moves_every_equilibrium_with_the_head(tmp_path):
+    """`InertialConfig.settle_steps`: the physics' steps from the first frame's equilibrium (the
+    pose held, `settle_with_pose_held`) give S_0; every frame's equilibrium is moved by
+    R_t R_0^T (S_0 - E_0), R_t the rotation of M_head, and the rollout starts at rest on S_0.
+    Replayed by hand from the static network's drape and the solver."""
+    import hairwarp as hw
+    from hairwarp.methods import MethodOptions
+    from hairwarp.methods.inertial import InertialMethod, keep_out_of_body
+    from hairwarp.methods.optimizers import scene_energy_config
+    from hairwarp.solvers.physics import PhysicsConfig, settle_with_pose_held, settling_solver
+
+    scene = hw.default_scene("long_straight", "nod", duration=0.25, strand_stride=64, num_vertices=24)
+    frames = scene.frames()
+    config = InertialConfig(coupling="chain", damping="relative", gate_init=0.99, retention_init=0.95,
+                            tension_init=0.5, equilibrium_speed=0.12, settle_steps=3, settle_momentum=0.8)
+    step = InertialStep(config)
+    path = str(tmp_path / "step.pt")
+    save_checkpoint(path, step)
+    method = InertialMethod(MethodOptions(checkpoint=path))
+    result = method.simulate(frames)
+    assert result.info["settle_ms"] > 0
+
+    equilibrium = method.equilibrium.simulate(frames).positions.to(frames.rigid.positions.dtype)
+    first = frames.select([0])
+    inputs = first.inputs
+    solver = settling_solver(inputs.rest_lengths, first.rigid.positions, inputs.scalp_normals, inputs.body,
+                             scene_energy_config(method.options, first), PhysicsConfig())
+    # The first frame's drape on its own (the network's frames in one batch agree to 1e-7 m, which
+    # the settle's stopping rule may amplify to a different iteration count).
+    start = method.equilibrium.drape(first).positions.to(equilibrium.dtype)
+    settle_with_pose_held(solver, start, 3, PhysicsConfig().settle_tolerance, 0.8)
+    settled = solver.prev.to(equilibrium.dtype)
+    assert float((settled - start).norm(dim=-1).max()) > 1e-3  # the settle moved the hair
+    rotations = frames.posed.head_transform[:, :3, :3].to(equilibrium.dtype)
+    local = (settled - start)[0] @ rotations[0]
+    moved = equilibrium + torch.einsum("tij,mnj->tmni", rotations, local)
+    torch.testing.assert_close(moved[0], settled[0], rtol=0, atol=1e-6)
+    with torch.no_grad():
+        expected = keep_out_of_body(step.rollout(moved, frames.rigid.positions), frames.rigid.positions,
+                                    frames.body_mesh)
+    torch.testing.assert_close(result.positions, expected, rtol=0, atol=1e-5)
+    for bad in ({"settle_steps": -1}, {"settle_steps": 2.5}, {"settle_momentum": 0.0}, {"settle_momentum": 1.5},
+                {"settle_frame": "body"}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            InertialConfig(**bad)
+
+
 def test_the_chain_operators_bending_is_the_clamped_second_difference_penalty():
     """`chain_operator(..., bending=b)` against a float64 matrix with b sum (d[c-1] - 2 d[c] +
     d[c+1])^2 written term by term (the two fixed vertices' offsets 0); a kick at one vertex

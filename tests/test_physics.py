@@ -53,6 +53,30 @@ def test_a_released_strand_swings_and_comes_to_rest_below_its_root(strand_precon
     assert float(((lengths - rest) / rest).abs().max()) < 0.01
 
 
+def test_a_damped_settle_comes_to_rest_where_the_physics_own_steps_still_swing():
+    """`settle_with_pose_held`: with momentum < 1 each step inherits part of the last one's
+    velocity, so the released strand of the test above reaches its hang (from vertex 1, the
+    clamped segment's end: x = 2.2 cm, 17.8 cm below) in 40 steps; the physics' own steps
+    (momentum 1) are then still swinging, 7 cm away."""
+    from hairwarp.solvers.physics import settle_with_pose_held
+
+    x = _horizontal_strands()
+    m, n = x.shape[1], x.shape[2]
+    rest = (x[0, :, 1:] - x[0, :, :-1]).norm(dim=-1)
+    config = EnergyConfig(inertia_weight=float(m * (n - 2)), auxiliary_weight=0.0, hair_hair_weight=0.0,
+                          smoothness_weight=0.0, bending_weight=0.0, reference_strand_count=m)
+    hang = x[0, :, 1].clone()  # each strand's vertex 1, then its free length straight down
+    hang[:, 1] = -(0.2 - float(x[0, 0, 1, 0]))
+    tips = {}
+    for momentum in (1.0, 0.8):
+        solver = PhysicsSolver(rest, x, None, None, config, PhysicsConfig(tolerance=1e-6))
+        steps, iterations = settle_with_pose_held(solver, x, 40, 1e-7, momentum)
+        assert steps == 40 and iterations > 0
+        tips[momentum] = solver.prev[0, :, -1]
+    assert float((tips[0.8] - hang).norm(dim=-1).max()) < 0.005
+    assert float((tips[1.0] - hang).norm(dim=-1).min()) > 0.05
+
+
 def test_the_rigid_placement_does_not_swing():
     """The rigid placement of the same strands stays horizontal: the test above can fail."""
     x = _horizontal_strands()

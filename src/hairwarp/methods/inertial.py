@@ -39,6 +39,7 @@ resampling to use.
 from __future__ import annotations
 
 import os
+import time
 from collections.abc import Callable
 from dataclasses import replace
 
@@ -133,6 +134,9 @@ class InertialMethod(Method):
         # The state's pass moves one body through the whole motion (built here, not timed, as the
         # chunks' bodies are not): a body built per chunk cost the H200 60-120 ms a frame.
         moving = _moving_body(frames) if step.config.keep_out_state else None
+        # The settle (`InertialConfig.settle_steps`): the physics' offset from the first frame's
+        # equilibrium, in the head's frame; timed, and shared out over the motion's frames.
+        settle, settle_ms = self._settled_offset(frames, step.config) if step.config.settle_steps else (None, 0.0)
 
         def run(chunk, target, carry):
             rigid = chunk.rigid.positions
@@ -153,6 +157,11 @@ class InertialMethod(Method):
         def piece(chunk) -> MethodResult:
             equilibrium = self.equilibrium.drape(chunk)
             target = equilibrium.positions.to(chunk.rigid.positions.dtype)
+            if settle is not None and step.config.settle_frame == "head":
+                rotations = chunk.posed.head_transform[:, :3, :3].to(target.dtype)
+                target = target + torch.einsum("tij,mnj->tmni", rotations, settle)
+            elif settle is not None:
+                target = target + settle
             chunk.body_mesh.prepare()  # built by the equilibrium's contact features, or now: not timed
             # The first chunk warms up on its first frame (its own body) and a copy of the carry:
             # the same kernels. Every chunk run twice cost the 2-core CPU 2x the time, and a
@@ -171,12 +180,44 @@ class InertialMethod(Method):
                                 info={**equilibrium.info, "equilibrium": "static", "step_ms": step_ms})
 
         out = drape_in_chunks(piece, frames)
+        if settle is not None:
+            out.time_ms = (out.time_ms or 0.0) + settle_ms / frames.num_frames
+            out.info["settle_ms"] = settle_ms
         if "chunks" in out.info:
             chunks = out.info["chunks"]
             spans = [c["frames"][1] - c["frames"][0] + 1 for c in chunks]
             out.info["step_ms"] = sum(c["step_ms"] * n for c, n in zip(chunks, spans)) / sum(spans)
             out.info["equilibrium"] = "static"
         return out
+
+    def _settled_offset(self, frames, config) -> tuple[torch.Tensor, float]:
+        """(M, N, 3) the settled drape's offset from the first frame's equilibrium [m], S_0 - E_0 (with
+        `InertialConfig.settle_frame` "head" in the head's rest frame, R_0^T (S_0 - E_0), R_0 the
+        rotation of the first frame's M_head), and the settle's wall time [ms] (the equilibrium's
+        drape included).
+        """
+        from hairwarp.methods.optimizers import scene_energy_config
+        from hairwarp.runtime import synchronize
+        from hairwarp.solvers.physics import PhysicsConfig, settle_with_pose_held, settling_solver
+
+        first = frames.select(slice(0, 1))
+        device = first.rigid.positions.device
+        physics = PhysicsConfig()
+        synchronize(device)
+        start = time.perf_counter()
+        equilibrium = self.equilibrium.drape(first).positions.detach().to(first.rigid.positions.dtype)
+        inputs = first.inputs
+        solver = settling_solver(inputs.rest_lengths, first.rigid.positions, inputs.scalp_normals, inputs.body,
+                                 scene_energy_config(self.options, first), physics)
+        settle_with_pose_held(solver, equilibrium, config.settle_steps, physics.settle_tolerance,
+                              config.settle_momentum)
+        settled = solver.prev.to(equilibrium.dtype)
+        synchronize(device)
+        seconds = time.perf_counter() - start
+        offset = (settled - equilibrium)[0]
+        if config.settle_frame == "head":
+            offset = offset @ first.posed.head_transform[0, :3, :3].to(equilibrium.dtype)
+        return offset, seconds * 1e3
 
 
 def _moving_body(frames):

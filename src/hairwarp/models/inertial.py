@@ -81,6 +81,8 @@ DAMPINGS = ("relative", "absolute")
 COUPLINGS = ("vertex", "chain")
 # The velocity a frame pushed out of the body hands on (`InertialConfig.keep_out_velocity`).
 KEEP_OUT_VELOCITIES = ("pushed", "raw", "tangential")
+# How the settle's offset follows the motion (`InertialConfig.settle_frame`).
+SETTLE_FRAMES = ("head", "world")
 
 
 @dataclass(frozen=True)
@@ -133,6 +135,17 @@ class InertialConfig(_DictConfig):
             out, the swing's momentum not touched by the pass); "tangential", the step's own less
             its component into the body along each vertex's push (the contact takes the normal
             velocity, the strand slides on).
+        settle_steps: at a motion's start, the physics' own implicit-Euler steps
+            (`hairwarp.solvers.physics.settle_with_pose_held`) from the first frame's equilibrium
+            with its pose held; the settled drape's offset from that equilibrium, turned with the
+            head (M_head of Eq. 1), is added to every frame's equilibrium, and the rollout starts
+            at rest on the settled drape. The static network's drape of long hair rests a
+            centimetre above the physics' (docs/network_diagnosis.md, T18); a few steps take it
+            down. 0: no settle.
+        settle_momentum: the share of each settling step's velocity the next inherits, in (0, 1]
+            (`settle_with_pose_held`'s `momentum`): 1 swings about the rest on the way there.
+        settle_frame: how the settled offset follows the motion: "head", turned with M_head's
+            rotation; "world", as it is (the sag gravity adds stays downward).
     """
 
     hidden_dim: int = 32
@@ -149,6 +162,9 @@ class InertialConfig(_DictConfig):
     bending: float = 0.0
     body_hold: float = 0.0
     body_hold_distance: float = 0.02
+    settle_steps: int = 0
+    settle_momentum: float = 0.8
+    settle_frame: str = "head"
 
     def __post_init__(self):
         if not isinstance(self.hidden_dim, int) or isinstance(self.hidden_dim, bool) or self.hidden_dim <= 0:
@@ -185,6 +201,14 @@ class InertialConfig(_DictConfig):
         for name in ("keep_out_state", "keep_out_equilibrium"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"InertialConfig.{name}: expected a bool, got {getattr(self, name)!r}")
+        if not isinstance(self.settle_steps, int) or isinstance(self.settle_steps, bool) or self.settle_steps < 0:
+            raise ValueError(f"InertialConfig.settle_steps: expected an int >= 0, got {self.settle_steps!r}")
+        momentum = self.settle_momentum
+        if not isinstance(momentum, (int, float)) or isinstance(momentum, bool) or not 0.0 < momentum <= 1.0:
+            raise ValueError(f"InertialConfig.settle_momentum: expected a number in (0, 1], got {momentum!r}")
+        if self.settle_frame not in SETTLE_FRAMES:
+            raise ValueError(f"InertialConfig.settle_frame: expected one of {list(SETTLE_FRAMES)}, got "
+                             f"{self.settle_frame!r}")
         if self.keep_out_velocity not in KEEP_OUT_VELOCITIES:
             raise ValueError(f"InertialConfig.keep_out_velocity: expected one of {list(KEEP_OUT_VELOCITIES)}, got "
                              f"{self.keep_out_velocity!r}")

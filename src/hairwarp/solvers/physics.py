@@ -669,6 +669,42 @@ def settling_solver(rest_lengths: torch.Tensor, rigid: torch.Tensor, scalp_norma
     return PhysicsSolver(rest_lengths, rigid, scalp_normals, body, energy_config, config, dynamic=True)
 
 
+def settle_with_pose_held(dynamic: PhysicsSolver, start: torch.Tensor, max_steps: int,
+                          settle_tolerance: float, momentum: float = 1.0) -> tuple[int, int]:
+    """Implicit-Euler steps of `dynamic` from `start` at rest with its frame's pose held, until a
+    step moves no vertex farther than `settle_tolerance` [m] or after `max_steps`; each step is
+    solved to `settle_tolerance` or the config's `tolerance`, whichever is looser. The solver's
+    state is left at the last step (`dynamic.prev`).
+
+    Args:
+        dynamic: a `PhysicsSolver` with dynamic=True, its buffers at the frame to hold.
+        start: (B, M, N, 3) the state to start from, at rest [m].
+        max_steps: the most steps to take.
+        settle_tolerance: the stopping rule's scale [m].
+        momentum: the share of each step's velocity the next step inherits, in (0, 1]: 1, the
+            physics' own motion (the hair swings about its rest on the way there); less, a damped
+            settle that approaches the rest without swinging past it.
+
+    Returns:
+        (steps taken, L-BFGS iterations of them).
+    """
+    # the pose held: no head move for the warm start to add
+    dynamic.rigid_prev.copy_(dynamic.rigid)
+    dynamic.rigid_prev2.copy_(dynamic.rigid)
+    dynamic.set_state(start)
+    steps, iterations = 0, 0
+    step_tolerance = max(dynamic.config.tolerance, settle_tolerance)
+    for _ in range(max_steps):
+        before = dynamic.prev.clone()
+        iterations += dynamic.step(tolerance=step_tolerance).iterations
+        steps += 1
+        if momentum < 1.0:
+            dynamic.prev2.copy_(dynamic.prev - momentum * (dynamic.prev - before))
+        if float((dynamic.prev - before).norm(dim=-1).max()) <= settle_tolerance:
+            break
+    return steps, iterations
+
+
 def drape_at_rest(static: PhysicsSolver, dynamic: PhysicsSolver | None, start: torch.Tensor,
                   config: PhysicsConfig) -> RestingDrape:
     """The static optimum of each frame (Eq. 5), at rest: where the hair hangs when its pose is held.
@@ -696,18 +732,9 @@ def drape_at_rest(static: PhysicsSolver, dynamic: PhysicsSolver | None, start: t
     batch = x.shape[0]
     if dynamic is None or config.settle_time <= 0:
         return RestingDrape(x, first, 0, torch.zeros(batch, dtype=torch.bool))
-    # the pose held: no head move for the warm start to add
-    dynamic.rigid_prev.copy_(dynamic.rigid)
-    dynamic.rigid_prev2.copy_(dynamic.rigid)
-    dynamic.set_state(x)
-    steps, iterations = 0, first.iterations
-    step_tolerance = max(config.tolerance, config.settle_tolerance)
-    for _ in range(max(1, int(round(config.settle_time / dynamic.energy_config.time_step)))):
-        before = dynamic.prev.clone()
-        iterations += dynamic.step(tolerance=step_tolerance).iterations
-        steps += 1
-        if float((dynamic.prev - before).norm(dim=-1).max()) <= config.settle_tolerance:
-            break
+    steps, settle_iterations = settle_with_pose_held(
+        dynamic, x, max(1, int(round(config.settle_time / dynamic.energy_config.time_step))), config.settle_tolerance)
+    iterations = first.iterations + settle_iterations
     polish = static.solve(dynamic.prev, config.static_max_iterations)
     y = static.positions()
     with torch.no_grad():
