@@ -13,8 +13,17 @@ inertial step (`hairwarp.models.inertial`), so that the hair keeps a state of it
   had to push it out anew every frame and flung strands up to 17 cm a frame at full size
   (docs/network_diagnosis.md, T12). A step with neither passes the rollout's output, a chunk of
   frames at a time (`SceneFrames.chunks`).
+- The settle (`InertialConfig.settle_steps`, 20 in the shipped step): at a motion's start the
+  physics' own implicit-Euler steps, damped (`settle_momentum` 0.8), from the first frame's
+  equilibrium with its pose held (`hairwarp.solvers.physics.settle_with_pose_held`); the
+  settled drape's offset from that equilibrium, turned with the head, moves every frame's
+  equilibrium, and the rollout starts at rest on the settled drape. The static network rests
+  long hair a centimetre above the physics' (docs/network_diagnosis.md, T18, T19): on the six
+  held-out motions at full size the mean distance to the physics fell on five (the arm raise
+  15.2 -> 8.9 mm). It runs once a motion (1.3-2.6 s on one H200 at full size, ~25 s at 256 x 100
+  on the 2-core CPU), reported as `info["settle_ms"]` and shared out over the frames' time.
 - On independent poses (a drape): the step at rest is its equilibrium, so this is the static
-  network's drape.
+  network's drape (no settle).
 
 The step's checkpoint is `MethodOptions.checkpoint` (a file written by `InertialTrainer`), else
 the shipped `hairformer_inertial.pt`: the chain step (`InertialConfig(coupling="chain")`) with
@@ -157,11 +166,9 @@ class InertialMethod(Method):
         def piece(chunk) -> MethodResult:
             equilibrium = self.equilibrium.drape(chunk)
             target = equilibrium.positions.to(chunk.rigid.positions.dtype)
-            if settle is not None and step.config.settle_frame == "head":
+            if settle is not None:
                 rotations = chunk.posed.head_transform[:, :3, :3].to(target.dtype)
                 target = target + torch.einsum("tij,mnj->tmni", rotations, settle)
-            elif settle is not None:
-                target = target + settle
             chunk.body_mesh.prepare()  # built by the equilibrium's contact features, or now: not timed
             # The first chunk warms up on its first frame (its own body) and a copy of the carry:
             # the same kernels. Every chunk run twice cost the 2-core CPU 2x the time, and a
@@ -191,10 +198,9 @@ class InertialMethod(Method):
         return out
 
     def _settled_offset(self, frames, config) -> tuple[torch.Tensor, float]:
-        """(M, N, 3) the settled drape's offset from the first frame's equilibrium [m], S_0 - E_0 (with
-        `InertialConfig.settle_frame` "head" in the head's rest frame, R_0^T (S_0 - E_0), R_0 the
-        rotation of the first frame's M_head), and the settle's wall time [ms] (the equilibrium's
-        drape included).
+        """(M, N, 3) the settled drape's offset from the first frame's equilibrium [m] in the head's
+        rest frame, R_0^T (S_0 - E_0) (R_0 the rotation of the first frame's M_head), and the
+        settle's wall time [ms] (the equilibrium's drape included).
         """
         from hairwarp.methods.optimizers import scene_energy_config
         from hairwarp.runtime import synchronize
@@ -214,10 +220,8 @@ class InertialMethod(Method):
         settled = solver.prev.to(equilibrium.dtype)
         synchronize(device)
         seconds = time.perf_counter() - start
-        offset = (settled - equilibrium)[0]
-        if config.settle_frame == "head":
-            offset = offset @ first.posed.head_transform[0, :3, :3].to(equilibrium.dtype)
-        return offset, seconds * 1e3
+        rotation = first.posed.head_transform[0, :3, :3].to(equilibrium.dtype)
+        return (settled - equilibrium)[0] @ rotation, seconds * 1e3
 
 
 def _moving_body(frames):

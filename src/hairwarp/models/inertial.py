@@ -81,8 +81,6 @@ DAMPINGS = ("relative", "absolute")
 COUPLINGS = ("vertex", "chain")
 # The velocity a frame pushed out of the body hands on (`InertialConfig.keep_out_velocity`).
 KEEP_OUT_VELOCITIES = ("pushed", "raw", "tangential")
-# How the settle's offset follows the motion (`InertialConfig.settle_frame`).
-SETTLE_FRAMES = ("head", "world")
 
 
 @dataclass(frozen=True)
@@ -144,8 +142,6 @@ class InertialConfig(_DictConfig):
             down. 0: no settle.
         settle_momentum: the share of each settling step's velocity the next inherits, in (0, 1]
             (`settle_with_pose_held`'s `momentum`): 1 swings about the rest on the way there.
-        settle_frame: how the settled offset follows the motion: "head", turned with M_head's
-            rotation; "world", as it is (the sag gravity adds stays downward).
     """
 
     hidden_dim: int = 32
@@ -164,7 +160,6 @@ class InertialConfig(_DictConfig):
     body_hold_distance: float = 0.02
     settle_steps: int = 0
     settle_momentum: float = 0.8
-    settle_frame: str = "head"
 
     def __post_init__(self):
         if not isinstance(self.hidden_dim, int) or isinstance(self.hidden_dim, bool) or self.hidden_dim <= 0:
@@ -206,9 +201,6 @@ class InertialConfig(_DictConfig):
         momentum = self.settle_momentum
         if not isinstance(momentum, (int, float)) or isinstance(momentum, bool) or not 0.0 < momentum <= 1.0:
             raise ValueError(f"InertialConfig.settle_momentum: expected a number in (0, 1], got {momentum!r}")
-        if self.settle_frame not in SETTLE_FRAMES:
-            raise ValueError(f"InertialConfig.settle_frame: expected one of {list(SETTLE_FRAMES)}, got "
-                             f"{self.settle_frame!r}")
         if self.keep_out_velocity not in KEEP_OUT_VELOCITIES:
             raise ValueError(f"InertialConfig.keep_out_velocity: expected one of {list(KEEP_OUT_VELOCITIES)}, got "
                              f"{self.keep_out_velocity!r}")
