@@ -582,7 +582,7 @@ def test_the_inertial_method_rolls_out_chunk_by_chunk_as_one_sequence(body_pass,
         target = method.equilibrium.simulate(frames).positions.to(rigid.dtype)
         # The shipped step's settle (`InertialConfig.settle_steps`; its own test replays it).
         assert step.config.settle_steps > 0
-        settle, _ = method._settled_offset(frames, step.config)
+        settle, _ = method._settled_offset(frames, step.config, step.config.settle_steps)
         target = target + torch.einsum("tij,mnj->tmni", frames.posed.head_transform[:, :3, :3].to(rigid.dtype), settle)
         if body_pass == "after":
             whole = keep_out_of_body_in_frames(step.rollout(target, rigid), frames)
@@ -1044,6 +1044,15 @@ def test_the_settle_starts_the_motion_on_the_physics_steps_and_moves_every_equil
         expected = keep_out_of_body(step.rollout(moved, frames.rigid.positions), frames.rigid.positions,
                                     frames.body_mesh)
     torch.testing.assert_close(result.positions, expected, rtol=0, atol=1e-5)
+    # `MethodOptions.settle` overrides the step's count: 0, the rollout on the network's drapes.
+    unsettled = InertialMethod(MethodOptions(checkpoint=path, settle=0)).simulate(frames)
+    assert "settle_ms" not in unsettled.info
+    with torch.no_grad():
+        plain = keep_out_of_body(step.rollout(equilibrium, frames.rigid.positions), frames.rigid.positions,
+                                 frames.body_mesh)
+    torch.testing.assert_close(unsettled.positions, plain, rtol=0, atol=1e-5)
+    with pytest.raises(ValueError, match="settle"):
+        InertialMethod(MethodOptions(checkpoint=path, settle=-1)).simulate(frames)
     for bad in ({"settle_steps": -1}, {"settle_steps": 2.5}, {"settle_momentum": 0.0}, {"settle_momentum": 1.5}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             InertialConfig(**bad)

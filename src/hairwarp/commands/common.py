@@ -136,6 +136,9 @@ def add_method_arguments(p: argparse.ArgumentParser, *, max_iterations: int, def
     g.add_argument("--keep-out", action=argparse.BooleanOptionalAction, default=True,
                    help="network methods: push the output's vertices out of the body, rest lengths kept (the "
                         "inertial step's body pass; default: on)")
+    g.add_argument("--settle", type=int, default=None, metavar="K",
+                   help="the inertial step: K damped physics steps settle a motion's first frame (default: the "
+                        "step's own, 20; 0: none; once a motion, ~35 s for 600 strands on a 2-core CPU)")
     g.add_argument("--max-iterations", type=int, default=max_iterations,
                    help=f"adam/lbfgs/reference: iteration cap (default: {max_iterations})")
     g.add_argument("--patience", type=int, default=50,
@@ -162,7 +165,8 @@ def method_from_args(args):
                             max_iterations=positive_int("--max-iterations", args.max_iterations, minimum=0),
                             patience=positive_int("--patience", args.patience),
                             reference_max_iterations=max(1, args.max_iterations), checkpoint=args.checkpoint,
-                            refine=refine, keep_out=args.keep_out, progress=not args.no_progress)
+                            refine=refine, keep_out=args.keep_out, progress=not args.no_progress,
+                            settle=None if args.settle is None else positive_int("--settle", args.settle, minimum=0))
     if args.checkpoint is not None and not os.path.isfile(args.checkpoint):
         raise ValueError(f"--checkpoint: no such file {args.checkpoint!r}")
     return make(name, options), config

@@ -62,6 +62,10 @@ class MethodOptions:
             long straight hair grown on the body at rest 1.07 % inside, 3.38 x E* -> 0.00 %, 1.031
             x E*; long curly hair at nod 5.3 %, 23.1 x E* -> 0 %, 1.036 x E*; the pass took 4-27 ms
             a drape (docs/network_diagnosis.md, eighteenth session). False: the network's output.
+        settle: the inertial step's settle at a motion's start, in physics steps
+            (`InertialConfig.settle_steps`; None: the step's own, 20 for the shipped one; 0: none).
+            It runs once a motion: 1.3-2.6 s on one H200 at 1 024 x 100, 35-39 s on the 2-core
+            CPU at 600 x 100 (docs/network_diagnosis.md, T19).
         progress: show progress bars.
     """
 
@@ -74,6 +78,7 @@ class MethodOptions:
     checkpoint: str | None = None
     refine: int = 0
     keep_out: bool = True
+    settle: int | None = None
     progress: bool = False
 
     def config(self) -> EnergyConfig:

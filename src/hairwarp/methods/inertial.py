@@ -145,7 +145,8 @@ class InertialMethod(Method):
         moving = _moving_body(frames) if step.config.keep_out_state else None
         # The settle (`InertialConfig.settle_steps`): the physics' offset from the first frame's
         # equilibrium, in the head's frame; timed, and shared out over the motion's frames.
-        settle, settle_ms = self._settled_offset(frames, step.config) if step.config.settle_steps else (None, 0.0)
+        steps = self.settle_steps(step)
+        settle, settle_ms = self._settled_offset(frames, step.config, steps) if steps else (None, 0.0)
 
         def run(chunk, target, carry):
             rigid = chunk.rigid.positions
@@ -197,7 +198,20 @@ class InertialMethod(Method):
             out.info["equilibrium"] = "static"
         return out
 
-    def _settled_offset(self, frames, config) -> tuple[torch.Tensor, float]:
+    def settle_steps(self, step) -> int:
+        """The settle's physics steps: `MethodOptions.settle`, else the step's `settle_steps`.
+
+        Raises:
+            ValueError: a `settle` option that is not an int >= 0.
+        """
+        settle = self.options.settle
+        if settle is None:
+            return step.config.settle_steps
+        if not isinstance(settle, int) or isinstance(settle, bool) or settle < 0:
+            raise ValueError(f"settle: expected None or an int >= 0 (physics steps), got {settle!r}")
+        return settle
+
+    def _settled_offset(self, frames, config, steps: int) -> tuple[torch.Tensor, float]:
         """(M, N, 3) the settled drape's offset from the first frame's equilibrium [m] in the head's
         rest frame, R_0^T (S_0 - E_0) (R_0 the rotation of the first frame's M_head), and the
         settle's wall time [ms] (the equilibrium's drape included).
@@ -215,8 +229,7 @@ class InertialMethod(Method):
         inputs = first.inputs
         solver = settling_solver(inputs.rest_lengths, first.rigid.positions, inputs.scalp_normals, inputs.body,
                                  scene_energy_config(self.options, first), physics)
-        settle_with_pose_held(solver, equilibrium, config.settle_steps, physics.settle_tolerance,
-                              config.settle_momentum)
+        settle_with_pose_held(solver, equilibrium, steps, physics.settle_tolerance, config.settle_momentum)
         settled = solver.prev.to(equilibrium.dtype)
         synchronize(device)
         seconds = time.perf_counter() - start
