@@ -20,8 +20,9 @@ inertial step (`hairwarp.models.inertial`), so that the hair keeps a state of it
   equilibrium, and the rollout starts at rest on the settled drape. The static network rests
   long hair a centimetre above the physics' (docs/network_diagnosis.md, T18, T19): on the six
   held-out motions at full size the mean distance to the physics fell on five (the arm raise
-  15.2 -> 8.9 mm). It runs once a motion (1.3-2.6 s on one H200 at full size, ~25 s at 256 x 100
-  on the 2-core CPU), reported as `info["settle_ms"]` and shared out over the frames' time.
+  15.2 -> 8.9 mm). It runs once a motion (1.3-2.6 s on one H200 at full size, 21 s at 256 x 100
+  on the 2-core CPU), reported as `info["settle_ms"]` and shared out over the frames' time;
+  `MethodOptions.settle` (`--settle K`) overrides the count.
 - On independent poses (a drape): the step at rest is its equilibrium, so this is the static
   network's drape (no settle).
 
