@@ -6,6 +6,7 @@ fixed vertices, the GRU run, checkpoints, errors); one test loads the shipped ch
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 
 import pytest
@@ -24,6 +25,8 @@ from hairwarp.models.checkpoint import load_checkpoint, save_checkpoint
 TINY_N = 12
 # The refined energy may sit above the network's only by float32 rounding of the batch sum.
 _ENERGY_RTOL = 1e-5
+# How much nearer the physics' rest a settled drape must lie than the network's (a fraction).
+SETTLE_GAIN = 0.7
 
 
 def _tiny_static() -> StaticNetwork:
@@ -239,6 +242,35 @@ def test_refine_never_raises_the_networks_energy(checkpoints, poses_scene, name)
     assert refined.info["refine_iterations"] == 5
     assert refined.time_ms > alone.time_ms
     assert refined.history and refined.history[0]["time_s"] > 0  # the curve starts after the network
+
+
+def test_settle_brings_the_networks_drape_toward_the_physics_rest():
+    """"static+settle": the shipped static network's drape of long straight hair grown on the
+    body, then `SETTLE_STEPS` damped physics steps with the pose held (`settle_drapes`), lies
+    nearer the physics' own drape at rest (method "physics") than the network's; settle=0 is
+    the network alone; compositions nest, and a bad count names the option."""
+    from hairwarp.commands.common import method_name
+    from hairwarp.methods import SETTLE_STEPS, split_composition
+
+    scene = hw.build_scene("long_straight", pose="rest", grow="body", strand_stride=64)
+    frames = scene.frames([0])
+    physics = make("physics").drape(frames).positions
+    alone = make("static").drape(frames)
+    settled = make("static+settle").drape(frames)
+
+    def distance(x):
+        return float((x - physics).norm(dim=-1)[..., 2:].mean())
+
+    assert distance(settled.positions) < SETTLE_GAIN * distance(alone.positions)
+    assert settled.info["settle_steps"] == SETTLE_STEPS and settled.time_ms > alone.time_ms
+    assert torch.equal(make("static+settle", MethodOptions(settle=0)).drape(frames).positions, alone.positions)
+    assert make("static+refine+settle", MethodOptions(refine=2)).name == "static+refine+settle"
+    assert split_composition("static+settle") == ("static", "+settle")
+    assert method_name("static+refine+settle") == "static+refine+settle"
+    with pytest.raises(argparse.ArgumentTypeError, match="nope"):
+        method_name("nope+settle")
+    with pytest.raises(ValueError, match="settle"):
+        make("static+settle", MethodOptions(settle=-2))
 
 
 def test_auto_is_never_worse_than_the_rigid_placement(checkpoints):

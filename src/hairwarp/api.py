@@ -126,7 +126,7 @@ def drape(scene, method: str = "auto", *, frame: int = 0, device: str | torch.de
 
     Args:
         scene: a `Scene` (`hairwarp.default_scene`, `hairwarp.build_scene`).
-        method: a registered name, or "<name>+refine" (default "auto": the static network
+        method: a registered name, or "<name>+refine" / "<name>+settle" (default "auto": the static network
             finished by a few L-BFGS iterations, never worse than the rigid placement).
         frame: which frame of the scene's motion to drape.
         device: "cpu" or "cuda[:N]".

@@ -106,13 +106,15 @@ def build_scene_from_args(args, *, simulate: bool):
 
 
 def method_name(text: str) -> str:
-    """Argparse type of --method: a registered name or NAME+refine (else a usage error)."""
-    from hairwarp.methods import REFINE_SUFFIX, available
+    """Argparse type of --method: a registered name, NAME+refine or NAME+settle (else a usage error)."""
+    from hairwarp.methods import available, split_composition
 
-    base = text[: -len(REFINE_SUFFIX)] if text.endswith(REFINE_SUFFIX) else text
+    base, suffix = text, "+"
+    while suffix is not None:
+        base, suffix = split_composition(base)
     if base not in available():
         raise argparse.ArgumentTypeError(f"unknown method {text!r}; expected one of {', '.join(available())}, "
-                                         f"or any of them followed by {REFINE_SUFFIX!r}")
+                                         f"or any of them followed by '+refine' or '+settle'")
     return text
 
 
@@ -122,7 +124,8 @@ def add_method_arguments(p: argparse.ArgumentParser, *, max_iterations: int, def
 
     g = p.add_argument_group("method")
     g.add_argument("--method", default=default, metavar="METHOD", type=method_name,
-                   help=f"one of {', '.join(available())}, or any of them followed by '+refine'; auto: a motion "
+                   help=f"one of {', '.join(available())}, or any of them followed by '+refine' (L-BFGS) or "
+                        "'+settle' (damped physics steps); auto: a motion "
                         "runs the physics where it meets its speed goal (a CPU, up to 256 x 100 hair), else the "
                         f"shipped network (a drape: static, finished by {AUTO_REFINE} L-BFGS iterations; a motion: "
                         "the inertial step, or dynamic where the step cannot run), every frame left with more "
@@ -137,8 +140,10 @@ def add_method_arguments(p: argparse.ArgumentParser, *, max_iterations: int, def
                    help="network methods: push the output's vertices out of the body, rest lengths kept (the "
                         "inertial step's body pass; default: on)")
     g.add_argument("--settle", type=int, default=None, metavar="K",
-                   help="the inertial step: K damped physics steps settle a motion's first frame (default: the "
-                        "step's own, 20; 0: none; once a motion, ~35 s for 600 strands on a 2-core CPU)")
+                   help="damped physics steps with the pose held: the inertial step's settle of a motion's first "
+                        "frame (default: the step's own, 20; 0: none; once a motion, ~35 s for 600 strands on a 2-core "
+                        "CPU), and a network's finish per frame (NAME+settle, default 20; given with a network "
+                        "method, it adds +settle)")
     g.add_argument("--max-iterations", type=int, default=max_iterations,
                    help=f"adam/lbfgs/reference: iteration cap (default: {max_iterations})")
     g.add_argument("--patience", type=int, default=50,
@@ -152,7 +157,7 @@ def method_from_args(args):
     """The method of --method with the options of the method flags (a `hairwarp.methods.Method`)."""
     from hairwarp.builder import positive_int
     from hairwarp.config import EnergyConfig
-    from hairwarp.methods import MethodOptions, make
+    from hairwarp.methods import NETWORK_METHODS, MethodOptions, make
 
     config = EnergyConfig()
     if args.no_hair_hair:
@@ -161,12 +166,15 @@ def method_from_args(args):
     refine = positive_int("--refine", args.refine, minimum=0)
     if refine > 0 and name not in ("auto",) and not name.endswith("+refine"):
         name = name + "+refine"
+    settle = None if args.settle is None else positive_int("--settle", args.settle, minimum=0)
+    if settle and name.split("+")[0] in NETWORK_METHODS and not name.endswith("+settle"):
+        name = name + "+settle"
     options = MethodOptions(energy_config=config,
                             max_iterations=positive_int("--max-iterations", args.max_iterations, minimum=0),
                             patience=positive_int("--patience", args.patience),
                             reference_max_iterations=max(1, args.max_iterations), checkpoint=args.checkpoint,
                             refine=refine, keep_out=args.keep_out, progress=not args.no_progress,
-                            settle=None if args.settle is None else positive_int("--settle", args.settle, minimum=0))
+                            settle=settle)
     if args.checkpoint is not None and not os.path.isfile(args.checkpoint):
         raise ValueError(f"--checkpoint: no such file {args.checkpoint!r}")
     return make(name, options), config

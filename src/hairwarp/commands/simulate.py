@@ -5,9 +5,10 @@
     hairwarp simulate --pose walk.npz --start 1.5 --frames 120 --body my_smpl.npz --method reference
     hairwarp simulate --hairstyle bob --method rigid --strand-stride 4
 
-Methods: auto (the shipped dynamic network finished by a few L-BFGS iterations per frame,
-never more vertices inside than the rigid placement), the networks (dynamic: frame by frame
-with its recurrent state; static: every frame on its own; quaffure), NAME+refine, adam/lbfgs
+Methods: auto (the physics where it meets its speed goal, a CPU up to 256 x 100 hair; else the
+inertial step, its motion's start settled by `--settle` physics steps; never more vertices
+inside than the rigid placement), inertial, the networks (dynamic: frame by frame
+with its recurrent state; static: every frame on its own; quaffure), NAME+refine, NAME+settle, adam/lbfgs
 (every frame draped on its own: static baselines, no dynamics), physics (implicit-Euler steps on
 the device L-BFGS, the time step the motion's frame spacing), reference (the physics at a
 tolerance 100x tighter), rigid (Eq. 1). --against physics runs the physics beside the method. Writes into --out:

@@ -45,7 +45,7 @@ from collections.abc import Sequence
 import torch
 
 from hairwarp import metrics as M
-from hairwarp.methods import NETWORK_METHODS, REFINE_SUFFIX, MethodOptions, available, make
+from hairwarp.methods import NETWORK_METHODS, REFINE_SUFFIX, MethodOptions, composed_names, make
 from hairwarp.evaluation.scenes import SCENE_NAMES, SCENES_VERSION, comparison_scene
 from hairwarp.runtime import jsonable, machine_description, resolve_device
 
@@ -261,7 +261,7 @@ def run_comparison(
         ValueError: unknown method or scene names (naming `methods` / `scenes`).
     """
     device = resolve_device(device)
-    known = available() + [name + REFINE_SUFFIX for name in available()]
+    known = composed_names()
     method_names = parse_names(methods, known, "methods")
     options = options or MethodOptions()
     if options.refine > 0:  # every network also finished by `refine` L-BFGS iterations: a curve over K

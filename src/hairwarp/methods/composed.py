@@ -4,6 +4,12 @@
   L-BFGS iterations of the same static energy started from them (neural start, physics
   finish). With `refine` 0 it is the network alone; L-BFGS keeps its best iterate, so the
   refined energy is never above the network's.
+- "<method>+settle" (`SettledMethod`): the method's positions, then `options.settle` (default
+  `SETTLE_STEPS`) damped physics steps with each frame's pose held (`settle_drapes`): a
+  physics finish that brings a drape to where the physics rests it (the static network's drape
+  of long hair 14.2 -> 3.5 mm from the physics' rest in 20 steps at 256 x 100, where 100 L-BFGS
+  iterations of "+refine" moved it 0.1 mm; docs/network_diagnosis.md, T18, T19). On a motion
+  every frame is settled on its own, as "+refine" refines it: a drape of every pose.
 - "auto" (`AutoMethod`): what the command line and `hairwarp.drape` use by default. A drape
   runs the static network with `AUTO_REFINE` refine iterations. A motion runs the physics
   simulation (`physics`) where it meets its speed goal (`physics_is_interactive`: on a CPU up to
@@ -34,6 +40,11 @@ import torch
 from hairwarp.methods.base import Method, MethodOptions, MethodResult
 from hairwarp.methods.optimizers import OptimizerMethod
 
+# Damped physics steps "<method>+settle" runs after the method (when `options.settle` is None),
+# and the share of each step's velocity the next inherits: the shipped inertial step's settle
+# (`InertialConfig.settle_steps`, `settle_momentum`; docs/network_diagnosis.md, T19).
+SETTLE_STEPS = 20
+SETTLE_MOMENTUM = 0.8
 # L-BFGS iterations "auto" runs after the network (when `options.refine` is 0).
 AUTO_REFINE = 20
 # ... and after the network on a motion (frames worse than the rigid placement are
@@ -99,6 +110,45 @@ class RefinedMethod(Method):
 
     def simulate(self, frames) -> MethodResult:
         return _refine(self.base.simulate(frames), frames, self.options, self.options.refine)
+
+
+class SettledMethod(Method):
+    """A method followed by `options.settle` (default `SETTLE_STEPS`) damped physics steps per
+    frame, its pose held (module docstring).
+    """
+
+    kind = "composed"
+
+    def __init__(self, base: Method, options: MethodOptions | None = None):
+        super().__init__(options or base.options)
+        steps = self.options.settle
+        if steps is not None and (not isinstance(steps, int) or isinstance(steps, bool) or steps < 0):
+            raise ValueError(f"settle: expected None or an int >= 0 (physics steps), got {steps!r}")
+        self.steps = SETTLE_STEPS if steps is None else steps
+        self.base = base
+        self.name = f"{base.name}+settle"
+
+    def _settle(self, base: MethodResult, frames) -> MethodResult:
+        from hairwarp.methods.optimizers import settle_drapes
+
+        if self.steps == 0:
+            return base
+        parts, seconds, first = [], 0.0, 0
+        for chunk in frames.chunks():
+            rows = slice(first, first + chunk.num_frames)
+            first = rows.stop
+            settled, elapsed = settle_drapes(chunk, base.positions[rows], self.steps, SETTLE_MOMENTUM, self.options)
+            parts.append(settled)
+            seconds += elapsed
+        settle_ms = seconds * 1e3 / max(first, 1)
+        info = dict(base.info, settle_steps=self.steps, network_ms=base.time_ms, settle_ms=settle_ms)
+        return MethodResult(positions=torch.cat(parts), time_ms=(base.time_ms or 0.0) + settle_ms, info=info)
+
+    def drape(self, frames, *, metrics: Callable | None = None) -> MethodResult:
+        return self._settle(self.base.drape(frames), frames)
+
+    def simulate(self, frames) -> MethodResult:
+        return self._settle(self.base.simulate(frames), frames)
 
 
 class AutoMethod(Method):

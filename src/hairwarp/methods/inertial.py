@@ -217,22 +217,14 @@ class InertialMethod(Method):
         rest frame, R_0^T (S_0 - E_0) (R_0 the rotation of the first frame's M_head), and the
         settle's wall time [ms] (the equilibrium's drape included).
         """
-        from hairwarp.methods.optimizers import scene_energy_config
+        from hairwarp.methods.optimizers import settle_drapes
         from hairwarp.runtime import synchronize
-        from hairwarp.solvers.physics import PhysicsConfig, settle_with_pose_held, settling_solver
 
         first = frames.select(slice(0, 1))
-        device = first.rigid.positions.device
-        physics = PhysicsConfig()
-        synchronize(device)
+        synchronize(first.rigid.positions.device)
         start = time.perf_counter()
         equilibrium = self.equilibrium.drape(first).positions.detach().to(first.rigid.positions.dtype)
-        inputs = first.inputs
-        solver = settling_solver(inputs.rest_lengths, first.rigid.positions, inputs.scalp_normals, inputs.body,
-                                 scene_energy_config(self.options, first), physics)
-        settle_with_pose_held(solver, equilibrium, steps, physics.settle_tolerance, config.settle_momentum)
-        settled = solver.prev.to(equilibrium.dtype)
-        synchronize(device)
+        settled, _ = settle_drapes(first, equilibrium, steps, config.settle_momentum, self.options)
         seconds = time.perf_counter() - start
         rotation = first.posed.head_transform[0, :3, :3].to(equilibrium.dtype)
         return (settled - equilibrium)[0] @ rotation, seconds * 1e3

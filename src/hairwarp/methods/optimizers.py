@@ -35,6 +35,40 @@ def scene_energy_config(options: MethodOptions, frames):
     return config
 
 
+def settle_drapes(frames, start: torch.Tensor, steps: int, momentum: float,
+                  options: MethodOptions) -> tuple[torch.Tensor, float]:
+    """Each frame of `frames` brought toward rest from `start` by `steps` damped physics steps
+    with its pose held (`hairwarp.solvers.physics.settle_with_pose_held`, `momentum` the share
+    of each step's velocity the next inherits): the physics' finish of a network's drape
+    (docs/network_diagnosis.md, T19: the static network's drape of long hair 14.2 -> 3.5 mm
+    from the physics' rest in 20 steps at 0.8, where L-BFGS on the static energy moved it 0.1 mm
+    in 100 iterations).
+
+    Args:
+        frames: `SceneFrames` (B frames; their body, rigid placement and scalp normals).
+        start: (B, M, N, 3) the drapes to settle [m].
+
+    Returns:
+        (B, M, N, 3) the settled drapes [m] in `start`'s dtype, and the wall time [s] (device
+        synchronised).
+    """
+    from hairwarp.runtime import synchronize
+    from hairwarp.solvers.physics import PhysicsConfig, settle_with_pose_held, settling_solver
+
+    device = frames.rigid.positions.device
+    physics = PhysicsConfig()
+    synchronize(device)
+    t0 = time.perf_counter()
+    inputs = frames.inputs
+    solver = settling_solver(inputs.rest_lengths, frames.rigid.positions, inputs.scalp_normals, inputs.body,
+                             scene_energy_config(options, frames), physics)
+    settle_with_pose_held(solver, start.detach().to(frames.rigid.positions.dtype), steps, physics.settle_tolerance,
+                          momentum)
+    settled = solver.prev.detach().clone().to(start.dtype)
+    synchronize(device)
+    return settled, time.perf_counter() - t0
+
+
 class RigidMethod(Method):
     """The rigid placement of Eq. 1: Table 1's "Initial State"."""
 
