@@ -11,7 +11,8 @@ numbers, decoded through the shipped basis). Body: the default body or an SMPL-f
 (`.npz` / `.pkl`). Pose: the rest pose, a frame of a procedural motion, or a frame of an AMASS
 `.npz`. Method: auto (the shipped static network finished by a few L-BFGS iterations, never
 more vertices inside the body than the rigid placement), a network, an optimizer, the
-reference, the rigid placement, NAME+refine or NAME+settle (damped physics steps). Writes into --out: drape.usda (hair + body),
+reference, the rigid placement, NAME+refine or NAME+settle (damped physics steps). Writes into
+--out: drape.usda (hair + body),
 drape.data (strands in metres), drape.png and drape_rigid.png (front and side; red = inside
 the body), drape_metrics.json and drape_metrics.md (penetration, length change, energy, time,
 against the rigid placement of Eq. 1); with --against physics (or reference) also the energy ratio
