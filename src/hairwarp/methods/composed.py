@@ -39,12 +39,13 @@ import torch
 
 from hairwarp.methods.base import Method, MethodOptions, MethodResult
 from hairwarp.methods.optimizers import OptimizerMethod
+from hairwarp.models.inertial import InertialConfig
 
 # Damped physics steps "<method>+settle" runs after the method (when `options.settle` is None),
 # and the share of each step's velocity the next inherits: the shipped inertial step's settle
 # (`InertialConfig.settle_steps`, `settle_momentum`; docs/network_diagnosis.md, T19).
 SETTLE_STEPS = 20
-SETTLE_MOMENTUM = 0.8
+SETTLE_MOMENTUM = InertialConfig.settle_momentum
 # L-BFGS iterations "auto" runs after the network (when `options.refine` is 0).
 AUTO_REFINE = 20
 # ... and after the network on a motion (frames worse than the rigid placement are
