@@ -208,7 +208,9 @@ def test_physics_method_drapes_and_simulates():
     assert r.info["stop_reason"] in ("tolerance", "max_iterations")
     sim = hw.simulate(scene, method="physics")
     assert sim.positions.shape == (scene.num_frames, *scene.hairstyle.strands.shape)
-    assert torch.allclose(sim.positions[0], r.positions, atol=1e-6)  # frame 0 is the static drape
+    # Frame 0 is the static drape: the same solves on the simulation's moving body and the
+    # drape's cropped one, which round apart (~6e-8 m), each stopped at the 1e-4 m tolerances.
+    assert float((sim.positions[0] - r.positions).abs().max()) < 5 * PhysicsConfig().settle_tolerance
     assert len(sim.info["iterations"]) == scene.num_frames
     # Measured against a reference: the rigid placement does not swing; the physics against
     # itself is distance 0, correlation 1; the static optimum against itself is ratio 1.
@@ -301,6 +303,20 @@ def test_each_step_lowers_its_incremental_potential(whiplash):
         assert torch.allclose(lengths, whiplash.rest_lengths, rtol=1e-4, atol=1e-6)  # inextensible steps
 
 
+def _curly_edge_scene(num_vertices: int):
+    """16 strands of the full long curly groom at rest, along the scalp's left edge (grid column
+    0, every other row), resampled to `num_vertices`: strands on which L-BFGS from the rigid
+    placement stalls above their hang. (16 strands spread over the scalp, `strand_stride=64`,
+    converge in 550 iterations at 24 vertices: the stall needs these.)"""
+    import hairwarp as hw
+    from hairwarp.scene.scene import Scene
+
+    full = hw.build_scene("long_curly", pose="rest", num_frames=1)
+    edge = torch.arange(0, full.hairstyle.num_strands, 64)
+    return Scene(body=full.body, scalp=full.scalp, hairstyle=full.hairstyle.subset(edge, num_vertices),
+                 motion=full.motion, name="long_curly_edge")
+
+
 def test_a_static_drape_does_not_stop_where_a_fresh_solve_still_descends():
     # Long curly hair at rest: the first L-BFGS run stalls (its line searches stop moving the hair)
     # long before the optimum; `solve` restarts it while the energy still falls, so that a further
@@ -318,9 +334,11 @@ def test_a_static_drape_does_not_stop_where_a_fresh_solve_still_descends():
     energy = EnergyConfig(reference_strand_count=0).replace(time_step=1 / 60)
     solver = PhysicsSolver(scene.rest_lengths.float(), frames.rigid.positions, frames.rigid.normals, body,
                            energy, PhysicsConfig(), dynamic=False)
-    first = solver.solve(frames.rigid.positions, 2000)
+    # 3 000 iterations reach the tolerance here (a cap below that stops a solve still descending).
+    first = solver.solve(frames.rigid.positions, 4000)
+    assert first.stop_reason == "tolerance", first
     assert first.iterations > 2 * PhysicsConfig().static_chunk  # restarted at least once
-    again = solver.solve(solver.positions().detach().clone(), 2000)
+    again = solver.solve(solver.positions().detach().clone(), 4000)
     assert again.energy >= first.energy - 10 * STALL_RELATIVE_DECREASE * abs(first.energy), (first, again)
 
 
@@ -352,12 +370,11 @@ def test_the_physics_drape_rests_where_the_held_pose_settles():
     """Long curly hair at rest with every strand's energy as in the full groom: L-BFGS from the
     rigid placement stalls above where the hair hangs; the physics' drape is settled with the
     pose held (`drape_at_rest`), lower in energy and tips, and never above the first solve's."""
-    import hairwarp as hw
     from hairwarp.energy import total_energy
     from hairwarp.methods.optimizers import PhysicsMethod
 
     torch.set_num_threads(1)
-    scene = hw.build_scene("long_curly", pose="rest", strand_stride=64, num_vertices=24, num_frames=1)
+    scene = _curly_edge_scene(24)
     frames = scene.frames()
     drapes, energies = {}, {}
     for settle in (0.0, 1.0):

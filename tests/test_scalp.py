@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from hairwarp.scene.body import default_body
-from hairwarp.scene.scalp import Scalp, build_scalp, fit_cranium_sphere, grid_uv, scalp_directions
+from hairwarp.scene.scalp import Scalp, build_scalp, fit_cranium_sphere, grid_subset, grid_uv, scalp_directions
 from references.placement import closest_point_on_mesh
 
 # Roots must lie on the rest surface (the brief: < 0.1 mm); ray hits are exact up to float32
@@ -112,3 +112,41 @@ def test_bad_input(body):
         build_scalp(body, front_deg=0.0)
     with pytest.raises(ValueError, match="back_deg"):
         build_scalp(body, back_deg=190.0)
+
+
+@pytest.mark.parametrize("stride", [2, 4, 8, 16, 64])
+def test_a_strided_scalp_covers_the_whole_head(scalp, stride):
+    """One root in `stride`, spread over the scalp: every quarter of the grid keeps its share,
+    and no two kept roots are nearer than a square lattice of the same density allows (the
+    row-major slice kept columns: stride 16 left two columns, one edge and the middle)."""
+    quick = scalp.every(stride)
+    keep = grid_subset(32, stride)
+    assert quick.num_roots == keep.numel() == 1024 // stride
+    assert torch.equal(quick.uv, scalp.uv[keep]) and torch.equal(quick.positions, scalp.positions[keep])
+    assert keep.unique().numel() == keep.numel() and torch.equal(keep, keep.sort().values)
+    u, v = quick.uv[:, 0], quick.uv[:, 1]
+    for left in (u < 0.5, u >= 0.5):
+        for top in (v < 0.5, v >= 0.5):
+            assert int((left & top).sum()) == pytest.approx(quick.num_roots / 4, abs=max(1, quick.num_roots / 16))
+    cells = torch.stack([keep // 32, keep % 32], 1).double()
+    gap = torch.cdist(cells, cells).fill_diagonal_(float("inf")).min()
+    assert gap >= 0.9 * stride ** 0.5
+    # The whole head, side to side (x) and front to back (z): the kept roots span most of the
+    # full scalp's extent.
+    span = scalp.positions.max(0).values - scalp.positions.min(0).values
+    kept = quick.positions.max(0).values - quick.positions.min(0).values
+    assert (kept[[0, 2]] > 0.75 * span[[0, 2]]).all()
+
+
+def test_grid_subset_edges(scalp):
+    assert torch.equal(grid_subset(32, 1), torch.arange(1024))
+    assert grid_subset(32, 5).numel() in (204, 205)
+    assert grid_subset(32, 5000).numel() == 1
+    assert scalp.every(1) is scalp
+    odd = Scalp(uv=scalp.uv[:100], positions=scalp.positions[:100], normals=scalp.normals[:100], resolution=32)
+    assert torch.equal(odd.every(3).uv, scalp.uv[:100:3])  # not a full grid: every 3rd, in its order
+    for bad in (0, -2, 1.5, True):
+        with pytest.raises(ValueError, match="stride"):
+            grid_subset(32, bad)
+        with pytest.raises(ValueError, match="stride"):
+            scalp.every(bad)

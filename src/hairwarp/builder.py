@@ -289,7 +289,8 @@ def build_scene(hairstyle: str = "long_straight", body: str = "default", pose: s
         fit: grooms from files: "auto" (fit a similarity transform by ICP when the roots lie
             off the scalp), "similarity" (always), "translate" (mean root onto the mean scalp
             root) or "none" (keep the file's placement); the roots are then projected.
-        strand_stride: keep every this-many-th strand (presets: grow on every such root).
+        strand_stride: keep every this-many-th strand of a groom file (presets: grow on one root
+            in this many, spread over the scalp: `Scalp.every`).
         num_vertices: vertices per strand N (>= 3).
         seed: presets: the hairstyle's seed.
         guides: simulate the groom through this many guide strands, the rest following them

@@ -51,7 +51,7 @@ class BenchSizes:
         name: "full" (the paper's sizes), "cpu" (the CPU's quick default), or "custom" (the command's
             flags changed one of them).
         batches: batch sizes, one set of rows each.
-        strand_stride, num_vertices: every k-th strand of the 1024, N vertices per strand.
+        strand_stride, num_vertices: one strand in k of the 1024 (`Scalp.every`), N vertices per strand.
         torch_compile: whether the torch.compile column is timed (compiling costs seconds a term on a CPU).
         skip_torch_above_ms: a plain-torch peer whose first call is slower than this is timed once.
     """
@@ -92,7 +92,7 @@ def build_energy_inputs(batch: int, device: torch.device, *, hairstyle: str = "l
     Args:
         batch, device: frames of the head turn, and where.
         hairstyle, noise, seed: the hair and its jitter [m] off the rigid placement.
-        strand_stride, num_vertices: every k-th strand, N vertices (1, 100: the paper's size).
+        strand_stride, num_vertices: one strand in k, N vertices (1, 100: the paper's size).
         mixed_lengths: in (0, 1]: every other strand's positions (x and the inputs' rigid, prev
             and prev2 alike) cut to that fraction of its length (`mix_strand_lengths`), a groom
             whose segments are of two lengths; None keeps the hairstyle's.

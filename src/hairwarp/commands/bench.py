@@ -51,7 +51,8 @@ def add_parser(subparsers) -> None:
                         "compile shows n/a and its reason in the JSON) (default: off on the CPU, on on CUDA or "
                         "with --full)")
     e.add_argument("--strand-stride", type=int, default=None,
-                   help=f"keep every k-th strand of the 1024 (default: {CPU_SIZES.strand_stride} on the CPU, "
+                   help=f"keep one strand in k of the 1024, spread over the scalp "
+                        f"(default: {CPU_SIZES.strand_stride} on the CPU, "
                         f"{cpu_strands} strands; {FULL_SIZES.strand_stride} on CUDA or with --full, the paper's "
                         f"{full_strands})")
     e.add_argument("--vertices", type=int, default=None,

@@ -32,7 +32,7 @@ def add_parser(subparsers) -> None:
                    help="comma-separated comparison scenes (default: the static ones: "
                         f"{','.join(STATIC_SCENES)}; motions: whiplash, torso_bend)")
     p.add_argument("--reduced", action="store_true", help="quick size: every 4th scalp root (about 256 strands)")
-    p.add_argument("--strand-stride", type=int, default=None, help="keep every this-many-th scalp root")
+    p.add_argument("--strand-stride", type=int, default=None, help="keep one scalp root in this many, spread over the scalp")
     p.add_argument("--num-vertices", type=int, default=None, help="vertices per strand (default: 100)")
     p.add_argument("--max-iterations", type=int, default=None,
                    help="iteration cap of adam and lbfgs (default: 2000)")

@@ -46,7 +46,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--usda", action="store_true", help="write text USD (demo.usda) instead of binary demo.usdc")
     p.add_argument("--max-iterations", type=int, default=40, help="adam/lbfgs iteration cap (default: 40)")
     p.add_argument("--strand-stride", type=int, default=4,
-                   help="grow on every K-th root of the 32 x 32 scalp only (default: 4, 256 strands; 1: all 1024)")
+                   help="grow on one root in K of the 32 x 32 scalp, spread over it (default: 4, 256 strands; 1: all 1024)")
     p.add_argument("--num-vertices", type=int, default=100, help="vertices per strand (default: 100)")
     add_threads_argument(p)
     p.set_defaults(run=run)

@@ -20,9 +20,10 @@ that the rest drape is nearly free of penetration; hairstyle seed `SCENE_SEED`):
   (61 frames; the upper body leans forward by about 60 deg).
 
 Full size: every root of the 32 x 32 scalp (1024 strands, fewer for "table1"), 100 vertices
-per strand. `reduced=True`: every 4th root (about 256 strands), 100 vertices, for quick CPU
-runs. Tests pick their own smaller sizes through `strand_stride` and `num_vertices`. The
-reduced strands are a subset of the full scene's strands (resampled, never regrown), and every
+per strand. `reduced=True`: one root in 4 (256 strands) spread over the scalp
+(`hairwarp.scene.scalp.grid_subset`), 100 vertices, for quick CPU runs. Tests pick their own
+smaller sizes through `strand_stride` and `num_vertices`. The reduced strands are a subset of
+the full scene's strands (resampled, never regrown), and every
 result names the size it used (`ComparisonScene.size`).
 """
 
@@ -38,14 +39,16 @@ from hairwarp.config import EnergyConfig
 from hairwarp.scene.hairstyles import Hairstyle, generate_hairstyle, hairstyle_preset
 from hairwarp.scene.motion import Motion, procedural_motion
 from hairwarp.scene.rotations import euler_to_axis_angle
+from hairwarp.scene.scalp import root_subset
 from hairwarp.scene.skeleton import JOINT, POSE_DIM
 from hairwarp.scene.scene import Scene, SceneFrames
 
-# Bump on any change to what the scenes hold.
-SCENES_VERSION = 1
+# Bump on any change to what the scenes hold. 2: a strand stride keeps a lattice spread over
+# the scalp (`grid_subset`), where 1 kept every k-th root of the row-major grid (columns).
+SCENES_VERSION = 2
 # Seed of every hairstyle's randomness.
 SCENE_SEED = 0
-# `reduced=True` keeps every this-many-th scalp root (1024 -> 256).
+# `reduced=True` keeps one scalp root in this many (1024 -> 256).
 REDUCED_STRAND_STRIDE = 4
 # Vertices per strand (100 in the paper).
 FULL_NUM_VERTICES = 100
@@ -215,8 +218,9 @@ def comparison_scene(name: str, reduced: bool = False, *, strand_stride: int | N
 
     Args:
         name: one of `SCENE_NAMES`.
-        reduced: keep every `REDUCED_STRAND_STRIDE`-th root (quick CPU runs).
-        strand_stride: keep every this-many-th root instead (overrides `reduced`'s stride).
+        reduced: keep one root in `REDUCED_STRAND_STRIDE` (quick CPU runs).
+        strand_stride: keep one root in this many instead (overrides `reduced`'s stride),
+            spread over the scalp (`hairwarp.scene.scalp.root_subset`).
         num_vertices: vertices per strand (default 100), by arc-length resampling.
 
     Returns:
@@ -235,7 +239,7 @@ def comparison_scene(name: str, reduced: bool = False, *, strand_stride: int | N
     spec = SCENE_SPECS[name]
     base, style = _grown_hairstyle(spec.hairstyle)
     motion = _motion_for(spec)
-    keep = torch.arange(0, style.num_strands, stride)
+    keep = root_subset(style.num_strands, base.scalp.resolution, stride)
     if spec.tips_inside_only:
         full = Scene(body=base.body, scalp=base.scalp, hairstyle=style, motion=motion, name=name)
         inside = _tips_inside(full)

@@ -33,6 +33,7 @@ from hairwarp.config import BARRIER_VARIANTS, NUM_FIXED_VERTICES, EnergyConfig
 from hairwarp.energy import EnergyInputs, total_energy
 from hairwarp import metrics as M
 from hairwarp.evaluation.scenes import comparison_scene
+from hairwarp.scene.scalp import root_subset
 from hairwarp.solvers.direct import DirectOptimizationConfig, optimize_drape
 
 # The sizes of the study's scenes (small: the study is about behaviour, not speed).
@@ -472,7 +473,7 @@ def sign_consistency_study(stride: int = 16, min_depth: float = 0.02) -> list[di
     from hairwarp.scene.scene import Scene, default_scene
 
     base = default_scene("long_straight", "head_turn", seed=0, duration=1.0)
-    keep = torch.arange(0, base.hairstyle.num_strands, stride)
+    keep = root_subset(base.hairstyle.num_strands, base.scalp.resolution, stride)
     scene = Scene(body=base.body, scalp=base.scalp, hairstyle=base.hairstyle.subset(keep, 100),
                   motion=base.motion, name="unfitted")
     frames = scene.frames([0], crop=False)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -31,12 +32,89 @@ class Scalp:
         return int(self.uv.shape[0])
 
     def every(self, stride: int) -> Scalp:
-        """Every `stride`-th root (1: this scalp), for quick runs at a fraction of the size."""
+        """One root in `stride` (1: this scalp), spread over the whole scalp, for quick runs.
+
+        A full grid keeps `grid_subset`'s lattice (so 16 keeps 64 roots over the whole head,
+        not two columns of it); any other root set keeps every `stride`-th root.
+        """
+        if not isinstance(stride, int) or isinstance(stride, bool) or stride < 1:
+            raise ValueError(f"stride: expected a positive int, got {stride!r}")
         if stride == 1:
             return self
-        keep = torch.arange(0, self.num_roots, stride)
+        keep = root_subset(self.num_roots, self.resolution, stride, self.uv.device)
         return Scalp(uv=self.uv[keep], positions=self.positions[keep], normals=self.normals[keep],
                      resolution=self.resolution)
+
+
+def root_subset(num_roots: int, resolution: int, stride: int, device=None) -> torch.Tensor:
+    """(about num_roots / stride,) int64 indices of one root (or strand grown on it) in `stride`.
+
+    Roots (or one strand per root, in the scalp's order) that fill a resolution x resolution
+    grid keep `grid_subset`'s lattice, spread over the whole scalp; any other set keeps every
+    `stride`-th (its order is its own).
+    """
+    if num_roots == resolution * resolution:
+        return grid_subset(resolution, stride, device)
+    return torch.arange(0, num_roots, stride, device=device)
+
+
+@functools.lru_cache(maxsize=64)
+def _grid_subset_cached(resolution: int, stride: int) -> tuple[int, ...]:
+    row, col = torch.meshgrid(torch.arange(resolution), torch.arange(resolution), indexing="ij")
+    row, col = row.reshape(-1), col.reshape(-1)
+    cells = torch.stack([row, col], 1).to(torch.float64)
+
+    def spacing(keep: torch.Tensor) -> float:
+        if keep.numel() < 2:
+            return math.inf
+        d = torch.cdist(cells[keep], cells[keep])
+        d.fill_diagonal_(math.inf)
+        return float(d.min())
+
+    # The rank-1 lattice (col + k row) = o (mod stride): k sets its shape (k = 0 keeps columns,
+    # a row-major slice's pattern when stride divides the row), o its place. Among the shapes
+    # that keep resolution^2 / stride cells (rounded), the one with the largest spacing
+    # between kept cells; then the place whose centroid is nearest the grid's centre.
+    n = resolution * resolution
+    centre = (resolution - 1) / 2.0
+    best, best_key = None, None
+    for k in range(min(stride, n)):
+        residue = (col + k * row) % stride
+        counts = torch.bincount(residue, minlength=stride)
+        fits = (counts > 0) & ((counts.double() - n / stride).abs() < 1.0)
+        if not bool(fits.any()):
+            continue
+        centroid = torch.zeros(stride, 2, dtype=torch.float64).index_add_(0, residue, cells)
+        offset = (centroid / counts.clamp_min(1)[:, None].double() - centre).abs().sum(1)
+        offset[~fits] = math.inf
+        o = int(offset.argmin())
+        keep = torch.nonzero(residue == o).flatten()
+        key = (-round(spacing(keep), 9), round(float(offset[o]), 9))
+        if best_key is None or key < best_key:
+            best, best_key = keep, key
+    if best is None:
+        return tuple(range(0, n, stride))
+    return tuple(int(i) for i in best)
+
+
+def grid_subset(resolution: int, stride: int, device=None) -> torch.Tensor:
+    """(about resolution^2 / stride,) int64 row-major indices of grid cells spread over the grid.
+
+    One cell in `stride` of every row, rows shifted against each other (a rank-1 lattice) so
+    the kept cells lie as far apart as such a pattern allows and centred on the grid: every
+    16th root of the 32 x 32 scalp is 64 roots over the whole head. Exactly
+    resolution^2 / stride cells when `stride` divides `resolution`. Deterministic.
+
+    Args:
+        resolution: cells per side of a row-major grid.
+        stride: keep one cell in this many (1: all).
+    """
+    for name, value in (("resolution", resolution), ("stride", stride)):
+        if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+            raise ValueError(f"{name}: expected a positive int, got {value!r}")
+    if stride == 1:
+        return torch.arange(resolution * resolution, device=device)
+    return torch.tensor(_grid_subset_cached(resolution, stride), dtype=torch.long, device=device)
 
 
 # The scalp cap: directions from the cranium's centre whose angle from vertical (y) is at

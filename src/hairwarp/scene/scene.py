@@ -379,7 +379,7 @@ def static_motion(poses: torch.Tensor | None = None, betas: torch.Tensor | None 
 
 def preset_hairstyle(name: str, body: Body, scalp: Scalp, *, seed: int = 0, grow_around_body: bool = False,
                      strand_stride: int = 1, num_vertices: int = 100) -> Hairstyle:
-    """A procedural preset grown on a body's scalp (every `strand_stride`-th root).
+    """A procedural preset grown on a body's scalp (one root in `strand_stride`).
 
     Args:
         name: a preset name (`hairwarp.scene.hairstyles.list_hairstyle_presets()`).
@@ -388,9 +388,9 @@ def preset_hairstyle(name: str, body: Body, scalp: Scalp, *, seed: int = 0, grow
         grow_around_body: grow the strands around the rest body, so long hair falls over the
             shoulders and back instead of through them (about 2-3 s more on the CPU for 1024
             strands); else around the head proxy alone.
-        strand_stride: grow on every this-many-th root of the scalp grid only (1: all 1024;
-            2: 512; 4: 256). The hairstyle is grown on that sparser scalp, so it is close to,
-            not a subset of, the full one.
+        strand_stride: grow on one root in this many only, spread over the whole scalp
+            (`Scalp.every`; 1: all 1024; 2: 512; 4: 256; 16: 64). The hairstyle is grown on
+            that sparser scalp, so it is close to, not a subset of, the full one.
         num_vertices: vertices per strand N (100 in the paper), >= 3.
     """
     from hairwarp.scene.hairstyles import hairstyle_preset

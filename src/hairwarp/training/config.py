@@ -350,7 +350,7 @@ class StaticTrainingConfig(_TrainingConfig):
             this many steps and at the end, into `learning_curve.json` / `.png` (0: off).
         curve_scenes: held-out comparison scenes scored by the curve (static scenes of
             `hairwarp.evaluation.scenes`; the trainer needs their factory, `scene_factory`).
-        curve_strand_stride: their size: None full size (every scalp root), k every k-th root.
+        curve_strand_stride: their size: None full size (every scalp root), k one root in k.
         curve_reference_iterations: L-BFGS iterations over the free vertices (the L-BFGS baseline) that give each scene's
             reference energy E* for the energy gap (0: no energy gap).
         teacher_iterations: distillation from the physics (0: off, the paper's loss alone). Each

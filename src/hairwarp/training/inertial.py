@@ -36,6 +36,7 @@ import torch
 from hairwarp.config import EnergyConfig
 from hairwarp.models.checkpoint import load_checkpoint, save_checkpoint
 from hairwarp.models.inertial import InertialConfig, InertialStep
+from hairwarp.scene.scalp import root_subset
 from hairwarp.solvers.physics import PhysicsConfig
 
 CHECKPOINT_NAME = "checkpoint.pt"
@@ -74,7 +75,7 @@ class InertialTrainingConfig:
     Attributes:
         clips: the training clips (`ClipSpec` or dicts of its fields).
         held_out: the clips of the learning curve, never trained on.
-        strand_stride: keep every this-many-th root of the 32 x 32 scalp (4: 256 strands).
+        strand_stride: keep one root in this many of the 32 x 32 scalp, spread over it (4: 256 strands).
         num_vertices: vertices per strand.
         equilibrium: the method giving E(t) per frame ("static": the static network), or
             "optimum": each frame's static optimum (the physics' drape of the frame; what a
@@ -141,8 +142,8 @@ def _grown(hairstyle: str):
 
 
 def clip_scene(spec: ClipSpec, strand_stride: int, num_vertices: int):
-    """The `Scene` of a clip (see `ClipSpec`): every `strand_stride`-th strand, resampled to
-    `num_vertices`. ClipSpec("medium_wavy", "whiplash", None, 0.35, 1.0) is the comparison scene
+    """The `Scene` of a clip (see `ClipSpec`): one strand in `strand_stride`, spread over the
+    scalp (`root_subset`), resampled to `num_vertices`. ClipSpec("medium_wavy", "whiplash", None, 0.35, 1.0) is the comparison scene
     whiplash, ClipSpec("long_straight", "torso_bend", None, 0.3, 1.3) torso_bend.
     """
     from hairwarp.scene.motion import procedural_motion, random_head_moves
@@ -156,7 +157,7 @@ def clip_scene(spec: ClipSpec, strand_stride: int, num_vertices: int):
         a = int(round(spec.start * motion.fps))
         b = motion.num_frames if spec.end is None else min(int(round(spec.end * motion.fps)) + 1, motion.num_frames)
         motion = motion.replace(poses=motion.poses[a:b].clone(), trans=motion.trans[a:b].clone())
-    keep = torch.arange(0, style.num_strands, strand_stride)
+    keep = root_subset(style.num_strands, base.scalp.resolution, strand_stride)
     return Scene(body=base.body, scalp=base.scalp, hairstyle=style.subset(keep, num_vertices), motion=motion,
                  name=spec.key)
 

@@ -93,7 +93,7 @@ class HeldOutScenes:
         factory: `hairwarp.evaluation.scenes.comparison_scene` (or one like it:
             factory(name, strand_stride=..., num_vertices=...) -> a comparison scene).
         num_vertices: N of the network (the scenes are resampled to it).
-        strand_stride: None for full size, else every k-th scalp root.
+        strand_stride: None for full size, else one scalp root in k (`root_subset`).
         energy: the `EnergyConfig` the scores use (b_p of the run's end).
         reference_iterations: L-BFGS iterations over the free vertices for E* (0: no energy gap).
         grid: (H, W) of the network's deformation map (unused by the vertex reference).
