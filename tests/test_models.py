@@ -104,6 +104,43 @@ def test_static_output_shapes(device):
     assert positions.shape == rigid.shape
 
 
+def test_held_joints_are_read_as_the_standing_pose(tmp_path):
+    """`StaticConfig.held_joints`: the body encoder reads the standing pose's angles for those
+    joints, so moving them leaves the map unchanged, while any other joint still moves it; a
+    checkpoint keeps the setting, and a network with none held reads every joint."""
+    from hairwarp.scene.motion import standing_pose
+    from hairwarp.scene.skeleton import JOINT
+
+    torch.manual_seed(0)
+    arms = ("left_shoulder", "right_shoulder", "left_elbow", "right_elbow")
+    cfg = dataclasses.replace(StaticConfig.tiny(), held_joints=arms)
+    net = StaticNetwork(cfg).double()
+    free = StaticNetwork(StaticConfig.tiny()).double()
+    free.load_state_dict(net.state_dict())
+    z, beta, theta = _inputs(cfg, dtype=torch.float64)
+    raised = theta.clone()
+    for j in arms:
+        raised[:, 3 * JOINT[j]:3 * JOINT[j] + 3] += torch.tensor([0.3, -0.5, 1.2], dtype=torch.float64)
+    nodded = theta.clone()
+    nodded[:, 3 * JOINT["head"]] += 0.4
+    assert torch.equal(net(z, beta, raised), net(z, beta, theta))
+    assert not torch.allclose(net(z, beta, nodded), net(z, beta, theta))
+    assert not torch.allclose(free(z, beta, raised), free(z, beta, theta))
+    # Held = the free network handed the standing pose's angles at those joints.
+    standing = theta.clone()
+    columns = [3 * JOINT[j] + k for j in arms for k in range(3)]
+    standing[:, columns] = standing_pose().double()[columns]
+    assert torch.allclose(net(z, beta, raised), free(z, beta, standing), atol=1e-12)
+    assert StaticConfig.from_dict(cfg.to_dict()).held_joints == arms
+    save_checkpoint(tmp_path / "held.pt", net, cfg)
+    loaded = load_checkpoint(tmp_path / "held.pt", dtype=torch.float64).model
+    assert loaded.config.held_joints == arms
+    assert torch.equal(loaded(z, beta, raised), net(z, beta, theta))
+    for bad in (("left_knee", "left_knee"), ("left_elbo",), "left_elbow"):
+        with pytest.raises(ValueError, match="held_joints"):
+            StaticConfig(held_joints=bad)
+
+
 def test_static_float64_and_clip():
     torch.manual_seed(0)
     cfg = dataclasses.replace(StaticConfig.tiny(), head_init_gain=1.0)  # large outputs, to be clipped

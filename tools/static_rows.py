@@ -26,7 +26,12 @@ SCENES = {
     "long_straight_rest_grown_on_body": dict(hairstyle="long_straight", pose="rest", grow="body"),
     "bob_head_turn_0.5s": dict(hairstyle="bob", pose="head_turn", time=0.5),
     "long_curly_nod_0.5s_grown_on_head": dict(hairstyle="long_curly", pose="nod", time=0.5, grow="head"),
+    # Limbs away from the rest pose (`--scenes`): both arms raised above the head, a walk's stride.
+    "long_straight_arm_raise_1.6s_grown_on_body": dict(hairstyle="long_straight", pose="arm_raise", time=1.6,
+                                                      grow="body"),
+    "long_curly_sway_walk_1.0s": dict(hairstyle="long_curly", pose="sway_walk", time=1.0),
 }
+DEFAULT_SCENES = tuple(SCENES)[:3]
 METHODS = ("rigid", "static", "dynamic", "lbfgs")
 
 
@@ -38,15 +43,23 @@ def main(argv=None) -> int:
     p.add_argument("--strand-stride", type=int, default=1)
     p.add_argument("--lbfgs-iterations", type=int, default=300)
     p.add_argument("--checkpoint", default=None, help="also run the static network of this checkpoint")
+    p.add_argument("--scenes", default=",".join(DEFAULT_SCENES), help=f"comma-separated, of {', '.join(SCENES)}")
+    p.add_argument("--methods", default=",".join(METHODS),
+                   help="comma-separated method names (any of `hairwarp methods`, e.g. static+settle)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="static_rows_out")
     args = p.parse_args(argv)
     os.makedirs(args.out, exist_ok=True)
     torch.manual_seed(args.seed)
-    methods = [(m, {"max_iterations": args.lbfgs_iterations} if m == "lbfgs" else {}) for m in METHODS]
+    names = [m for m in args.methods.split(",") if m]
+    scenes = [s for s in args.scenes.split(",") if s]
+    unknown = [s for s in scenes if s not in SCENES]
+    if unknown:
+        p.error(f"--scenes: unknown {unknown}; expected of {list(SCENES)}")
+    methods = [(m, {"max_iterations": args.lbfgs_iterations} if m == "lbfgs" else {}) for m in names]
     # The networks' rows as they run by default (through the body pass, `MethodOptions.keep_out`)
     # and as the network returns them.
-    methods += [("static", {"keep_out": False}), ("dynamic", {"keep_out": False})]
+    methods += [(m, {"keep_out": False}) for m in ("static", "dynamic") if m in names]
     if args.checkpoint:
         methods += [("static", {"checkpoint": args.checkpoint}),
                     ("static", {"checkpoint": args.checkpoint, "keep_out": False})]
@@ -57,7 +70,8 @@ def main(argv=None) -> int:
     from hairwarp.methods import MethodOptions
 
     energy = MethodOptions().config()
-    for name, build in SCENES.items():
+    for name in scenes:
+        build = SCENES[name]
         scene = hw.build_scene(strand_stride=args.strand_stride, **build)
         # E* once per scene (the tight physics drape at rest), every method measured against it.
         optimum = hw.drape(scene, method="reference", device=args.device, progress=False)

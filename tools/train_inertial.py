@@ -171,10 +171,13 @@ def evaluate(args) -> int:
         for name in (*methods, *variants, *(("inertial_optimum",) if args.oracle else ())):
             checkpoint = {"inertial": args.checkpoint, "inertial_optimum": args.checkpoint, "static": args.static_checkpoint,
                           **variants}.get(name)
+            static_checkpoint = args.static_checkpoint
+            if name in variants and "@" in checkpoint:  # STEP@STATIC: this row's own static network
+                checkpoint, static_checkpoint = checkpoint.split("@", 1)
             step_row = name in variants or name == "inertial_optimum"
-            method = make("inertial" if step_row else name, MethodOptions(checkpoint=checkpoint))
-            if (name == "inertial" or name in variants) and args.static_checkpoint:
-                method.equilibrium = make("static", MethodOptions(checkpoint=args.static_checkpoint))
+            method = make("inertial" if step_row else name, MethodOptions(checkpoint=checkpoint or None))
+            if (name == "inertial" or name in variants) and static_checkpoint:
+                method.equilibrium = make("static", MethodOptions(checkpoint=static_checkpoint))
             if name == "inertial_optimum":
                 method.equilibrium = _Given(optimum)
             result = method.simulate(frames)
@@ -244,7 +247,9 @@ def main(argv=None) -> int:
                    help="a static network for the rows static and inertial (None: the shipped one)")
     e.add_argument("--strand-stride", type=int, default=1)
     e.add_argument("--scenes", default=None, help="comma-separated labels (default: all)")
-    e.add_argument("--variants", default="", help="more inertial steps as rows: name=checkpoint,...")
+    e.add_argument("--variants", default="",
+                   help="more inertial steps as rows: name=STEP[@STATIC],... (STEP empty: the shipped step; "
+                        "@STATIC: that row's static network, else --static-checkpoint's)")
     e.add_argument("--methods", default=",".join(METHODS), help="the methods' rows (rigid is always one)")
     e.add_argument("--oracle", action="store_true",
                    help="also the rows optimum (each frame's static optimum, the physics' drape) and "

@@ -105,6 +105,12 @@ class StaticConfig(_DictConfig):
             placement against the body (signed distance, push-out vector, offset from the root;
             `hairwarp.models.contact_features`) as an extra token input; 0 is the paper's
             network, which sees the body only through (beta, Theta).
+        held_joints: SMPL joint names (`hairwarp.scene.skeleton.JOINT`) whose angles the body
+            encoder does not read: it sees the standing pose's (`hairwarp.scene.motion.
+            standing_pose`) in their place. () is the paper's network, which reads all 22.
+            Beyond the paper: a limb moves the hair only where it touches it, which a network
+            with contact features reads from the body; read from Theta, a raised arm lifted
+            long hair it never touched (docs/network_diagnosis.md, T21).
     """
 
     latent_dim: int = 512
@@ -126,10 +132,20 @@ class StaticConfig(_DictConfig):
     deformation_clip: float = 0.01
     length_projection: str = LENGTH_PROJECTION_NONE
     contact_samples: int = 0
+    held_joints: tuple = ()
 
     def __post_init__(self):
         owner = type(self).__name__
         _check_length_projection(owner, self.length_projection)
+        from hairwarp.scene.skeleton import JOINT
+
+        if isinstance(self.held_joints, str) or not isinstance(self.held_joints, (tuple, list)):
+            raise ValueError(f"{owner}.held_joints: expected a sequence of joint names, got {self.held_joints!r}")
+        self.held_joints = tuple(self.held_joints)
+        unknown = [j for j in self.held_joints if j not in JOINT]
+        if unknown or len(set(self.held_joints)) != len(self.held_joints):
+            raise ValueError(f"{owner}.held_joints: expected distinct names of {sorted(JOINT, key=JOINT.get)}, "
+                             f"got {list(self.held_joints)}")
         if not isinstance(self.contact_samples, int) or isinstance(self.contact_samples, bool) or self.contact_samples < 0:
             raise ValueError(f"{owner}.contact_samples: expected a non-negative int, got {self.contact_samples!r}")
         for name in (

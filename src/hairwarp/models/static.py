@@ -13,6 +13,8 @@ from torch import nn
 from hairwarp.models.config import StaticConfig
 from hairwarp.models.contact_features import FEATURES_PER_SAMPLE, contact_features
 from hairwarp.models.deformation import apply_deformation
+from hairwarp.scene.motion import standing_pose
+from hairwarp.scene.skeleton import JOINT
 from hairwarp.models.layers import (
     CrossAttentionBlock,
     PredictionHead,
@@ -87,6 +89,10 @@ class StaticNetwork(nn.Module):
         # rigid placement against the body, so the network need not infer contact from the pose.
         self.contact_encoder = (mlp([cfg.contact_samples * FEATURES_PER_SAMPLE, d, d])
                                 if cfg.contact_samples > 0 else None)
+        # config.held_joints: their columns of Theta and the standing pose's values there.
+        columns = torch.tensor([3 * JOINT[j] + k for j in cfg.held_joints for k in range(3)], dtype=torch.long)
+        self.register_buffer("held_columns", columns, persistent=False)
+        self.register_buffer("held_angles", standing_pose()[columns], persistent=False)
 
     @property
     def contact_dim(self) -> int:
@@ -114,6 +120,8 @@ class StaticNetwork(nn.Module):
         hair = self.hair_encoder(z)
         if self.contact_encoder is not None:
             hair = hair + self.contact_encoder(contact)
+        if self.held_columns.numel():
+            theta = theta.index_copy(1, self.held_columns, self.held_angles.to(theta.dtype).expand(theta.shape[0], -1))
         body = self.body_encoder(torch.cat([beta, theta], dim=-1))[:, None, :]
         for block in self.hair_body_blocks:
             hair = block(hair, body)

@@ -158,6 +158,13 @@ def _rest_pose(t: np.ndarray) -> np.ndarray:
     return pose
 
 
+def standing_pose() -> torch.Tensor:
+    """(66,) float32 the procedural motions' rest pose, axis-angle [rad]: standing, arms lowered
+    to the sides (the pose most training drapes hold).
+    """
+    return torch.as_tensor(_rest_pose(np.zeros(1))[0].reshape(-1), dtype=torch.float32)
+
+
 def _jitter(rng, scale):
     return 1.0 if rng is None else float(np.exp(scale * rng.standard_normal()))
 
