@@ -143,8 +143,8 @@ def _grown(hairstyle: str):
 
 def clip_scene(spec: ClipSpec, strand_stride: int, num_vertices: int):
     """The `Scene` of a clip (see `ClipSpec`): one strand in `strand_stride`, spread over the
-    scalp (`root_subset`), resampled to `num_vertices`. ClipSpec("medium_wavy", "whiplash", None, 0.35, 1.0) is the comparison scene
-    whiplash, ClipSpec("long_straight", "torso_bend", None, 0.3, 1.3) torso_bend.
+    scalp (`root_subset`), resampled to `num_vertices`. ClipSpec("medium_wavy", "whiplash",
+    None, 0.35, 1.0) is the comparison scene whiplash, ClipSpec("long_straight", "torso_bend", None, 0.3, 1.3) torso_bend.
     """
     from hairwarp.scene.motion import procedural_motion, random_head_moves
     from hairwarp.scene.scene import Scene
