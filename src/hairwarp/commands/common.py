@@ -84,8 +84,7 @@ def add_scene_arguments(p: argparse.ArgumentParser, *, simulate: bool) -> None:
         when.add_argument("--time", type=float, default=None, help="time of the motion to drape [s]")
     g.add_argument("--strand-stride", type=int, default=1,
                    help="keep every K-th strand of a groom file (presets: grow on one scalp root in K, spread over "
-                        "the scalp) "
-                        "(default: 1)")
+                        "the scalp) (default: 1)")
     g.add_argument("--num-vertices", type=int, default=100, help="vertices per strand (default: 100)")
     g.add_argument("--guides", type=int, default=None, metavar="K",
                    help="simulate the groom through K guide strands, the others following them (default: every "

@@ -13,8 +13,6 @@ from torch import nn
 from hairwarp.models.config import StaticConfig
 from hairwarp.models.contact_features import FEATURES_PER_SAMPLE, contact_features
 from hairwarp.models.deformation import apply_deformation
-from hairwarp.scene.motion import standing_pose
-from hairwarp.scene.skeleton import JOINT
 from hairwarp.models.layers import (
     CrossAttentionBlock,
     PredictionHead,
@@ -24,6 +22,8 @@ from hairwarp.models.layers import (
     reshape_map,
     sinusoidal_encoding_2d,
 )
+from hairwarp.scene.motion import standing_pose
+from hairwarp.scene.skeleton import JOINT
 from hairwarp._validate import check_tensor
 
 

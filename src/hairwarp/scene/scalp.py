@@ -100,9 +100,10 @@ def _grid_subset_cached(resolution: int, stride: int) -> tuple[int, ...]:
 def grid_subset(resolution: int, stride: int, device=None) -> torch.Tensor:
     """(about resolution^2 / stride,) int64 row-major indices of grid cells spread over the grid.
 
-    One cell in `stride` of every row, rows shifted against each other (a rank-1 lattice) so
-    the kept cells lie as far apart as such a pattern allows and centred on the grid: every
-    16th root of the 32 x 32 scalp is 64 roots over the whole head. Exactly
+    The cells where (col + k row) = o (mod stride), a rank-1 lattice: one cell in `stride` of
+    every row (of every few rows for a stride past the row's length), rows shifted against each
+    other so that the kept cells lie as far apart as such a pattern allows, centred on the
+    grid: one root in 16 of the 32 x 32 scalp is 64 roots over the whole head. Exactly
     resolution^2 / stride cells when `stride` divides `resolution`. Deterministic.
 
     Args:
