@@ -66,7 +66,9 @@ class PhysicsConfig:
         chunk: iterations between two reads of the stopping rule (one device sync each).
         keep_memory: carry the L-BFGS memory from one step into the next. Off: as a strand
             turns, the old pairs call its new soft directions stiff (a released strand's steps
-            stopped after four iterations, at the free flight).
+            stopped after four iterations, at the free flight, before the two-chunk minimum). At
+            full size on one H200 it took 8 % fewer to 2 % more iterations a step (docs/physics.md,
+            "Twenty-ninth session").
         max_step: the farthest one trial step moves a vertex [m].
         cuda_graph: on CUDA, replay the step's start and its iterations from CUDA graphs.
         inextensible: solve on the strands' rest lengths: the solver's variables are targets
