@@ -93,6 +93,44 @@ def test_motion_fidelity_matches_numpy(rng):
     assert out["physics_swing_mm"] == pytest.approx(rms_p, rel=_RTOL)
     assert out["swing_amplitude_ratio"] == pytest.approx(rms_x / rms_p, rel=_RTOL)
     assert out["swing_correlation"] == pytest.approx(np.corrcoef(sx.ravel(), sp.ravel())[0, 1], rel=_RTOL)
+    for k in range(3):
+        assert out["swing_by_axis_mm"][k] == pytest.approx(np.sqrt((sx[..., k] ** 2).mean()) * 1e3, rel=_RTOL)
+        assert out["physics_swing_by_axis_mm"][k] == pytest.approx(np.sqrt((sp[..., k] ** 2).mean()) * 1e3, rel=_RTOL)
+        assert out["swing_correlation_by_axis"][k] == pytest.approx(
+            np.corrcoef(sx[..., k].ravel(), sp[..., k].ravel())[0, 1], rel=_RTOL)
+    # the three axes' mean squares add up to the swing's
+    assert sum(v ** 2 for v in out["swing_by_axis_mm"]) == pytest.approx(out["swing_mm"] ** 2, rel=1e-9)
+    bulk_x, bulk_p = sx.mean(axis=1), sp.mean(axis=1)  # (T, 3): the swing plot's curves less their means
+    assert out["bulk_swing_correlation"] == pytest.approx(np.corrcoef(bulk_x.ravel(), bulk_p.ravel())[0, 1],
+                                                          rel=_RTOL)
+
+
+def test_the_swing_by_axis_names_the_axis_a_method_misses(rng):
+    """A method that swings like the physics sideways and in depth but against it vertically: the
+    correlations by axis read +1, -1, +1 where the overall one is in between; a method whose
+    strands each swing their own way about a common motion keeps the bulk correlation."""
+    rigid, physics = _motion(rng)
+    x = physics.copy()
+    x[..., 1] = rigid[..., 1] - (physics - rigid)[..., 1]
+    out = motion_fidelity(_t(x), _t(physics), _t(rigid))
+    assert out["swing_correlation_by_axis"] == pytest.approx([1.0, -1.0, 1.0], abs=1e-6)
+    assert -1.0 < out["swing_correlation"] < 1.0
+    # A swing along x only: the other axes of the method are still, their correlation undefined.
+    still = rigid.copy()
+    still[..., 0] = physics[..., 0]
+    out = motion_fidelity(_t(still), _t(physics), _t(rigid))
+    assert out["swing_correlation_by_axis"][0] == pytest.approx(1.0, abs=1e-6)
+    assert out["swing_correlation_by_axis"][1:] == [None, None]
+    assert out["swing_by_axis_mm"][1:] == [0.0, 0.0]
+    # Every strand swinging with the physics' strand-mean swing plus a private swing of its own
+    # that averages out over the strands: the bulk motion matches exactly, each strand only partly.
+    t = np.arange(T)[:, None]
+    private = 0.02 * np.sin(1.3 * t + np.linspace(0, 2 * np.pi, M, endpoint=False)[None, :])  # (T, M), sums to 0
+    weight = np.clip(np.arange(N) - 1, 0, None) / (N - 2)
+    mixed = physics + (private[:, :, None, None] * np.array([0.0, 0.0, 1.0])) * weight[None, None, :, None]
+    out = motion_fidelity(_t(mixed), _t(physics), _t(rigid))
+    assert out["bulk_swing_correlation"] == pytest.approx(1.0, abs=1e-4)
+    assert out["swing_correlation"] < 0.99
 
 
 def test_motion_fidelity_sees_the_few_strands_that_fly_out(rng):

@@ -56,7 +56,7 @@ def _pair(step: torch.Tensor, physics: torch.Tensor) -> dict:
 
 def decompose(step: torch.Tensor, physics: torch.Tensor, rigid: torch.Tensor) -> dict:
     """The decomposition of the module docstring for (T, M, N, 3) trajectories [m]."""
-    from hairwarp.metrics import tip_swing
+    from hairwarp.metrics import swing_by_axis, tip_swing
 
     s, p = tip_swing(step, rigid), tip_swing(physics, rigid)  # (T, M, 3)
     frames = s.shape[0]
@@ -65,9 +65,9 @@ def decompose(step: torch.Tensor, physics: torch.Tensor, rigid: torch.Tensor) ->
         a, b = (s[lag:], p[:frames - lag]) if lag >= 0 else (s[:frames + lag], p[-lag:])
         lags[lag] = _correlation(a, b)
     best = max((k for k in lags if lags[k] is not None), key=lambda k: lags[k], default=0)
-    axes = {name: {"correlation": _correlation(s[..., i], p[..., i]),
-                   "step_rms_mm": float(s[..., i].double().square().mean().sqrt()) * 1e3,
-                   "physics_rms_mm": float(p[..., i].double().square().mean().sqrt()) * 1e3}
+    by_axis = swing_by_axis(s, p)
+    axes = {name: {"correlation": by_axis["correlation"][i], "step_rms_mm": by_axis["rms_mm"][i],
+                   "physics_rms_mm": by_axis["reference_rms_mm"][i]}
             for i, name in enumerate("xyz")}
     drop = rigid[0, :, 0, 1] - rigid[0, :, -1, 1]  # how far each tip hangs below its root [m]
     order = torch.argsort(drop)

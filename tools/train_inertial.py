@@ -137,7 +137,8 @@ def _fidelity_row(result, physics, rigid) -> dict:
 
     fid = motion_fidelity(result.positions, physics, rigid)
     row = {k: fid[k] for k in ("mean_distance_mm", "max_distance_mm", "strand_distance_p99_mm", "swing_mm",
-                               "physics_swing_mm", "swing_amplitude_ratio", "swing_correlation")}
+                               "physics_swing_mm", "swing_amplitude_ratio", "swing_correlation",
+                               "swing_correlation_by_axis", "bulk_swing_correlation")}
     row["ms_per_frame"] = result.time_ms
     return row
 
@@ -211,13 +212,16 @@ def _fmt(v, spec=".1f"):
 
 def _markdown(records) -> str:
     lines = ["| scene | method | to physics mean / max [mm] | swing [mm] (physics) | amplitude ratio | correlation | "
-             "inside % mean / max | length change % max | ms/frame |", "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+             "correlation x / y / z | bulk correlation | inside % mean / max | length change % max | ms/frame |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for rec in records:
         for name, row in rec["rows"].items():
             lines.append(
                 f"| {rec['scene']} | {name} | {_fmt(row.get('mean_distance_mm'))} / {_fmt(row.get('max_distance_mm'))} | "
                 f"{_fmt(row.get('swing_mm'))} ({_fmt(row.get('physics_swing_mm'))}) | "
                 f"{_fmt(row.get('swing_amplitude_ratio'), '.2f')} | {_fmt(row.get('swing_correlation'), '.3f')} | "
+                f"{' / '.join(_fmt(c, '.2f') for c in row.get('swing_correlation_by_axis') or (None,) * 3)} | "
+                f"{_fmt(row.get('bulk_swing_correlation'), '.2f')} | "
                 f"{_fmt(row['penetration_percent_mean'], '.3f')} / {_fmt(row['penetration_percent_max'], '.3f')} | "
                 f"{_fmt(row['length_change_percent_max'], '.3f')} | {_fmt(row.get('ms_per_frame'), '.2f')} |")
     return "\n".join(lines) + "\n"

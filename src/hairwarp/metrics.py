@@ -350,6 +350,19 @@ def swing_correlation(a: torch.Tensor, b: torch.Tensor) -> float | None:
     return None
 
 
+def swing_by_axis(a: torch.Tensor, b: torch.Tensor) -> dict:
+    """Two swings (..., 3) compared component by component (x, y, z).
+
+    Returns:
+        {"rms_mm": [x, y, z] RMS of each component of `a` [mm], "reference_rms_mm": the same of
+        `b`, "correlation": [x, y, z] `swing_correlation` of each component (None where either
+        is ~constant)}.
+    """
+    return {"rms_mm": [_rms(a[..., k:k + 1]) * _MM for k in range(3)],
+            "reference_rms_mm": [_rms(b[..., k:k + 1]) * _MM for k in range(3)],
+            "correlation": [swing_correlation(a[..., k], b[..., k]) for k in range(3)]}
+
+
 def largest_step_from_rigid(x: torch.Tensor, rigid: torch.Tensor) -> float:
     """The farthest any moving vertex travels in one frame beyond the rigid placement's own move [m].
 
@@ -395,7 +408,14 @@ def motion_fidelity(x: torch.Tensor, physics: torch.Tensor, rigid: torch.Tensor)
         physics barely swings); "swing_correlation": Pearson correlation of the two swings over
         all (T, M, 3) components (None when either is ~constant, e.g. for the rigid placement);
         "largest_step_mm", "physics_largest_step_mm": `largest_step_from_rigid` of `x` and of
-        `physics` [mm] (a strand flung out in one frame).
+        `physics` [mm] (a strand flung out in one frame);
+        "swing_by_axis_mm", "physics_swing_by_axis_mm": [x, y, z] RMS over frames and strands of
+        each component of the two swings [mm]; "swing_correlation_by_axis": [x, y, z] their
+        correlation per component (None where either is ~constant): which way the motion is
+        missed (the curly walk's vertical bounce, a bob's climb);
+        "bulk_swing_correlation": the correlation of the strands' mean swings ((T, 3), the swing
+        plot's curves less their means): whether the hair as a whole moves like the physics where
+        "swing_correlation" asks it of every strand.
 
     Raises:
         ValueError: shapes that differ, an empty `x` or strands of no moving vertex.
@@ -408,6 +428,7 @@ def motion_fidelity(x: torch.Tensor, physics: torch.Tensor, rigid: torch.Tensor)
     strand_p99 = max(_quantile(row, 0.99) for row in per_strand)
     swing, physics_swing = _rms(s_x), _rms(s_p)
     corr = swing_correlation(s_x, s_p)
+    axes = swing_by_axis(s_x, s_p)
     return {"mean_distance_mm": float(per_frame.mean()),
             "max_distance_mm": float(per_frame.max()),
             "per_frame_distance_mm": per_frame.tolist(),
@@ -417,7 +438,11 @@ def motion_fidelity(x: torch.Tensor, physics: torch.Tensor, rigid: torch.Tensor)
             "swing_amplitude_ratio": swing / physics_swing if physics_swing > _SWING_FLOOR else None,
             "swing_correlation": corr,
             "largest_step_mm": largest_step_from_rigid(x, rigid) * _MM,
-            "physics_largest_step_mm": largest_step_from_rigid(physics, rigid) * _MM}
+            "physics_largest_step_mm": largest_step_from_rigid(physics, rigid) * _MM,
+            "swing_by_axis_mm": axes["rms_mm"],
+            "physics_swing_by_axis_mm": axes["reference_rms_mm"],
+            "swing_correlation_by_axis": axes["correlation"],
+            "bulk_swing_correlation": swing_correlation(s_x.mean(dim=1), s_p.mean(dim=1))}
 
 
 def drape_fidelity(x: torch.Tensor, optimum: torch.Tensor, inputs, config=None) -> dict:

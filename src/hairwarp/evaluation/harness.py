@@ -134,7 +134,8 @@ def _run_static(scene, frames, methods: dict, config, record_every: int, progres
 _STATIC_FIDELITY = ("energy_ratio", "mean_distance_mm", "p95_distance_mm", "tip_height_difference_mm")
 _MOTION_FIDELITY = ("mean_distance_mm", "max_distance_mm", "per_frame_distance_mm", "strand_distance_p99_mm",
                     "swing_mm", "physics_swing_mm", "swing_amplitude_ratio", "swing_correlation",
-                    "largest_step_mm", "physics_largest_step_mm")
+                    "largest_step_mm", "physics_largest_step_mm", "swing_by_axis_mm", "physics_swing_by_axis_mm",
+                    "swing_correlation_by_axis", "bulk_swing_correlation")
 
 
 def _physics_of(sims: dict) -> tuple[str | None, torch.Tensor | None]:
