@@ -152,3 +152,59 @@ def test_build_reads_the_hessian_of_a_banded_energy_and_the_tension_of_a_hanging
     # and its factor reproduces it
     u = _dense_factor(pre)
     assert float((u @ u.transpose(1, 2) - got).abs().max()) < 1e-10 * float(got.abs().max())
+
+
+def test_hanging_tension_of_a_uniform_strand():
+    """w_j = h^2 g (L - s_j) / l^2 for the segment whose top end lies at arc length s_j (float64
+    by hand: a strand of equal segments)."""
+    from hairwarp.ops.strand_preconditioner import hanging_tension
+
+    n, seg, h, g = 6, 0.01, 1.0 / 60.0, 9.81
+    rest = torch.full((2, n), seg)
+    w = hanging_tension(rest, h, g)
+    expected = torch.tensor([h * h * g * (n * seg - j * seg) / seg ** 2 for j in range(n)], dtype=torch.float64)
+    torch.testing.assert_close(w, expected.expand(2, n), rtol=1e-6, atol=0.0)
+    assert w.dtype == torch.float64
+
+
+def test_the_chain_preconditioner_is_the_hanging_chain_in_float64():
+    """P = diag((k / k_min)^(2a)) + L_w with w the hanging tension over the inertia (and over
+    k_min), from a float64 reference assembled entry by entry; its factor's change of variables
+    is P^-1 = R R^T and `variables` inverts `targets`."""
+    from hairwarp.config import EnergyConfig
+    from hairwarp.ops.strand_preconditioner import ChainPreconditioner
+
+    generator = torch.Generator().manual_seed(3)
+    strands, vertices = 3, 9
+    rest = 0.002 + 0.01 * torch.rand(strands, vertices - 1, generator=generator, dtype=torch.float64)
+    n = vertices - NUM_FIXED_VERTICES
+    stiffness = 0.5 + 10.0 * torch.rand(strands, n, generator=generator, dtype=torch.float64)
+    config = EnergyConfig(time_step=1.0 / 30.0, reference_strand_count=strands)
+    exponent, tension = 0.125, 0.7
+    pre = ChainPreconditioner(rest, stiffness, config, exponent=exponent, tension=tension, device=torch.device("cpu"),
+                              dtype=torch.float64)
+    h = config.time_step
+    g = 9.81 * config.gravity_weight
+    inertia = config.inertia_weight * config.vertex_mass / (strands * n * h * h)
+    k_min = float(stiffness.min())
+    for s in range(strands):
+        lengths = rest[s].tolist()
+        total = sum(lengths)
+        # w of segment j (vertices j, j+1): the weight below its top end
+        w = [tension * h * h * g * (total - sum(lengths[:j])) / lengths[j] ** 2 * inertia / k_min
+             for j in range(vertices - 1)]
+        P = torch.zeros(n, n, dtype=torch.float64)
+        for i in range(n):  # free vertex i is strand vertex i + 2: segments i + 1 (above) and i + 2 (below)
+            P[i, i] = (float(stiffness[s, i]) / k_min) ** (2 * exponent) + w[i + 1]
+            if i + 1 < n:
+                P[i, i] += w[i + 2]
+                P[i, i + 1] = P[i + 1, i] = -w[i + 2]
+        torch.testing.assert_close(pre.matrix[s], P, rtol=1e-12, atol=1e-12)
+        R = pre.inverse_factor[s]
+        torch.testing.assert_close(R @ R.T, torch.linalg.inv(P), rtol=1e-9, atol=1e-12)
+    t = torch.randn(2, strands, n, 3, generator=generator, dtype=torch.float64)
+    torch.testing.assert_close(pre.targets(pre.variables(t)), t, rtol=1e-10, atol=1e-12)
+    # Without tension it is the stiffness scaling's diagonal: z = t (k / k_min)^a.
+    diagonal = ChainPreconditioner(rest, stiffness, config, exponent=exponent, tension=0.0,
+                                   device=torch.device("cpu"), dtype=torch.float64)
+    torch.testing.assert_close(diagonal.variables(t), t * ((stiffness / k_min) ** exponent)[None, :, :, None])

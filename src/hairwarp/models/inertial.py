@@ -229,21 +229,18 @@ def _rest_arc_lengths(rigid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 def hanging_chain_tension(rigid: torch.Tensor, fps: float) -> torch.Tensor:
     """The chain's tension weight w of a strand hanging under its weight: (M, N-2), the segment
-    above each free vertex.
-
-    A segment carries the weight of the vertices below it, T = m g (L - s) / l for rest length l,
-    arc length s at its top end and strand length L; over a vertex's mass and times h^2 it is
-    w = h^2 g (L - s) / l^2 (a 0.5 m strand of 5 mm segments at 60 frames/s: 54 at the root).
+    above each free vertex (`hairwarp.ops.strand_preconditioner.hanging_tension`:
+    w = h^2 g (L - s) / l^2).
 
     Args:
         rigid: (..., M, N, 3) the rigid placement (its segment lengths are the rest lengths) [m].
         fps: frames per second (h = 1 / fps).
     """
-    seg, s = _rest_arc_lengths(rigid)
-    below = s[:, -1:] - s[:, :-1]  # (M, N-1) the length below each segment's top end
+    from hairwarp.ops.strand_preconditioner import hanging_tension
+
+    seg, _ = _rest_arc_lengths(rigid)
     g = math.hypot(*EnergyConfig().gravity)  # the energy's gravity (Eq. 11) [m/s^2]
-    w = g * below / (fps ** 2 * seg.clamp_min(1e-9) ** 2)
-    return w[:, NUM_FIXED_VERTICES - 1:]
+    return hanging_tension(seg, 1.0 / fps, g).to(seg.dtype)[:, NUM_FIXED_VERTICES - 1:]
 
 
 def chain_operator(gate_logit: torch.Tensor, tension: torch.Tensor, bending: float = 0.0) -> torch.Tensor:
@@ -260,10 +257,9 @@ def chain_operator(gate_logit: torch.Tensor, tension: torch.Tensor, bending: flo
     Returns:
         (M, n, n) the symmetric positive definite operator's inverse (float64).
     """
-    d = torch.exp(-gate_logit.double())
-    w = tension.double()
-    below = torch.cat([w[:, 1:], torch.zeros_like(w[:, :1])], dim=1)  # the segment below each vertex
-    matrix = torch.diag_embed(1.0 + d + w + below) - torch.diag_embed(w[:, 1:], 1) - torch.diag_embed(w[:, 1:], -1)
+    from hairwarp.ops.strand_preconditioner import chain_matrix
+
+    matrix = chain_matrix(1.0 + torch.exp(-gate_logit.double()), tension)
     if bending:
         n = matrix.shape[-1]
         # Second differences centred on vertices 1 .. n of the strand (free vertex j is strand vertex j + 2).

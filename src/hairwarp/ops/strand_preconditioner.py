@@ -187,4 +187,91 @@ class StrandPreconditioner:
         return P.reshape(m, 3 * v, 3 * v)
 
 
-__all__ = ["StrandPreconditioner", "COLOURS", "DIFFERENCE_STEP"]
+def hanging_tension(rest_lengths: torch.Tensor, time_step: float, gravity: float) -> torch.Tensor:
+    """The tension of a strand hanging under its weight over a vertex's inertia: (M, N-1), per segment.
+
+    A segment carries the weight of the vertices below it, T = m g (L - s) / l for rest length l,
+    arc length s at its top end and strand length L; its transverse stiffness T / l over a
+    vertex's inertia m / h^2 is w = h^2 g (L - s) / l^2 (a 0.5 m strand of 5 mm segments at 60
+    frames/s: 54 at the root).
+
+    Args:
+        rest_lengths: (M, N-1) rest segment lengths [m].
+        time_step: h [s].
+        gravity: |g| [m/s^2].
+    """
+    rest = rest_lengths.to(torch.float64)
+    s = torch.cat([torch.zeros_like(rest[:, :1]), rest.cumsum(dim=1)], dim=1)  # (M, N) arc length
+    below = s[:, -1:] - s[:, :-1]  # the length below each segment's top end
+    return gravity * time_step ** 2 * below / rest.clamp_min(1e-9) ** 2
+
+
+def chain_matrix(diagonal: torch.Tensor, tension: torch.Tensor) -> torch.Tensor:
+    """(M, n, n) float64 diag(diagonal) + L_w: a chain of n free vertices whose segment above
+    vertex i has the tension weight w_i (the first one's ties it to a fixed vertex), each vertex
+    with its own `diagonal` stiffness.
+
+    Args:
+        diagonal: (M, n) per-vertex stiffness (dimensionless: over a vertex's inertia).
+        tension: (M, n) w >= 0 of the segment above each free vertex.
+    """
+    w = tension.double()
+    below = torch.cat([w[:, 1:], torch.zeros_like(w[:, :1])], dim=1)  # the segment below each vertex
+    return (torch.diag_embed(diagonal.double() + w + below) - torch.diag_embed(w[:, 1:], 1)
+            - torch.diag_embed(w[:, 1:], -1))
+
+
+class ChainPreconditioner:
+    """A constant change of variables per strand: P = diag(k / k_min)^(2a) + L_w, the stiffness
+    scaling's diagonal (`PhysicsConfig.stiffness_scaling`, a) plus the tension Laplacian of the
+    strand hanging under its weight (`hanging_tension` times `tension`), over the inertia's
+    stiffness; P = L L^T, and the solver's variables are z = L^T (t - t_0): L-BFGS with H0 = P^-1.
+
+    Why: a step's ~80 L-BFGS iterations at full size are full steps (93 % of the trials
+    accepted) that a larger memory does not shorten (docs/physics.md, "Twenty-ninth session"):
+    each iteration carries the head's move one neighbourhood further down a strand of ~100
+    vertices. P^-1 is the hanging chain's direct solve, so one direction reaches the tip. Unlike
+    `StrandPreconditioner` (each step's Newton matrix, differenced and factored at every step's
+    start) P depends on the rest lengths alone: made once per solver, two dense (M, n, n) products
+    an evaluation (n = N - 2; 79 MB at 1 024 x 100 in float32).
+
+    Args:
+        rest_lengths: (M, N-1) rest segment lengths [m].
+        stiffness: (M, N-2) the step Hessian's diagonal per free vertex [J/m^2]
+            (`hairwarp.solvers.physics.vertex_stiffness`).
+        energy_config: the step's weights (`time_step` its h).
+        exponent: a of the diagonal (k / k_min)^(2a).
+        tension: the hanging tension's factor (0: the diagonal alone, the stiffness scaling's H0).
+        device, dtype: the solver's.
+    """
+
+    def __init__(self, rest_lengths: torch.Tensor, stiffness: torch.Tensor, energy_config, *, exponent: float,
+                 tension: float, device: torch.device, dtype: torch.dtype):
+        import math
+
+        rest = rest_lengths.detach().to(device=device, dtype=torch.float64)
+        stiffness = stiffness.detach().to(device=device, dtype=torch.float64)
+        k_min = stiffness.min()
+        strands, vertices = rest.shape[0], rest.shape[1] + 1
+        inertia = (energy_config.inertia_weight * energy_config.vertex_mass
+                   / (energy_config.strand_normalization(strands) * (vertices - NUM_FIXED_VERTICES)
+                      * energy_config.time_step ** 2))
+        g = math.hypot(*energy_config.gravity) * energy_config.gravity_weight
+        w = tension * hanging_tension(rest, energy_config.time_step, g) * (inertia / k_min)
+        self.matrix = chain_matrix((stiffness / k_min) ** (2.0 * exponent), w[:, NUM_FIXED_VERTICES - 1:])
+        lower = torch.linalg.cholesky(self.matrix)
+        eye = torch.eye(lower.shape[-1], dtype=torch.float64, device=lower.device).expand_as(lower)
+        self.inverse_factor = torch.linalg.solve_triangular(lower.transpose(-1, -2), eye, upper=True).to(dtype)
+        self.factor_transposed = lower.transpose(-1, -2).to(dtype).contiguous()
+
+    def targets(self, z: torch.Tensor) -> torch.Tensor:
+        """T = L^-T z (differentiable): z (..., M, n, 3) -> free targets less the origin [m]."""
+        return torch.matmul(self.inverse_factor, z)
+
+    def variables(self, t: torch.Tensor) -> torch.Tensor:
+        """Z = L^T t of free targets less the origin t (..., M, n, 3) (no gradient)."""
+        return torch.matmul(self.factor_transposed, t.detach())
+
+
+__all__ = ["StrandPreconditioner", "ChainPreconditioner", "chain_matrix", "hanging_tension", "COLOURS",
+           "DIFFERENCE_STEP"]

@@ -104,6 +104,18 @@ class PhysicsConfig:
             torso_bend 92 against 58: fewer iterations on torso_bend, each ~2x the cost), as
             contact, not the strands' stiffness, sets the pace there (docs/physics.md, section 2,
             "Thirteenth session" and "Fourteenth session").
+        chain_preconditioner: the hanging tension's factor of `ChainPreconditioner`
+            (`hairwarp.ops.strand_preconditioner`; 0: off): the implicit-Euler steps solve for
+            z = L^T (t - t_0), P = L L^T the stiffness scaling's diagonal plus each strand's
+            tension Laplacian as it hangs under its weight, made once from the rest lengths, so
+            that one direction carries the head's move down the whole strand. Replaces
+            `stiffness_scaling`'s variables (its exponent sets P's diagonal). One H200, 1 024 x
+            100, 16 frames, two runs (docs/physics.md, "Twenty-ninth session"): 17-29 % fewer
+            iterations a step (whiplash 81-85 -> 70, torso_bend 84-86 -> 61), torso_bend 53.7 ->
+            47.0 and 53.0 -> 45.9 ms a frame, whiplash 65.8 -> 59.3 in one run and no faster in the
+            other (more list rebuilds), 10 frames within 0.34-0.89 mm of the tight trajectory;
+            with a tolerance of 2e-4 m 45-48 / 42 ms a frame within 0.66 / 0.24 mm. Off by default
+            until more motions are measured.
         settle_time: every static drape of the physics (`drape_at_rest`: the `physics` and
             `reference` drapes, E*, and a motion's first frame) is followed by implicit-Euler
             steps with the pose held, for at most this long [s], until a step moves no vertex
@@ -135,6 +147,7 @@ class PhysicsConfig:
     hair_hair_list: bool | None = None
     hair_hair_list_skin: float = 3.0e-3
     strand_preconditioner: bool = False
+    chain_preconditioner: float = 0.0
     settle_time: float = 1.0
     settle_tolerance: float = 1.0e-4
 
@@ -147,6 +160,10 @@ class PhysicsConfig:
             raise ValueError(f"settle_time: expected a finite time >= 0 [s], got {self.settle_time}")
         if not (math.isfinite(self.settle_tolerance) and self.settle_tolerance > 0):
             raise ValueError(f"settle_tolerance: expected a finite positive length [m], got {self.settle_tolerance}")
+        if not (math.isfinite(self.chain_preconditioner) and self.chain_preconditioner >= 0):
+            raise ValueError(f"chain_preconditioner: expected a finite tension factor >= 0, got {self.chain_preconditioner}")
+        if self.chain_preconditioner and self.strand_preconditioner:
+            raise ValueError("chain_preconditioner: expected 0 with strand_preconditioner on (one change of variables)")
         if not (math.isfinite(self.stiffness_scaling) and self.stiffness_scaling >= 0):
             raise ValueError(f"stiffness_scaling: expected a finite exponent >= 0, got {self.stiffness_scaling}")
         for name in ("max_iterations", "static_max_iterations", "static_chunk", "history", "chunk"):
@@ -312,6 +329,18 @@ class PhysicsSolver:
             self.preconditioner_terms = tuple(t for t in ALL_TERMS
                                               if t not in ("hair_hair_contact", "hair_body_contact", "stretch"))
             self.stretch_stiffness = 2.0 * energy_config.stretch_weight / (strands * (vertices - 1))
+        elif config.chain_preconditioner > 0 and dynamic:
+            from hairwarp.ops.strand_preconditioner import ChainPreconditioner
+
+            if rest_lengths.dim() != 2:
+                raise ValueError("rest_lengths: per-sample (B, M, N-1) rest lengths need chain_preconditioner = 0 in "
+                                 "dynamic steps (the chain is one per strand)")
+            stiffness = vertex_stiffness(energy_config, rest_lengths, inextensible=config.inextensible)
+            self.preconditioner = ChainPreconditioner(rest_lengths, stiffness, energy_config,
+                                                      exponent=config.stiffness_scaling,
+                                                      tension=config.chain_preconditioner, device=self.device,
+                                                      dtype=rigid.dtype)
+            self.origin = self.rigid[:, :, NUM_FIXED_VERTICES:].clone()
         elif config.stiffness_scaling > 0 and dynamic and rest_lengths.dim() != 2:
             raise ValueError("rest_lengths: per-sample (B, M, N-1) rest lengths need stiffness_scaling = 0 in "
                              "dynamic steps (the scaling is one per strand and vertex)")
@@ -404,10 +433,11 @@ class PhysicsSolver:
     def _begin(self) -> None:
         """A step's start: the pair list built there, evaluate at the start point, first direction."""
         if self.preconditioner is not None:
-            from hairwarp.ops.strand_projection import follow_the_leader
+            if self.config.strand_preconditioner:  # each step's Newton matrix (the chain's is made once)
+                from hairwarp.ops.strand_projection import follow_the_leader
 
-            x0 = follow_the_leader(self.rigid, self.start, check=False) if self.config.inextensible else self.start
-            self.preconditioner.build(x0, self._position_gradient, self.inertia_stiffness, self.stretch_stiffness)
+                x0 = follow_the_leader(self.rigid, self.start, check=False) if self.config.inextensible else self.start
+                self.preconditioner.build(x0, self._position_gradient, self.inertia_stiffness, self.stretch_stiffness)
             self.origin.copy_(self.start[:, :, NUM_FIXED_VERTICES:])
         z = self._variables(self.start)
         if self.pair_list is not None:
