@@ -110,12 +110,12 @@ class PhysicsConfig:
             tension Laplacian as it hangs under its weight, made once from the rest lengths, so
             that one direction carries the head's move down the whole strand. Replaces
             `stiffness_scaling`'s variables (its exponent sets P's diagonal). One H200, 1 024 x
-            100, 16 frames, two runs (docs/physics.md, "Twenty-ninth session"): 17-29 % fewer
-            iterations a step (whiplash 81-85 -> 70, torso_bend 84-86 -> 61), torso_bend 53.7 ->
-            47.0 and 53.0 -> 45.9 ms a frame, whiplash 65.8 -> 59.3 in one run and no faster in the
-            other (more list rebuilds), 10 frames within 0.34-0.89 mm of the tight trajectory;
-            with a tolerance of 2e-4 m 45-48 / 42 ms a frame within 0.66 / 0.24 mm. Off by default
-            until more motions are measured.
+            100, 16 frames, four runs (docs/physics.md, "Twenty-ninth session"): 11-17 % fewer
+            iterations a step on whiplash, 28-29 % on torso_bend; torso_bend 8-16 % faster,
+            whiplash not (its directions leave the hair-hair pair list's reach more often: up to
+            6.8 rebuilds a step against 4); 10 frames within 0.34-1.09 mm of the tight trajectory
+            (the default's 0.04-0.24). With a tolerance of 2e-4 m: torso_bend 40.5-42.5, whiplash
+            45-58 ms a frame. Off by default: no faster on whiplash.
         settle_time: every static drape of the physics (`drape_at_rest`: the `physics` and
             `reference` drapes, E*, and a motion's first frame) is followed by implicit-Euler
             steps with the pose held, for at most this long [s], until a step moves no vertex
