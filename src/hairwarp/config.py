@@ -153,6 +153,13 @@ class EnergyConfig:
         """
         return self.reference_strand_count or num_strands
 
+    def inertia_stiffness(self, num_strands: int, num_vertices: int) -> float:
+        """Eq. 16's stiffness per moving vertex [J/m^2]: lambda_inertia m / (M (N-2) h^2), M the
+        `strand_normalization` of a groom of `num_strands` strands of `num_vertices` vertices.
+        """
+        return (self.inertia_weight * self.vertex_mass
+                / (self.strand_normalization(num_strands) * (num_vertices - NUM_FIXED_VERTICES) * self.time_step ** 2))
+
     def weights(self) -> dict[str, float]:
         """The weight of each term by name (zero turns the term off)."""
         return {

@@ -27,6 +27,8 @@ stiffness (so that z is in metres where the inertia dominates).
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from hairwarp import _warp
@@ -247,15 +249,10 @@ class ChainPreconditioner:
 
     def __init__(self, rest_lengths: torch.Tensor, stiffness: torch.Tensor, energy_config, *, exponent: float,
                  tension: float, device: torch.device, dtype: torch.dtype):
-        import math
-
         rest = rest_lengths.detach().to(device=device, dtype=torch.float64)
         stiffness = stiffness.detach().to(device=device, dtype=torch.float64)
         k_min = stiffness.min()
-        strands, vertices = rest.shape[0], rest.shape[1] + 1
-        inertia = (energy_config.inertia_weight * energy_config.vertex_mass
-                   / (energy_config.strand_normalization(strands) * (vertices - NUM_FIXED_VERTICES)
-                      * energy_config.time_step ** 2))
+        inertia = energy_config.inertia_stiffness(rest.shape[0], rest.shape[1] + 1)
         g = math.hypot(*energy_config.gravity) * energy_config.gravity_weight
         w = tension * hanging_tension(rest, energy_config.time_step, g) * (inertia / k_min)
         self.matrix = chain_matrix((stiffness / k_min) ** (2.0 * exponent), w[:, NUM_FIXED_VERTICES - 1:])

@@ -190,7 +190,7 @@ def vertex_stiffness(config: EnergyConfig, rest_lengths: torch.Tensor, *, inexte
     m, n = config.strand_normalization(rest_lengths.shape[0]), rest_lengths.shape[1] + 1
     rest = rest_lengths.detach().to(torch.float64)
     diagonal = torch.zeros(rest.shape[0], n, dtype=torch.float64, device=rest.device)
-    diagonal += config.inertia_weight * config.vertex_mass / (m * (n - 2) * config.time_step ** 2)
+    diagonal += config.inertia_stiffness(rest.shape[0], n)
     diagonal += 2.0 * config.auxiliary_weight / (3 * m * n)
     smooth = 2.0 * config.smoothness_weight / (m * (n - 2))
     for offset, weight in ((-1, 1.0), (0, 4.0), (1, 1.0)):  # joints v-1, v, v+1 (joints lie at 1..N-2)
