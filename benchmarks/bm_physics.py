@@ -3,7 +3,9 @@
     python3 benchmarks/bm_physics.py --device cuda --out OUT                 # full size (1024 x 100)
     python3 benchmarks/bm_physics.py --device cpu --strand-stride 4 --frames 12 --out OUT   # 256 x 100
 
-For each motion (`--motions`, comparison scenes): the hair starts at the converged static drape
+For each motion (`--motions`: comparison scenes, or the held-out motions of
+`tools/train_inertial.py evaluate`: bob_nod, curly_sway_walk, long_arm_raise, wavy_amass): the
+hair starts at the converged static drape
 of the first frame (the `reference` drape: tight tolerance); then
 - `physics` (`PhysicsConfig()`) simulates `--frames` frames: ms per frame (each step's wall
   time, synchronised: posing, body update, solve), iterations per step;
@@ -32,7 +34,8 @@ import torch
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--device", default="cuda")
-    parser.add_argument("--motions", default="whiplash,torso_bend")
+    parser.add_argument("--motions", default="whiplash,torso_bend",
+                        help="comparison scenes or held-out motions (tools/train_inertial.py's EVALUATION labels)")
     parser.add_argument("--strand-stride", type=int, default=1, help="every k-th strand of the full groom")
     parser.add_argument("--frames", type=int, default=0, help="frames per motion (0: all)")
     parser.add_argument("--per-step", type=int, default=10, help="steps checked one by one from the tight states")
@@ -52,6 +55,26 @@ def _parser() -> argparse.ArgumentParser:
 
 def _mean_distance_mm(a: torch.Tensor, b: torch.Tensor) -> float:
     return float((a - b).norm(dim=-1)[..., 2:].mean()) * 1e3
+
+
+def _motion_scene(name: str, strand_stride: int, out: str):
+    """The scene of a `--motions` name: a comparison scene, else a held-out motion of
+    `tools/train_inertial.py evaluate` (the same scene it scores the networks on).
+    """
+    import sys
+
+    from hairwarp.evaluation.scenes import SCENE_NAMES, comparison_scene
+
+    if name in SCENE_NAMES:
+        return comparison_scene(name, reduced=False, strand_stride=strand_stride).scene
+    sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "tools"))
+    from train_inertial import EVALUATION, _evaluation_scene
+
+    specs = {spec[0]: spec for spec in EVALUATION}
+    if name not in specs:
+        raise SystemExit(f"--motions: {name!r} is neither a comparison scene ({', '.join(SCENE_NAMES)}) nor a "
+                         f"held-out motion ({', '.join(specs)})")
+    return _evaluation_scene(*specs[name], strand_stride, out)
 
 
 def _variants(specs: list[str], base) -> dict:
@@ -93,7 +116,6 @@ def _per_step(solver, posed, tight, steps) -> tuple[list[float], list[int]]:
 def main(argv=None) -> dict:
     args = _parser().parse_args(argv)
     from hairwarp.config import EnergyConfig
-    from hairwarp.evaluation.scenes import comparison_scene
     from hairwarp.ops import BodyMesh
     from hairwarp.runtime import machine_description, synchronize
     from hairwarp.solvers.physics import PhysicsConfig, PhysicsSolver, simulate_physics
@@ -112,7 +134,7 @@ def main(argv=None) -> dict:
     if variants:
         record["variants"] = {name: config.__dict__ for name, config in variants.items()}
     for name in args.motions.split(","):
-        scene = comparison_scene(name, reduced=False, strand_stride=args.strand_stride).scene
+        scene = _motion_scene(name, args.strand_stride, args.out)
         frames = list(range(scene.num_frames if args.frames <= 0 else min(args.frames, scene.num_frames)))
         strands, vertices = scene.hairstyle.strands.shape[:2]
         print(f"{name}: {strands} x {vertices}, {len(frames)} frames on {device}", flush=True)
