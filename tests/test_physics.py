@@ -289,6 +289,9 @@ def test_bad_config():
         PhysicsConfig(settle_time=-1.0)
     with pytest.raises(ValueError, match="settle_tolerance"):
         PhysicsConfig(settle_tolerance=0.0)
+    for bad in (0.0, -0.5, 1.5, math.nan):
+        with pytest.raises(ValueError, match="settle_momentum"):
+            PhysicsConfig(settle_momentum=bad)
     with pytest.raises(ValueError, match="frame_indices"):
         simulate_physics(comparison_scene("whiplash", strand_stride=64, num_vertices=8).scene, [])
     with pytest.raises(ValueError, match="consecutive"):

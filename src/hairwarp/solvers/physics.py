@@ -135,6 +135,14 @@ class PhysicsConfig:
             (docs/physics.md, "Sixteenth session").
         settle_tolerance: the settling steps end when a step moves no vertex farther than this [m]
             (each step solved to it or the config's `tolerance`, whichever is looser).
+        settle_momentum: the share of each settling step's velocity the next inherits, in (0, 1]
+            (`settle_with_pose_held`; 1: the physics' own motion, the hair swinging about its rest
+            on the way there). 0.8, the inertial method's settle (docs/network_diagnosis.md, T19): on
+            128 strands of long hair on the arm raise's first pose (2-core CPU) it came to rest in
+            30 steps, 0.85 mm (mean) from the tight drape, where the undamped settle ran its 60
+            steps and ended 2.44 mm from it, the tips 7.9 mm; on long curly hair both ran their 60
+            steps (7.3 against 6.9 mm, the tips 16.2 against 17.6 mm) and the damped one in 58 %
+            of the time (docs/physics.md, "Thirtieth session").
         stopping: how the implicit-Euler steps read a chunk's largest vertex move m_k against the
             tolerance (static drapes read the move itself: their restarts catch the stall). "move":
             m_k <= tolerance. "rate" (default): its geometric tail m_k / (1 - r) <= tolerance, r =
@@ -166,6 +174,7 @@ class PhysicsConfig:
     chain_preconditioner: float = 0.0
     settle_time: float = 1.0
     settle_tolerance: float = 1.0e-4
+    settle_momentum: float = 0.8
     stopping: str = "rate"
 
     def __post_init__(self):
@@ -179,6 +188,8 @@ class PhysicsConfig:
             raise ValueError(f"settle_time: expected a finite time >= 0 [s], got {self.settle_time}")
         if not (math.isfinite(self.settle_tolerance) and self.settle_tolerance > 0):
             raise ValueError(f"settle_tolerance: expected a finite positive length [m], got {self.settle_tolerance}")
+        if not (math.isfinite(self.settle_momentum) and 0.0 < self.settle_momentum <= 1.0):
+            raise ValueError(f"settle_momentum: expected a share in (0, 1], got {self.settle_momentum}")
         if not (math.isfinite(self.chain_preconditioner) and self.chain_preconditioner >= 0):
             raise ValueError(f"chain_preconditioner: expected a finite tension factor >= 0, got {self.chain_preconditioner}")
         if self.chain_preconditioner and self.strand_preconditioner:
@@ -774,8 +785,9 @@ def drape_at_rest(static: PhysicsSolver, dynamic: PhysicsSolver | None, start: t
 
     L-BFGS from a rigid placement stalls above where the hair hangs (at full size it stopped 0.7-12 %
     above the settled energy, the tips 3-129 mm higher; docs/physics.md, "Sixteenth session"). So
-    the first static solve is followed by implicit-Euler steps with the pose held, for at most
-    `config.settle_time` [s] (each step solved to `settle_tolerance`, the scale rest is judged at),
+    the first static solve is followed by implicit-Euler steps with the pose held, damped
+    (`config.settle_momentum`), for at most `config.settle_time` [s] (each step solved to
+    `settle_tolerance`, the scale rest is judged at),
     until a step moves no vertex farther than `settle_tolerance`; a static solve from there
     polishes the settled state to `static_tolerance`. Per frame the lower-energy drape of the two
     is kept: settling dissipates energy but is not bound to lower it.
@@ -786,7 +798,8 @@ def drape_at_rest(static: PhysicsSolver, dynamic: PhysicsSolver | None, start: t
             rigid placement, scalp normals and body; its `time_step` the settling steps'; its
             state is left at the settled drape); None: no settling.
         start: (B, M, N, 3) where the first static solve starts [m].
-        config: `PhysicsConfig` (`static_max_iterations`, `settle_time`, `settle_tolerance`).
+        config: `PhysicsConfig` (`static_max_iterations`, `settle_time`, `settle_tolerance`,
+            `settle_momentum`).
     """
     from hairwarp.energy import total_energy
 
@@ -796,7 +809,8 @@ def drape_at_rest(static: PhysicsSolver, dynamic: PhysicsSolver | None, start: t
     if dynamic is None or config.settle_time <= 0:
         return RestingDrape(x, first, 0, torch.zeros(batch, dtype=torch.bool))
     steps, settle_iterations = settle_with_pose_held(
-        dynamic, x, max(1, int(round(config.settle_time / dynamic.energy_config.time_step))), config.settle_tolerance)
+        dynamic, x, max(1, int(round(config.settle_time / dynamic.energy_config.time_step))), config.settle_tolerance,
+        config.settle_momentum)
     iterations = first.iterations + settle_iterations
     polish = static.solve(dynamic.prev, config.static_max_iterations)
     y = static.positions()
