@@ -16,8 +16,8 @@ nod, sway walk and arm raise on other hairstyles, and an AMASS-format file writt
 tools/foreign_scenes.py). Per scene: the physics once, then rigid, static, dynamic (the paper's
 network) and inertial against it: distance to the physics, tip swing, its amplitude ratio and
 correlation, penetration, length change, ms/frame (`--oracle`: also each frame's static optimum,
-alone and as the step's equilibrium). Writes OUT/evaluate_inertial.json and .md and one swing
-plot per scene.
+alone and as the step's equilibrium; `--physics-repeat`: the physics again, against itself). Writes
+OUT/evaluate_inertial.json and .md and one swing plot per scene.
 """
 
 from __future__ import annotations
@@ -161,6 +161,13 @@ def evaluate(args) -> int:
         physics_s = time.perf_counter() - t0
         rigid = frames.rigid.positions
         positions, rows = {"physics": physics.positions}, {}
+        if args.physics_repeat:
+            # The same physics again: on a GPU its contact sums add in another order, and a motion
+            # whose contacts amplify round-off (the bob's nod) ends elsewhere. What no method can
+            # be asked to match better than the physics matches itself.
+            repeat = make("physics").simulate(frames)
+            positions["physics_repeat"] = repeat.positions
+            rows["physics_repeat"] = _fidelity_row(repeat, physics.positions, rigid)
         variants = dict(item.split("=", 1) for item in args.variants.split(",")) if args.variants else {}
         if args.oracle:
             # What a perfect static network would give: each frame's static optimum (the physics'
@@ -255,6 +262,9 @@ def main(argv=None) -> int:
                    help="more inertial steps as rows: name=STEP[@STATIC],... (STEP empty: the shipped step; "
                         "@STATIC: that row's static network, else --static-checkpoint's)")
     e.add_argument("--methods", default=",".join(METHODS), help="the methods' rows (rigid is always one)")
+    e.add_argument("--physics-repeat", action="store_true",
+                   help="also the row physics_repeat: the physics run again, against the first run (on a GPU "
+                        "the contact sums' order differs between runs: how far the physics is from itself)")
     e.add_argument("--oracle", action="store_true",
                    help="also the rows optimum (each frame's static optimum, the physics' drape) and "
                         "inertial_optimum (the step with those as its equilibrium)")
