@@ -16,8 +16,9 @@ nod, sway walk and arm raise on other hairstyles, and an AMASS-format file writt
 tools/foreign_scenes.py). Per scene: the physics once, then rigid, static, dynamic (the paper's
 network) and inertial against it: distance to the physics, tip swing, its amplitude ratio and
 correlation, penetration, length change, ms/frame (`--oracle`: also each frame's static optimum,
-alone and as the step's equilibrium; `--physics-repeat`: the physics again, against itself). Writes
-OUT/evaluate_inertial.json and .md and one swing plot per scene.
+alone and as the step's equilibrium; `--physics-repeat`: the physics again, against itself; `--scenes
+LABEL=HAIRSTYLE:POSE:START:DURATION`: a scene of one's own). Writes OUT/evaluate_inertial.json and
+.md and one swing plot per scene.
 """
 
 from __future__ import annotations
@@ -106,6 +107,34 @@ def _plot_curve(log: list[dict], path: str) -> None:
     plt.close(fig)
 
 
+def evaluation_specs(scenes: str | None) -> list[tuple]:
+    """The (label, hairstyle, pose, start, duration) of `--scenes`: EVALUATION's labels, or scenes
+    of one's own as LABEL=HAIRSTYLE:POSE:START:DURATION (a preset hairstyle and procedural pose,
+    start and duration in seconds). None: all of EVALUATION.
+
+    Raises:
+        ValueError: naming `--scenes`, for a label EVALUATION lacks or a malformed scene.
+    """
+    known = {spec[0]: spec for spec in EVALUATION}
+    if not scenes:
+        return list(EVALUATION)
+    specs = []
+    for item in scenes.split(","):
+        if item in known:
+            specs.append(known[item])
+            continue
+        label, _, body = item.partition("=")
+        parts = body.split(":")
+        try:
+            if not label or len(parts) != 4:
+                raise ValueError
+            specs.append((label, parts[0], parts[1], float(parts[2]), float(parts[3])))
+        except ValueError:
+            raise ValueError(f"--scenes: expected labels of {sorted(known)} or LABEL=HAIRSTYLE:POSE:START:DURATION, "
+                             f"got {item!r}") from None
+    return specs
+
+
 def _evaluation_scene(label, style, pose, start, duration, stride, out):
     import hairwarp as hw
     from hairwarp.evaluation.scenes import comparison_scene
@@ -150,10 +179,7 @@ def evaluate(args) -> int:
 
     device = torch.device(args.device)
     records = []
-    labels = args.scenes.split(",") if args.scenes else [e[0] for e in EVALUATION]
-    for label, style, pose, start, duration in EVALUATION:
-        if label not in labels:
-            continue
+    for label, style, pose, start, duration in evaluation_specs(args.scenes):
         scene = _evaluation_scene(label, style, pose, start, duration, args.strand_stride, args.out)
         frames = scene.frames(device=device)
         t0 = time.perf_counter()
@@ -201,6 +227,11 @@ def evaluate(args) -> int:
         size = {"strands": int(rigid.shape[1]), "vertices": int(rigid.shape[2]), "frames": int(rigid.shape[0])}
         records.append({"scene": label, "hairstyle": style, "pose": pose, "size": size, "rows": rows})
         curves = {n: mean_tip_offset(p, rigid).cpu() for n, p in positions.items() if n != "rigid"}
+        for name, curve in curves.items():
+            # The swing plot's curves less their means, RMS per axis [mm]: how far the hair as a
+            # whole swings each way (a curly walk's vertical bounce, docs/network_diagnosis.md T22).
+            bulk = curve - curve.mean(dim=0)
+            rows[name]["bulk_swing_by_axis_mm"] = (bulk.square().mean(dim=0).sqrt() * 1e3).tolist()
         machine = torch.cuda.get_device_name() if device.type == "cuda" else "CPU"
         swing_plot(curves, os.path.join(args.out, f"swing_inertial_{label}.png"), fps=float(scene.motion.fps),
                    title=f"{label}: {size['strands']} strands x {size['vertices']}, {machine}")
@@ -257,7 +288,9 @@ def main(argv=None) -> int:
     e.add_argument("--static-checkpoint", default=None,
                    help="a static network for the rows static and inertial (None: the shipped one)")
     e.add_argument("--strand-stride", type=int, default=1)
-    e.add_argument("--scenes", default=None, help="comma-separated labels (default: all)")
+    e.add_argument("--scenes", default=None,
+                   help="comma-separated labels (default: all), or scenes of one's own as "
+                        "LABEL=HAIRSTYLE:POSE:START:DURATION, e.g. walk=long_straight:sway_walk:0:2")
     e.add_argument("--variants", default="",
                    help="more inertial steps as rows: name=STEP[@STATIC],... (STEP empty: the shipped step; "
                         "@STATIC: that row's static network, else --static-checkpoint's)")
