@@ -35,7 +35,8 @@ def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--device", default="cuda")
     parser.add_argument("--motions", default="whiplash,torso_bend",
-                        help="comparison scenes or held-out motions (tools/train_inertial.py's EVALUATION labels)")
+                        help="comparison scenes, held-out motions (tools/train_inertial.py's EVALUATION labels) "
+                             "or LABEL=HAIRSTYLE:POSE:START:DURATION")
     parser.add_argument("--strand-stride", type=int, default=1, help="every k-th strand of the full groom")
     parser.add_argument("--frames", type=int, default=0, help="frames per motion (0: all)")
     parser.add_argument("--per-step", type=int, default=10, help="steps checked one by one from the tight states")
@@ -68,13 +69,13 @@ def _motion_scene(name: str, strand_stride: int, out: str):
     if name in SCENE_NAMES:
         return comparison_scene(name, reduced=False, strand_stride=strand_stride).scene
     sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "tools"))
-    from train_inertial import EVALUATION, _evaluation_scene
+    from train_inertial import _evaluation_scene, evaluation_specs
 
-    specs = {spec[0]: spec for spec in EVALUATION}
-    if name not in specs:
-        raise SystemExit(f"--motions: {name!r} is neither a comparison scene ({', '.join(SCENE_NAMES)}) nor a "
-                         f"held-out motion ({', '.join(specs)})")
-    return _evaluation_scene(*specs[name], strand_stride, out)
+    try:
+        (spec,) = evaluation_specs(name)
+    except ValueError as error:
+        raise SystemExit(f"--motions: {name!r} is not a comparison scene ({', '.join(SCENE_NAMES)}); {error}") from None
+    return _evaluation_scene(*spec, strand_stride, out)
 
 
 def _variants(specs: list[str], base) -> dict:

@@ -306,6 +306,11 @@ def main(argv=None) -> int:
         p.add_argument("--seed", type=int, default=0)
         p.add_argument("--out", required=True)
     args = parser.parse_args(argv)
+    if args.command == "evaluate":
+        try:
+            evaluation_specs(args.scenes)  # a malformed scene refused before any work
+        except ValueError as error:
+            parser.error(str(error))
     os.makedirs(args.out, exist_ok=True)
     torch.manual_seed(args.seed)
     return train(args) if args.command == "train" else evaluate(args)
