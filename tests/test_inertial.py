@@ -1214,3 +1214,67 @@ def test_the_method_holds_the_chain_where_the_equilibrium_lies_on_the_body(tmp_p
     assert max(held.metrics["per_frame"]["penetration_percent"]) == 0.0
     assert held.metrics["length_change_percent"] < 0.01
     assert float((held.positions - free.positions).abs().max()) > 1e-4
+
+
+def _curly_rest(strands=4):
+    """Rest strands of the procedural long curly hair (100 vertices, 6 turns), float64."""
+    import hairwarp as hw
+
+    scene = hw.default_scene("long_curly", strand_stride=128)  # 8 strands: a head proxy needs 6 roots
+    return scene.frames([0], dtype=torch.float64).rigid.positions[0, :strands]
+
+
+def test_dynamic_follow_the_leader_keeps_a_curled_strand_still():
+    """T23: the shipped constants (chain, G 0.995, beta 0.97, bending 3e4) on long curly hair
+    held still, every free vertex kicked 1 mm: with the projected positions' own velocity the
+    kick grows (more than 10x in 2 s: follow-the-leader's corrections on a curl feed the swing);
+    with `projection_damping` 0.9 it dies out. Straight hair settles either way."""
+    import dataclasses
+
+    base = InertialConfig(coupling="chain", gate_init=0.995, retention_init=0.97, damping="relative",
+                          tension_init=0.5, bending=3e4)
+
+    def tip_offset_at_2s(config, rest):
+        rigid = rest[None].expand(121, -1, -1, -1).clone()
+        kick = rest + 0.001 * torch.randn(rest.shape, generator=torch.Generator().manual_seed(0), dtype=rest.dtype)
+        kick[:, :2] = rest[:, :2]
+        with torch.no_grad():
+            out = InertialStep(config).double().rollout(rigid.clone(), rigid, initial=(kick, rest))
+        return float((out[-1, :, -1] - rest[:, -1]).norm(dim=-1).mean())
+
+    curly, straight = _curly_rest(), _hanging(4, 100) * 0.25
+    damped = dataclasses.replace(base, projection_damping=0.9)
+    assert tip_offset_at_2s(base, curly) > 0.01
+    assert tip_offset_at_2s(damped, curly) < 0.0005
+    assert tip_offset_at_2s(base, straight) < 0.0005 and tip_offset_at_2s(damped, straight) < 0.0005
+    for bad in (-0.1, 1.5, math.nan):
+        with pytest.raises(ValueError, match="projection_damping"):
+            InertialConfig(projection_damping=bad)
+
+
+def test_the_projection_damping_gives_back_the_led_vertexs_correction():
+    """Two frames of `rollout` against the steps written out: the second step reads the velocity
+    x(0) - x(-1) - s c(0) shifted one vertex rootward, c = x - p the projection's correction."""
+    import dataclasses
+
+    torch.manual_seed(3)
+    config = InertialConfig(coupling="chain", gate_init=0.99, retention_init=0.95, damping="relative",
+                            projection_damping=0.7)
+    step = InertialStep(config).double()
+    rest = _curly_rest(2)[:, :30]
+    rigid = torch.stack([rest, rest + torch.tensor([0.01, 0.02, 0.0], dtype=torch.float64)])
+    equilibrium = rigid + 0.003 * torch.randn_like(rigid)
+    with torch.no_grad():
+        out = step.rollout(equilibrium, rigid)
+        coefficients = step.coefficients(rigid)
+        head = torch.stack([torch.zeros_like(rest), rigid[0] - rigid[0]])
+        x0, p0 = step.step(equilibrium[:1], rigid[:1], equilibrium[:1], equilibrium[:1], head[:1], coefficients,
+                           return_target=True)
+        led = (x0 - p0)[:, :, 1:]
+        before = equilibrium[:1] + 0.7 * torch.cat([led, torch.zeros_like(led[:, :, :1])], dim=2)
+        x1 = step.step(equilibrium[1:], rigid[1:], x0, before, head[1:], coefficients)
+    torch.testing.assert_close(out, torch.cat([x0, x1]), atol=0, rtol=0)
+    undamped = InertialStep(dataclasses.replace(config, projection_damping=0.0)).double()
+    undamped.load_state_dict(step.state_dict())
+    with torch.no_grad():
+        assert float((undamped.rollout(equilibrium, rigid)[1] - out[1]).abs().max()) > 1e-6

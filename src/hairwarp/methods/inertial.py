@@ -32,7 +32,9 @@ constants, not trained weights: G = 0.995, beta = 0.97 damping the velocity rela
 half a hanging strand's tension, the equilibrium's offset from the rigid placement followed at
 0.12 m/s at most (the static network's drape can jump between frames, which flung strands out),
 and a bending term of 3e4 (`InertialConfig.bending`: the strand keeps its shape while it swings,
-which lets a weak pull swing without overshooting). It is the setting of a 48-point grid that
+which lets a weak pull swing without overshooting), and dynamic follow-the-leader's velocity
+correction at 0.9 (`InertialConfig.projection_damping`, the thirty-second session: without it the
+step amplifies a kick on long curly hair, docs/network_diagnosis.md, T23). The rest is the setting of a 48-point grid that
 meets the most goals (swing correlation and amplitude, worst strands no farther from the physics
 than the rigid placement's) on eight full-size training clips (`tools/inertial_sweep.py`; training
 by rollouts never moved the step at full size). On the held-out motions at full size it meets 13

@@ -56,6 +56,16 @@ else, since it damps the lift-off from the body that the physics' one-sided cont
 placement, may change per strand: the static network's drape can jump between frames where the
 hair cannot, and the step would swing every jump (`InertialConfig.equilibrium_speed`).
 
+`projection_damping` is dynamic follow-the-leader's velocity correction (Mueller et al. 2012, "Fast
+simulation of inextensible hair and fur"): follow-the-leader moves each vertex i by a correction
+c_i = x_i - p_i onto its rest length, and a step that reads its velocity from the projected
+positions takes that move as momentum. On a curled strand the corrections do not cancel: the
+shipped step (`projection_damping` 0) held still with a 1 mm kick on long curly hair amplifies it
+3x every half second, to 17 cm in 2.5 s, where straight and wavy hair settle (docs/network_diagnosis.md,
+T23). With s = `projection_damping` the velocity the next step reads is
+x_i(t) - x_i(t-1) - s c_(i+1)(t): each vertex gives back the correction of the vertex it leads,
+which the projection took from it.
+
 Trained on physics trajectories (`hairwarp.training.inertial`): rollouts from the first frame, on
 the step's own predictions, back-propagated through the whole clip.
 """
@@ -142,6 +152,9 @@ class InertialConfig(_DictConfig):
             down. 0: no settle.
         settle_momentum: the share of each settling step's velocity the next inherits, in (0, 1]
             (`settle_with_pose_held`'s `momentum`): 1 swings about the rest on the way there.
+        projection_damping: s in [0, 1], dynamic follow-the-leader's velocity correction (module
+            docstring): the share of the next vertex's projection correction taken from each
+            vertex's velocity. 0: the projected positions' own velocity.
     """
 
     hidden_dim: int = 32
@@ -160,6 +173,7 @@ class InertialConfig(_DictConfig):
     body_hold_distance: float = 0.02
     settle_steps: int = 0
     settle_momentum: float = 0.8
+    projection_damping: float = 0.0
 
     def __post_init__(self):
         if not isinstance(self.hidden_dim, int) or isinstance(self.hidden_dim, bool) or self.hidden_dim <= 0:
@@ -201,6 +215,9 @@ class InertialConfig(_DictConfig):
         momentum = self.settle_momentum
         if not isinstance(momentum, (int, float)) or isinstance(momentum, bool) or not 0.0 < momentum <= 1.0:
             raise ValueError(f"InertialConfig.settle_momentum: expected a number in (0, 1], got {momentum!r}")
+        damping = self.projection_damping
+        if not isinstance(damping, (int, float)) or isinstance(damping, bool) or not 0.0 <= damping <= 1.0:
+            raise ValueError(f"InertialConfig.projection_damping: expected a number in [0, 1], got {damping!r}")
         if self.keep_out_velocity not in KEEP_OUT_VELOCITIES:
             raise ValueError(f"InertialConfig.keep_out_velocity: expected one of {list(KEEP_OUT_VELOCITIES)}, got "
                              f"{self.keep_out_velocity!r}")
@@ -379,7 +396,7 @@ class InertialStep(nn.Module):
 
     def step(self, equilibrium: torch.Tensor, rigid: torch.Tensor, prev: torch.Tensor, prev2: torch.Tensor,
              head_velocity: torch.Tensor, coefficients: tuple[torch.Tensor, torch.Tensor] | None = None,
-             hold: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+             hold: tuple[torch.Tensor, torch.Tensor] | None = None, return_target: bool = False):
         """One frame: x(t) from the frame's equilibrium and rigid placement and the last two states.
 
         Args:
@@ -393,9 +410,11 @@ class InertialStep(nn.Module):
             hold: (distance (B, M, N) [m], normal (B, M, N, 3)) of the frame's equilibrium to the
                 body (`hair_body_signed_distance_and_normal`), read where `InertialConfig.body_hold`
                 > 0; None: no hold.
+            return_target: also return the target p(t) before the projection.
 
         Returns:
-            (B, M, N, 3) x(t) [m], differentiable w.r.t. the inputs and the MLP.
+            (B, M, N, 3) x(t) [m], differentiable w.r.t. the inputs and the MLP; with
+            `return_target`, (x(t), p(t)).
         """
         pull, retention = self.coefficients(rigid) if coefficients is None else coefficients
         predicted = prev + head_velocity + retention * (prev - prev2 - head_velocity)
@@ -412,7 +431,8 @@ class InertialStep(nn.Module):
                 relaxed = pull @ offset
             free = equilibrium[:, :, NUM_FIXED_VERTICES:] + relaxed
             target = torch.cat([equilibrium[:, :, :NUM_FIXED_VERTICES], free], dim=2)
-        return follow_the_leader(rigid, target, check=False, max_gain=self.projection_max_gain)
+        projected = follow_the_leader(rigid, target, check=False, max_gain=self.projection_max_gain)
+        return (projected, target) if return_target else projected
 
     def rollout(self, equilibrium: torch.Tensor, rigid: torch.Tensor, initial: tuple | None = None,
                 project=None, carry: RolloutCarry | None = None,
@@ -487,15 +507,21 @@ class InertialStep(nn.Module):
                 offset = offset + limited_change(equilibrium[t] - rigid[t] - offset, limit)
                 target = rigid[t] + offset
             held = None if hold is None else (hold[0][t:t + 1], hold[1][t:t + 1])
-            x = self.step(target[None], rigid[t:t + 1], prev[None], prev2[None], head_velocity[t:t + 1],
-                          coefficients, hold=held)[0]
+            x, wanted = self.step(target[None], rigid[t:t + 1], prev[None], prev2[None], head_velocity[t:t + 1],
+                                  coefficients, hold=held, return_target=True)
+            x, wanted = x[0], wanted[0]
             before = prev
+            if self.config.projection_damping:
+                # Dynamic follow-the-leader: each vertex's velocity gives back the projection's
+                # correction of the vertex it leads (module docstring); the tip leads none.
+                led = (x - wanted)[:, 1:]
+                before = prev + self.config.projection_damping * torch.cat([led, torch.zeros_like(led[:, :1])], dim=1)
             if project is not None:
                 pushed = project(t, x)
                 if self.config.keep_out_velocity != "pushed":
                     # The next step reads its velocity as prev - prev2: prev2 is set so that it is
                     # the step's own (less what ran into the body), not the push added to it.
-                    before = pushed - pushed_velocity(x - prev, pushed - x, self.config.keep_out_velocity)
+                    before = pushed - pushed_velocity(x - before, pushed - x, self.config.keep_out_velocity)
                 x = pushed
             out.append(x)
             prev2, prev = before, x
