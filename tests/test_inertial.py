@@ -1267,7 +1267,7 @@ def test_the_projection_damping_gives_back_the_led_vertexs_correction():
     with torch.no_grad():
         out = step.rollout(equilibrium, rigid)
         coefficients = step.coefficients(rigid)
-        head = torch.stack([torch.zeros_like(rest), rigid[0] - rigid[0]])
+        head = torch.zeros_like(rigid)  # the head at rest before the first frame: no head velocity in either step
         x0, p0 = step.step(equilibrium[:1], rigid[:1], equilibrium[:1], equilibrium[:1], head[:1], coefficients,
                            return_target=True)
         led = (x0 - p0)[:, :, 1:]
