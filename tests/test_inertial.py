@@ -1278,3 +1278,127 @@ def test_the_projection_damping_gives_back_the_led_vertexs_correction():
     undamped.load_state_dict(step.state_dict())
     with torch.no_grad():
         assert float((undamped.rollout(equilibrium, rigid)[1] - out[1]).abs().max()) > 1e-6
+
+
+def _helix(n=200, radius=0.02, pitch=0.01, turn_segments=20):
+    """One helix of n vertices about the vertical axis (radius, rise per turn [m]), float64."""
+    angle = 2 * math.pi * torch.arange(n, dtype=torch.float64) / turn_segments
+    return torch.stack([radius * torch.cos(angle), -pitch * angle / (2 * math.pi), radius * torch.sin(angle)], dim=-1)
+
+
+def test_strand_curliness_is_one_less_chord_over_arc_along_the_strand():
+    """`strand_curliness` against a float64 loop written from its definition (each vertex's chord
+    to the first vertex a window of arc farther, over that arc; vertices with less than half a
+    window left not counted); a straight strand reads 0, a helix its chord deficit (a window of
+    whole turns: 1 - rise / arc), and a rigid motion changes nothing."""
+    from hairwarp.models.inertial import strand_curliness
+
+    def reference(strand, window):
+        p = strand.numpy()
+        seg = np.linalg.norm(p[1:] - p[:-1], axis=1)
+        s = np.concatenate([[0.0], np.cumsum(seg)])
+        values = []
+        for i in range(len(p)):
+            j = next((k for k in range(i, len(p)) if s[k] >= s[i] + window), len(p) - 1)
+            arc = s[j] - s[i]
+            if arc > 0.5 * window:
+                values.append(1.0 - np.linalg.norm(p[j] - p[i]) / arc)
+        return np.mean(values) if values else 0.0
+
+    helix = _helix()
+    seg = float((helix[1] - helix[0]).norm())
+    turn_arc = 20.5 * seg  # a turn and a half segment: every window ends 21 segments on, clear of rounding
+    straight = _hanging(1, 200)[0]
+    torch.manual_seed(3)
+    wavy = straight + 0.003 * torch.sin(torch.arange(200, dtype=torch.float64) / 4)[:, None] * torch.tensor(
+        [1.0, 0.0, 0.0], dtype=torch.float64)
+    strands = torch.stack([helix, straight, wavy])
+    for window in (turn_arc, 0.12, 0.5):
+        got = strand_curliness(strands, window=window)
+        want = [reference(s, window) for s in strands]
+        np.testing.assert_allclose(got.numpy(), want, atol=1e-12)
+    got = strand_curliness(strands, window=turn_arc)
+    assert float(got[1]) == 0.0
+    # Away from the tip every window spans 21 segments: one less the chord of 21 / 20 of a turn
+    # over their arc (the shorter windows at the tip move the mean a little).
+    chord = math.hypot(0.01 * 21 / 20, 2 * 0.02 * math.sin(math.pi / 20))
+    assert abs(float(got[0]) - (1.0 - chord / (21 * seg))) < 0.02
+    turn = torch.linalg.matrix_exp(torch.tensor([[0.0, -0.4, 0.2], [0.4, 0.0, -0.1], [-0.2, 0.1, 0.0]],
+                                                dtype=torch.float64))
+    moved = strands @ turn.T + torch.tensor([0.3, -0.2, 0.1], dtype=torch.float64)
+    torch.testing.assert_close(strand_curliness(moved, window=turn_arc), got, atol=1e-12, rtol=0)
+    with pytest.raises(ValueError, match="window"):
+        strand_curliness(strands, window=0.0)
+
+
+def test_curl_bending_softens_curled_strands_only():
+    """`InertialConfig.curl_bending`: the procedural long curls keep that share of `bending`,
+    long straight and medium wavy hair all of it; the chain operator with one bending per strand
+    is the operator of each strand's own; 1 (the default) is the step of before bit for bit."""
+    import dataclasses
+
+    import hairwarp as hw
+    from hairwarp.models.inertial import strand_bending
+
+    base = InertialConfig(coupling="chain", gate_init=0.995, retention_init=0.97, damping="relative",
+                          tension_init=0.5, bending=3e4)
+    soft = dataclasses.replace(base, curl_bending=0.1)
+    curly = _curly_rest(8)
+    straight = hw.default_scene("long_straight", strand_stride=128).frames([0], dtype=torch.float64).rigid.positions[0]
+    wavy = hw.default_scene("medium_wavy", strand_stride=128).frames([0], dtype=torch.float64).rigid.positions[0]
+    torch.testing.assert_close(strand_bending(curly, soft), torch.full((8,), 3e3, dtype=torch.float64))
+    for rest in (straight, wavy):
+        torch.testing.assert_close(strand_bending(rest, soft), torch.full((len(rest),), 3e4, dtype=torch.float64))
+    torch.testing.assert_close(strand_bending(curly, base), torch.full((8,), 3e4, dtype=torch.float64))
+
+    torch.manual_seed(4)
+    gate_logit, tension = torch.randn(3, 6, dtype=torch.float64), torch.rand(3, 6, dtype=torch.float64) * 30
+    each = torch.tensor([0.0, 50.0, 3e3], dtype=torch.float64)
+    together = chain_operator(gate_logit, tension, each)
+    for i in range(3):
+        torch.testing.assert_close(together[i], chain_operator(gate_logit[i:i + 1], tension[i:i + 1], float(each[i]))[0])
+
+    step, softened = InertialStep(base).double(), InertialStep(soft).double()
+    softened.load_state_dict(step.state_dict())
+    rigid = curly[None].expand(3, -1, -1, -1).clone()
+    moved = rigid + torch.tensor([0.01, 0.0, 0.0], dtype=torch.float64) * torch.arange(3, dtype=torch.float64)[:, None,
+                                                                                                              None, None]
+    with torch.no_grad():
+        plain = step.rollout(moved, moved)
+        same = InertialStep(dataclasses.replace(base, curl_bending=1.0)).double()
+        same.load_state_dict(step.state_dict())
+        assert torch.equal(same.rollout(moved, moved), plain)
+        assert not torch.allclose(softened.rollout(moved, moved), plain)
+    for bad in (-0.1, 1.5, math.nan, True):
+        with pytest.raises(ValueError, match="curl_bending"):
+            InertialConfig(curl_bending=bad)
+
+
+def test_curl_gate_pulls_curled_strands_only():
+    """`InertialConfig.curl_gate`: the procedural long curls' free vertices take that G (their
+    chain operator is the one made with it), long straight hair keeps the MLP's; None is the step
+    of before."""
+    import dataclasses
+
+    import hairwarp as hw
+
+    base = InertialConfig(coupling="vertex", gate_init=0.995, retention_init=0.97)
+    curly = _curly_rest(8)
+    straight = hw.default_scene("long_straight", strand_stride=128).frames([0], dtype=torch.float64).rigid.positions[0]
+    step = InertialStep(base).double()
+    pulled = InertialStep(dataclasses.replace(base, curl_gate=0.99)).double()
+    pulled.load_state_dict(step.state_dict())
+    gate, _ = pulled.coefficients(curly)
+    torch.testing.assert_close(gate[:, 2:, 0], torch.full_like(gate[:, 2:, 0], 0.99))
+    assert torch.equal(gate[:, :2], torch.zeros_like(gate[:, :2]))
+    assert torch.equal(pulled.coefficients(straight)[0], step.coefficients(straight)[0])
+    chain = dataclasses.replace(base, coupling="chain", tension_init=0.5, bending=3e4)
+    plain, curled = InertialStep(chain).double(), InertialStep(dataclasses.replace(chain, curl_gate=0.99)).double()
+    curled.load_state_dict(plain.state_dict())
+    tension = hanging_chain_tension(curly, 60.0) * 0.5
+    logit = torch.full_like(tension, math.log(0.99 / 0.01))
+    torch.testing.assert_close(curled.coefficients(curly)[0], chain_operator(logit, tension, 3e4))
+    assert torch.equal(curled.coefficients(straight)[0], plain.coefficients(straight)[0])
+    for bad in (0.0, 1.0, -0.5, math.inf, True):
+        with pytest.raises(ValueError, match="curl_gate"):
+            InertialConfig(curl_gate=bad)

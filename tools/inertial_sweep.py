@@ -113,14 +113,16 @@ def _trajectories(scene, device, path, hold_cap: float | None = None) -> dict:
 
 def _step(gate: float, retention: float, tension: float, damping: str = "absolute", speed: float | None = None,
           bending: float = 0.0, body_hold: float = 0.0, body_hold_distance: float = 0.02, keep_out_state: bool = False,
-          keep_out_equilibrium: bool = False, keep_out_velocity: str = "pushed", projection_damping: float = 0.0):
+          keep_out_equilibrium: bool = False, keep_out_velocity: str = "pushed", projection_damping: float = 0.0,
+          curl_gate: float | None = None, curl_bending: float = 1.0):
     from hairwarp.models.inertial import InertialConfig, InertialStep
 
     return InertialStep(InertialConfig(coupling="chain", damping=damping, gate_init=gate, retention_init=retention,
                                        tension_init=tension, equilibrium_speed=speed, bending=bending,
                                        body_hold=body_hold, body_hold_distance=body_hold_distance,
                                        keep_out_state=keep_out_state, keep_out_equilibrium=keep_out_equilibrium,
-                                       keep_out_velocity=keep_out_velocity, projection_damping=projection_damping))
+                                       keep_out_velocity=keep_out_velocity, projection_damping=projection_damping,
+                                       curl_gate=curl_gate, curl_bending=curl_bending))
 
 
 def _key(r: dict) -> tuple:
@@ -203,6 +205,11 @@ def main(argv=None) -> int:
     parser.add_argument("--projection-damping", type=float, default=None,
                         help="InertialConfig.projection_damping of every setting (default: the shipped step's, so "
                              "that the grid's row of the shipped constants is the shipped step)")
+    parser.add_argument("--curl-gate", default=None,
+                        help="InertialConfig.curl_gate of every setting, 'none' for the MLP's G on every strand "
+                             "(default: the shipped step's)")
+    parser.add_argument("--curl-bending", type=float, default=None,
+                        help="InertialConfig.curl_bending of every setting (default: the shipped step's)")
     parser.add_argument("--body-holds", default="0", help="InertialConfig.body_hold values (kappa; 0: no hold)")
     parser.add_argument("--body-hold-distances", default="0.02",
                         help="InertialConfig.body_hold_distance values [m] (swept where body_hold > 0)")
@@ -225,6 +232,25 @@ def main(argv=None) -> int:
         args.projection_damping = _shipped_config().projection_damping
     elif not 0.0 <= args.projection_damping <= 1.0:
         parser.error(f"--projection-damping: expected a number in [0, 1], got {args.projection_damping}")
+    if args.curl_gate is None:
+        args.curl_gate = _shipped_config().curl_gate
+    elif args.curl_gate.lower() == "none":
+        args.curl_gate = None
+    else:
+        try:
+            args.curl_gate = float(args.curl_gate)
+        except ValueError:
+            parser.error(f"--curl-gate: expected a number in (0, 1) or 'none', got {args.curl_gate!r}")
+        if not 0.0 < args.curl_gate < 1.0:
+            parser.error(f"--curl-gate: expected a number in (0, 1) or 'none', got {args.curl_gate}")
+    if args.curl_bending is None:
+        args.curl_bending = _shipped_config().curl_bending
+    elif not 0.0 <= args.curl_bending <= 1.0:
+        parser.error(f"--curl-bending: expected a number in [0, 1], got {args.curl_bending}")
+    # What every setting shares with the shipped step (unless told otherwise), so that the grid's row
+    # of the shipped constants is the shipped step.
+    fixed = {"projection_damping": args.projection_damping, "curl_gate": args.curl_gate,
+             "curl_bending": args.curl_bending}
 
     from hairwarp.methods import MethodOptions
     from hairwarp.methods.inertial import InertialMethod
@@ -276,7 +302,7 @@ def main(argv=None) -> int:
     with torch.no_grad():
         for setting in tqdm(grid, desc="settings", dynamic_ncols=True):
             gate, retention, tension, damping, speed, bending, body_hold, hold_distance = setting
-            step = _step(*setting, projection_damping=args.projection_damping).to(device)
+            step = _step(*setting, **fixed).to(device)
             rows = {}
             for name, clip in {**train, **held}.items():
                 clip = on_device(clip)
@@ -301,7 +327,7 @@ def main(argv=None) -> int:
         shipped_key = (*shipped_key[:-1], hold_distances[0])  # a hold of 0 is one setting (above)
     shipped = next((r for r in results if _key(r) == shipped_key), None)
     save_checkpoint(os.path.join(args.out, "chosen_inertial.pt"),
-                    _step(*_key(chosen), projection_damping=args.projection_damping).float(),
+                    _step(*_key(chosen), **fixed).float(),
                     extra={"chosen_by": f"tools/inertial_sweep.py --choose {args.choose}",
                            "train_objective": chosen["train_objective"],
                            "train_swing_goals_met": chosen["train_swing_goals_met"]})
@@ -313,7 +339,7 @@ def main(argv=None) -> int:
             pushed_rows[name] = os.path.join(args.out, f"{name}_inertial.pt")
             save_checkpoint(pushed_rows[name],
                             _step(*_key(chosen), keep_out_state=True, keep_out_equilibrium=True,
-                                  keep_out_velocity=velocity, projection_damping=args.projection_damping).float(),
+                                  keep_out_velocity=velocity, **fixed).float(),
                             extra={"chosen_by": f"tools/inertial_sweep.py --choose {args.choose}, keep_out_state and "
                                                 f"keep_out_equilibrium on, keep_out_velocity {velocity}"})
 
@@ -341,7 +367,7 @@ def main(argv=None) -> int:
     machine = torch.cuda.get_device_name() if device.type == "cuda" else "CPU"
     size = tuple(next(iter(held.values()))["rigid"].shape[1:3]) if held else None
     record = {"command": " ".join(["python3", "tools/inertial_sweep.py", *(argv or sys.argv[1:])]), "device": machine,
-              "size": size, "choose": args.choose, "projection_damping": args.projection_damping,
+              "size": size, "choose": args.choose, **fixed,
               "train_clips": list(train), "held_out": list(held),
               "equilibrium": baseline, "rigid": rigid_rows, "settings": results, "method_rows": method_rows,
               "offset_rates_mm_per_frame": {n: _offset_rates(c) for n, c in {**train, **held}.items()}}
@@ -388,7 +414,8 @@ def _save_lengthwise(results: list[dict], train: list[str], baseline: dict, args
         length = float((rigid[:, 1:] - rigid[:, :-1]).norm(dim=-1).sum(-1).median())
         anchors.append((length, best["gate"], best["retention"], best["tension"], style))
     anchors.sort()
-    step = _step(0.98, 0.9, 1.0, *_key(results[0])[3:], projection_damping=args.projection_damping)
+    step = _step(0.98, 0.9, 1.0, *_key(results[0])[3:], projection_damping=args.projection_damping,
+                 curl_gate=args.curl_gate, curl_bending=args.curl_bending)
     error = fit_constants_by_length(step, [a[:4] for a in anchors])
     save_checkpoint(os.path.join(args.out, "lengthwise_inertial.pt"), step.float(),
                     extra={"chosen_by": f"tools/inertial_sweep.py --choose {args.choose}, per hairstyle",

@@ -34,7 +34,11 @@ half a hanging strand's tension, the equilibrium's offset from the rigid placeme
 and a bending term of 3e4 (`InertialConfig.bending`: the strand keeps its shape while it swings,
 which lets a weak pull swing without overshooting), and dynamic follow-the-leader's velocity
 correction at 0.9 (`InertialConfig.projection_damping`, the thirty-second session: without it the
-step amplifies a kick on long curly hair, docs/network_diagnosis.md, T23). The rest is the setting of a 48-point grid that
+step amplifies a kick on long curly hair, docs/network_diagnosis.md, T23). Curled strands (rest
+curliness past 0.1, all of the long curls) keep none of the bending and take G = 0.99
+(`InertialConfig.curl_bending`, `curl_gate`, the thirty-third session: a curl then bounces as the
+physics' does; on the held-out curly walk the swing correlation 0.46 -> 0.60, amplitude 0.67 ->
+0.84, T24). The rest is the setting of a 48-point grid that
 meets the most goals (swing correlation and amplitude, worst strands no farther from the physics
 than the rigid placement's) on eight full-size training clips (`tools/inertial_sweep.py`; training
 by rollouts never moved the step at full size). On the held-out motions at full size it meets 13

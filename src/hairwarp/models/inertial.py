@@ -91,6 +91,14 @@ DAMPINGS = ("relative", "absolute")
 COUPLINGS = ("vertex", "chain")
 # The velocity a frame pushed out of the body hands on (`InertialConfig.keep_out_velocity`).
 KEEP_OUT_VELOCITIES = ("pushed", "raw", "tangential")
+# Rest curliness (`strand_curliness`) where `InertialConfig.curl_bending` starts to act and where it
+# acts whole. The procedural presets (1 - chord / arc over 12 cm, strand means): long straight
+# 0.000-0.022, bob 0.000-0.051, short straight 0.000-0.121, medium wavy 0.036-0.106, long curly
+# 0.223-0.412.
+CURL_ONSET = 0.1
+CURL_FULL = 0.25
+# The arc over which a strand's chord is compared to its arc length [m]: a few turns of a curl.
+CURL_WINDOW = 0.12
 
 
 @dataclass(frozen=True)
@@ -155,6 +163,17 @@ class InertialConfig(_DictConfig):
         projection_damping: s in [0, 1], dynamic follow-the-leader's velocity correction (module
             docstring): the share of the next vertex's projection correction taken from each
             vertex's velocity. 0: the projected positions' own velocity.
+        curl_bending: the share of `bending` a curled strand keeps, in [0, 1] (1: every strand the
+            same). A curl bounces as a spring, uncoiling and coiling as the head bobs, and that
+            breathing is the offset's second differences that the bending term penalises
+            (docs/network_diagnosis.md, T22: without bending the step's curls bounce as far as the
+            physics'). Each strand's bending is b (1 - w (1 - curl_bending)), w its rest curliness
+            (`strand_curliness`) mapped linearly from 0 at `CURL_ONSET` to 1 at `CURL_FULL`:
+            straight and wavy hair keep b whatever this is.
+        curl_gate: G of a curled strand's vertices, in (0, 1), blended with the MLP's G by the same
+            weight w in logit space; None: the MLP's G for every strand. Without its bending a curl
+            swings as a softer pendulum (slower and wider than the physics' along the walk,
+            docs/network_diagnosis.md, T24); a stronger pull gives the pendulum back its pace.
     """
 
     hidden_dim: int = 32
@@ -174,6 +193,8 @@ class InertialConfig(_DictConfig):
     settle_steps: int = 0
     settle_momentum: float = 0.8
     projection_damping: float = 0.0
+    curl_bending: float = 1.0
+    curl_gate: float | None = None
 
     def __post_init__(self):
         if not isinstance(self.hidden_dim, int) or isinstance(self.hidden_dim, bool) or self.hidden_dim <= 0:
@@ -218,6 +239,12 @@ class InertialConfig(_DictConfig):
         damping = self.projection_damping
         if not isinstance(damping, (int, float)) or isinstance(damping, bool) or not 0.0 <= damping <= 1.0:
             raise ValueError(f"InertialConfig.projection_damping: expected a number in [0, 1], got {damping!r}")
+        share = self.curl_bending
+        if not isinstance(share, (int, float)) or isinstance(share, bool) or not 0.0 <= share <= 1.0:
+            raise ValueError(f"InertialConfig.curl_bending: expected a number in [0, 1], got {share!r}")
+        gate = self.curl_gate
+        if gate is not None and (not isinstance(gate, (int, float)) or isinstance(gate, bool) or not 0.0 < gate < 1.0):
+            raise ValueError(f"InertialConfig.curl_gate: expected None or a number in (0, 1), got {gate!r}")
         if self.keep_out_velocity not in KEEP_OUT_VELOCITIES:
             raise ValueError(f"InertialConfig.keep_out_velocity: expected one of {list(KEEP_OUT_VELOCITIES)}, got "
                              f"{self.keep_out_velocity!r}")
@@ -244,6 +271,50 @@ def _rest_arc_lengths(rigid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return seg, torch.cat([torch.zeros_like(seg[:, :1]), seg.cumsum(dim=1)], dim=1)
 
 
+def strand_curliness(rigid: torch.Tensor, window: float = CURL_WINDOW) -> torch.Tensor:
+    """How curled each strand rests: the mean over its vertices of 1 - chord / arc, the chord from
+    the vertex to the first vertex at least `window` of arc farther along the strand.
+
+    0 for a straight strand (a wave or a droop gives a few hundredths), ~0.3 for the procedural
+    long curls; vertices with less than half a window of strand left beyond them are not counted
+    (a strand shorter than half a window reads 0).
+
+    Args:
+        rigid: (..., M, N, 3) strands at their rest lengths [m] (the first frame is read).
+        window: the arc length compared [m], > 0.
+
+    Returns:
+        (M,) curliness in [0, 1), `rigid`'s dtype.
+    """
+    if not window > 0:
+        raise ValueError(f"window: expected a positive arc length [m], got {window!r}")
+    strands = rigid.reshape(-1, *rigid.shape[-3:])[0].double()
+    _, s = _rest_arc_lengths(strands)
+    ahead = torch.searchsorted(s.contiguous(), (s + window).contiguous()).clamp(max=s.shape[1] - 1)
+    arc = s.gather(1, ahead) - s
+    chord = (strands.gather(1, ahead[..., None].expand(-1, -1, 3)) - strands).norm(dim=-1)
+    counted = arc > 0.5 * window
+    straightness = torch.where(counted, chord / arc.clamp_min(1e-12), torch.ones_like(arc))
+    curl = (1.0 - straightness).clamp_min(0.0).sum(dim=1) / counted.sum(dim=1).clamp_min(1)
+    return curl.to(rigid.dtype)
+
+
+def curl_weight(rigid: torch.Tensor) -> torch.Tensor:
+    """(M,) how much of a curled strand's settings each strand takes (`InertialConfig.curl_bending`,
+    `curl_gate`): its rest curliness mapped linearly from 0 at `CURL_ONSET` to 1 at `CURL_FULL`,
+    float64.
+    """
+    curl = strand_curliness(rigid).double()
+    return ((curl - CURL_ONSET) / (CURL_FULL - CURL_ONSET)).clamp(0.0, 1.0)
+
+
+def strand_bending(rigid: torch.Tensor, config: InertialConfig) -> torch.Tensor:
+    """(M,) each strand's bending stiffness: `config.bending`, scaled on curled strands by
+    `config.curl_bending` (its docstring), float64.
+    """
+    return float(config.bending) * (1.0 - curl_weight(rigid) * (1.0 - float(config.curl_bending)))
+
+
 def hanging_chain_tension(rigid: torch.Tensor, fps: float) -> torch.Tensor:
     """The chain's tension weight w of a strand hanging under its weight: (M, N-2), the segment
     above each free vertex (`hairwarp.ops.strand_preconditioner.hanging_tension`:
@@ -260,16 +331,16 @@ def hanging_chain_tension(rigid: torch.Tensor, fps: float) -> torch.Tensor:
     return hanging_tension(seg, 1.0 / fps, g).to(seg.dtype)[:, NUM_FIXED_VERTICES - 1:]
 
 
-def chain_operator(gate_logit: torch.Tensor, tension: torch.Tensor, bending: float = 0.0) -> torch.Tensor:
+def chain_operator(gate_logit: torch.Tensor, tension: torch.Tensor, bending: float | torch.Tensor = 0.0) -> torch.Tensor:
     """(I + D + L_w + b A^T A)^-1 of every strand (module docstring), made in float64.
 
     Args:
         gate_logit: (M, n) the logit of G of the n free vertices: D = (1 - G) / G = exp(-logit).
         tension: (M, n) w >= 0 of the segment above each free vertex (the first one's ties it to
             the fixed vertex 1, whose offset is 0).
-        bending: b >= 0; A (n, n) maps the free vertices' offsets to the second differences
-            d[c-1] - 2 d[c] + d[c+1] at c = 1 .. n (the two fixed vertices' offsets 0: a clamped
-            root; `InertialConfig.bending`).
+        bending: b >= 0, one for every strand or (M,) one each (`strand_bending`); A (n, n) maps
+            the free vertices' offsets to the second differences d[c-1] - 2 d[c] + d[c+1] at
+            c = 1 .. n (the two fixed vertices' offsets 0: a clamped root; `InertialConfig.bending`).
 
     Returns:
         (M, n, n) the symmetric positive definite operator's inverse (float64).
@@ -277,14 +348,19 @@ def chain_operator(gate_logit: torch.Tensor, tension: torch.Tensor, bending: flo
     from hairwarp.ops.strand_preconditioner import chain_matrix
 
     matrix = chain_matrix(1.0 + torch.exp(-gate_logit.double()), tension)
-    if bending:
+    per_strand = isinstance(bending, torch.Tensor)
+    if per_strand or bending:
         n = matrix.shape[-1]
         # Second differences centred on vertices 1 .. n of the strand (free vertex j is strand vertex j + 2).
         full = torch.zeros(n, n + 2, dtype=torch.float64, device=matrix.device)
         rows = torch.arange(n, device=matrix.device)
         full[rows, rows], full[rows, rows + 1], full[rows, rows + 2] = 1.0, -2.0, 1.0
         second = full[:, 2:]
-        matrix = matrix + float(bending) * (second.T @ second)
+        penalty = second.T @ second
+        if per_strand:
+            matrix = matrix + bending.to(matrix)[:, None, None] * penalty
+        else:
+            matrix = matrix + float(bending) * penalty
     return torch.cholesky_inverse(torch.linalg.cholesky(matrix))
 
 
@@ -382,6 +458,11 @@ class InertialStep(nn.Module):
         dtype = next(self.parameters()).dtype
         features = vertex_features(rigid).to(dtype)
         raw = self.net(features)
+        if self.config.curl_gate is not None:
+            # Curled strands' G blended toward curl_gate in logit space (`InertialConfig.curl_gate`).
+            weight = curl_weight(rigid).to(raw.dtype)[:, None, None]
+            curled = math.log(self.config.curl_gate / (1.0 - self.config.curl_gate))
+            raw = torch.cat([(1.0 - weight) * raw[..., :1] + weight * curled, raw[..., 1:]], dim=-1)
         out = torch.sigmoid(raw[..., :2])
         fixed = torch.ones_like(out[..., :1])
         fixed[:, :NUM_FIXED_VERTICES] = 0.0
@@ -391,7 +472,10 @@ class InertialStep(nn.Module):
             return gate, retention
         # w: the hanging chain's tension times a learned factor (tension_init at the start).
         tension = hanging_chain_tension(rigid, self.config.fps) * torch.exp(raw[:, NUM_FIXED_VERTICES:, 2])
-        operator = chain_operator(raw[:, NUM_FIXED_VERTICES:, 0], tension, self.config.bending)
+        bending = self.config.bending
+        if bending and self.config.curl_bending != 1.0:
+            bending = strand_bending(rigid, self.config)
+        operator = chain_operator(raw[:, NUM_FIXED_VERTICES:, 0], tension, bending)
         return operator.to(rigid.dtype), retention
 
     def step(self, equilibrium: torch.Tensor, rigid: torch.Tensor, prev: torch.Tensor, prev2: torch.Tensor,
@@ -650,6 +734,7 @@ def fit_constants_by_length(step: InertialStep, anchors, *, iterations: int = 30
         return float((step.net(check).double() - targets[:, :outputs]).abs().max())
 
 
-__all__ = ["COUPLINGS", "DAMPINGS", "InertialConfig", "InertialStep", "NUM_VERTEX_FEATURES", "RolloutCarry",
-           "body_held_chain_relaxation", "body_hold_weights", "chain_operator", "fit_constants_by_length",
-           "hanging_chain_tension", "limited_change", "vertex_features"]
+__all__ = ["COUPLINGS", "CURL_FULL", "CURL_ONSET", "CURL_WINDOW", "DAMPINGS", "InertialConfig", "InertialStep",
+           "NUM_VERTEX_FEATURES", "RolloutCarry", "body_held_chain_relaxation", "body_hold_weights", "chain_operator",
+           "curl_weight", "fit_constants_by_length", "hanging_chain_tension", "limited_change", "strand_bending",
+           "strand_curliness", "vertex_features"]
