@@ -91,10 +91,10 @@ DAMPINGS = ("relative", "absolute")
 COUPLINGS = ("vertex", "chain")
 # The velocity a frame pushed out of the body hands on (`InertialConfig.keep_out_velocity`).
 KEEP_OUT_VELOCITIES = ("pushed", "raw", "tangential")
-# Rest curliness (`strand_curliness`) where `InertialConfig.curl_bending` starts to act and where it
-# acts whole. The procedural presets (1 - chord / arc over 12 cm, strand means): long straight
-# 0.000-0.022, bob 0.000-0.051, short straight 0.000-0.121, medium wavy 0.036-0.106, long curly
-# 0.223-0.412.
+# Rest curliness (`strand_curliness`) where a strand starts to take the curled strands' settings
+# (`InertialConfig.curl_bending`, `curl_gate`) and where it takes them whole. The procedural presets
+# (1 - chord / arc over 12 cm, strand means): long straight 0.000-0.022, bob 0.000-0.051, short
+# straight 0.000-0.121, medium wavy 0.036-0.106, long curly 0.223-0.412.
 CURL_ONSET = 0.1
 CURL_FULL = 0.25
 # The arc over which a strand's chord is compared to its arc length [m]: a few turns of a curl.
