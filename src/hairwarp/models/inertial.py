@@ -93,8 +93,8 @@ COUPLINGS = ("vertex", "chain")
 KEEP_OUT_VELOCITIES = ("pushed", "raw", "tangential")
 # Rest curliness (`strand_curliness`) where a strand starts to take the curled strands' settings
 # (`InertialConfig.curl_bending`, `curl_gate`) and where it takes them whole. The procedural presets
-# (1 - chord / arc over 12 cm, strand means): long straight 0.000-0.022, bob 0.000-0.051, short
-# straight 0.000-0.121, medium wavy 0.036-0.106, long curly 0.223-0.412.
+# at full size (1 - chord / arc over 12 cm, strand means): long straight 0.000-0.027, bob 0.000-0.069,
+# short straight 0.000-0.124, medium wavy 0.025-0.111, long curly 0.180-0.412.
 CURL_ONSET = 0.1
 CURL_FULL = 0.25
 # The arc over which a strand's chord is compared to its arc length [m]: a few turns of a curl.
