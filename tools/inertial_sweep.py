@@ -125,6 +125,14 @@ def _step(gate: float, retention: float, tension: float, damping: str = "absolut
                                        curl_gate=curl_gate, curl_bending=curl_bending))
 
 
+def _fixed(args) -> dict:
+    """What every setting shares with the shipped step (unless the command line says otherwise), so
+    that the grid's row of the shipped constants is the shipped step.
+    """
+    return {"projection_damping": args.projection_damping, "curl_gate": args.curl_gate,
+            "curl_bending": args.curl_bending}
+
+
 def _key(r: dict) -> tuple:
     return (r["gate"], r["retention"], r["tension"], r.get("damping", "absolute"), r.get("equilibrium_speed"),
             r.get("bending", 0.0), r.get("body_hold", 0.0), r.get("body_hold_distance", 0.02))
@@ -247,10 +255,7 @@ def main(argv=None) -> int:
         args.curl_bending = _shipped_config().curl_bending
     elif not 0.0 <= args.curl_bending <= 1.0:
         parser.error(f"--curl-bending: expected a number in [0, 1], got {args.curl_bending}")
-    # What every setting shares with the shipped step (unless told otherwise), so that the grid's row
-    # of the shipped constants is the shipped step.
-    fixed = {"projection_damping": args.projection_damping, "curl_gate": args.curl_gate,
-             "curl_bending": args.curl_bending}
+    fixed = _fixed(args)
 
     from hairwarp.methods import MethodOptions
     from hairwarp.methods.inertial import InertialMethod
@@ -414,8 +419,7 @@ def _save_lengthwise(results: list[dict], train: list[str], baseline: dict, args
         length = float((rigid[:, 1:] - rigid[:, :-1]).norm(dim=-1).sum(-1).median())
         anchors.append((length, best["gate"], best["retention"], best["tension"], style))
     anchors.sort()
-    step = _step(0.98, 0.9, 1.0, *_key(results[0])[3:], projection_damping=args.projection_damping,
-                 curl_gate=args.curl_gate, curl_bending=args.curl_bending)
+    step = _step(0.98, 0.9, 1.0, *_key(results[0])[3:], **_fixed(args))
     error = fit_constants_by_length(step, [a[:4] for a in anchors])
     save_checkpoint(os.path.join(args.out, "lengthwise_inertial.pt"), step.float(),
                     extra={"chosen_by": f"tools/inertial_sweep.py --choose {args.choose}, per hairstyle",
